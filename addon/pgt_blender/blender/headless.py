@@ -1,0 +1,45 @@
+"""Plumbing shared by headless_scripts/: the same script runs as
+``blender -b [file.blend] -P script.py -- ARGS`` and as ``python script.py ARGS``."""
+
+import atexit
+import sys
+
+import bpy
+
+
+def script_argv() -> list:
+    """The script's own arguments: those after ``--`` (Blender's convention), else argv[1:]."""
+    return sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+
+
+def ensure_registered() -> None:
+    """Register the add-on unless Blender already has it enabled. Unregister at exit:
+    the bpy module hangs on exit while Python-defined operators are registered."""
+    if hasattr(bpy.types.Object, "pgt"):
+        return
+    from .. import register, unregister
+
+    register()
+    atexit.register(unregister)
+
+
+def start_scene() -> None:
+    """An empty scene, unless a .blend was given on Blender's command line."""
+    if not bpy.data.filepath:
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+
+
+def object_summary(obj: bpy.types.Object) -> dict:
+    """What arrived in Blender for an imported object, as JSON-ready values."""
+    mesh = obj.data
+    return {
+        "object": obj.name,
+        "kind": obj.pgt.source_kind,
+        "path": obj.pgt.source_path,
+        "sha256": obj.pgt.source_sha256,
+        "points": len(mesh.vertices),
+        "faces": len(mesh.polygons),
+        "cameras": sum(child.type == "CAMERA" for child in obj.children),
+        "attributes": sorted(a.name for a in mesh.attributes
+                             if not a.name.startswith(".") and a.name != "position"),
+    }

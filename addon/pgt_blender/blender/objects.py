@@ -1,0 +1,116 @@
+"""Create Blender data from core results, in bulk (``foreach_set``, no per-point Python).
+
+Frames: a reconstruction object keeps the source frame as its local frame (identity
+matrix on import). Its cameras are children of it, so they follow when the
+authoring steps move the object. Blender cameras look along their local -z with +y
+up; COLMAP/OpenCV cameras look along +z with +y down, hence ``_BLENDER_FROM_OPENCV``.
+"""
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+from ..core.reconstruction import CameraView, Reconstruction
+
+_BLENDER_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+_SENSOR_WIDTH_MM = 36.0
+_ATTRIBUTE_TYPES = {  # (dtype kind, columns) -> (Blender type, foreach_set field)
+    ("f", 1): ("FLOAT", "value"), ("i", 1): ("INT", "value"),
+    ("f", 2): ("FLOAT2", "vector"), ("f", 3): ("FLOAT_VECTOR", "vector"),
+    ("f", 4): ("QUATERNION", "value"),
+}
+
+
+def add_reconstruction(collection: bpy.types.Collection, recon: Reconstruction,
+                       with_cameras: bool = True) -> bpy.types.Object:
+    """Link a new object holding ``recon`` (and its cameras as children) into
+    ``collection``. On any failure every datablock made so far is removed again."""
+    made = []
+    try:
+        mesh = _mesh(recon, made)
+        obj = bpy.data.objects.new(recon.name, mesh)
+        made.append(obj)
+        settings = obj.pgt
+        settings.source_path = str(recon.source)
+        settings.source_kind = recon.kind
+        settings.source_sha256 = recon.sha256
+        collection.objects.link(obj)
+        if with_cameras and recon.cameras:
+            extent = float(np.ptp(recon.positions, axis=0).max())
+            for view in recon.cameras:
+                camera = _camera(view, extent, made)
+                camera.parent = obj
+                collection.objects.link(camera)
+        return obj
+    except BaseException:
+        remove_datablocks(made)
+        raise
+
+
+def remove_datablocks(datablocks) -> None:
+    """Remove objects, meshes and cameras (objects first, so data has no users)."""
+    for block in sorted(datablocks, key=lambda b: not isinstance(b, bpy.types.Object)):
+        collection = {bpy.types.Object: bpy.data.objects, bpy.types.Mesh: bpy.data.meshes,
+                      bpy.types.Camera: bpy.data.cameras}[type(block)]
+        collection.remove(block)
+
+
+def _mesh(recon: Reconstruction, made: list) -> bpy.types.Mesh:
+    mesh = bpy.data.meshes.new(recon.name)
+    made.append(mesh)
+    mesh.vertices.add(len(recon.positions))
+    mesh.attributes["position"].data.foreach_set("vector", recon.positions.ravel())
+    if len(recon.faces):
+        corners = recon.faces.ravel()
+        mesh.loops.add(len(corners))
+        mesh.polygons.add(len(recon.faces))
+        mesh.loops.foreach_set("vertex_index", corners)
+        mesh.polygons.foreach_set("loop_start", np.arange(0, len(corners), 3, dtype=np.int32))
+    if recon.colors is not None:
+        colors = mesh.color_attributes.new("Col", "BYTE_COLOR", "POINT")
+        colors.data.foreach_set("color_srgb", recon.colors.ravel())
+        mesh.color_attributes.active_color = colors
+    for name, values in recon.attributes.items():
+        _add_attribute(mesh, name, values)
+    mesh.update(calc_edges=bool(len(recon.faces)))
+    return mesh
+
+
+def _add_attribute(mesh: bpy.types.Mesh, name: str, values: np.ndarray) -> None:
+    columns = 1 if values.ndim == 1 else values.shape[1]
+    data_type, field = _ATTRIBUTE_TYPES[(values.dtype.kind, columns)]
+    attribute = mesh.attributes.new(name, data_type, "POINT")
+    attribute.data.foreach_set(field, np.ascontiguousarray(values).ravel())
+
+
+def camera_intrinsics(view: CameraView) -> dict:
+    """Blender camera settings reproducing the pinhole (fx, cx, cy) of ``view``.
+
+    Horizontal sensor fit: ``lens`` / ``sensor_width`` = fx / width. Shifts are in
+    units of the image width; +x shift moves the principal point right, +y up (the
+    image's v axis points down, hence the sign flip).
+    """
+    return {
+        "sensor_fit": "HORIZONTAL",
+        "sensor_width": _SENSOR_WIDTH_MM,
+        "lens": view.fx * _SENSOR_WIDTH_MM / view.width,
+        "shift_x": (view.cx - view.width / 2) / view.width,
+        "shift_y": (view.height / 2 - view.cy) / view.width,
+    }
+
+
+def _camera(view: CameraView, extent: float, made: list) -> bpy.types.Object:
+    data = bpy.data.cameras.new(view.name)
+    made.append(data)
+    for key, value in camera_intrinsics(view).items():
+        setattr(data, key, value)
+    data.display_size = max(extent * 0.05, 1e-3)
+    camera = bpy.data.objects.new(view.name, data)
+    made.append(camera)
+    camera.matrix_world = Matrix((view.world_from_camera @ _BLENDER_FROM_OPENCV).tolist())
+    # What Blender cannot represent stays readable on the object.
+    camera["pgt_resolution"] = (view.width, view.height)
+    camera["pgt_focal_px"] = (view.fx, view.fy)
+    camera["pgt_camera_model"] = view.model
+    camera["pgt_camera_params"] = list(view.params)
+    return camera

@@ -1,0 +1,18 @@
+"""Object classes and their dataset sizes (metres), from REFERENCE.md section 3."""
+
+# nuScenes (length, width, height) mean and std; length is along the heading (+x).
+NUSCENES_SIZES = {
+    "car": ((4.62, 1.96, 1.73), (0.46, 0.16, 0.24)),
+    "truck": ((6.94, 2.52, 2.84), (2.11, 0.45, 0.84)),
+    "construction_vehicle": ((6.68, 2.85, 3.21), (3.23, 1.07, 0.93)),
+    "bus": ((11.22, 2.95, 3.50), (2.06, 0.33, 0.49)),
+    "trailer": ((12.56, 2.94, 3.89), (4.50, 0.54, 0.77)),
+    "motorcycle": ((2.11, 0.78, 1.46), (0.33, 0.17, 0.29)),
+    "bicycle": ((1.70, 0.61, 1.29), (0.26, 0.16, 0.35)),
+    "pedestrian": ((0.73, 0.67, 1.77), (0.19, 0.14, 0.19)),
+    "traffic_cone": ((0.41, 0.41, 1.08), (0.14, 0.13, 0.27)),
+    "barrier": ((0.50, 2.52, 0.99), (0.17, 0.62, 0.15)),
+}
+
+# The paper's minority classes: the ones pgt_blender builds banks for.
+MINORITY_CLASSES = ("truck", "bus", "trailer", "construction_vehicle", "motorcycle", "bicycle")

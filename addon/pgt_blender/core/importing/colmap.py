@@ -1,0 +1,76 @@
+"""COLMAP sparse model folder -> Reconstruction, through pycolmap."""
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..reconstruction import CameraView, Reconstruction
+from .source import checked_positions, sha256_of_files
+
+MODEL_FILES = ("cameras", "images", "points3D")
+
+
+def model_files(folder: Path) -> list:
+    """The three model files of ``folder`` (all .bin, else all .txt, as COLMAP reads
+    them); InputError naming what is missing."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(folder, "not a folder; a COLMAP model is a folder with cameras, images, points3D")
+    for extension in (".bin", ".txt"):
+        files = [folder / (name + extension) for name in MODEL_FILES]
+        present = [f.exists() for f in files]
+        if all(present):
+            return files
+        if any(present):
+            missing = ", ".join(f.name for f, ok in zip(files, present) if not ok)
+            raise InputError(folder, f"COLMAP model is missing {missing}")
+    hint = " (try its sparse/0 sub-folder)" if (folder / "sparse" / "0").is_dir() else ""
+    raise InputError(folder, f"no COLMAP model files (cameras, images, points3D as .bin or .txt){hint}")
+
+
+def load_colmap(folder: Path, with_cameras: bool = True) -> Reconstruction:
+    """Points with RGB, ``track_length`` (int32) and ``reprojection_error`` (pixels),
+    and, with ``with_cameras``, one CameraView per registered image, in the model's
+    world frame."""
+    import pycolmap  # imported here: only this importer needs the compiled library
+
+    folder = Path(folder)
+    files = model_files(folder)
+    try:
+        model = pycolmap.Reconstruction(str(folder))
+    except Exception as error:  # pycolmap raises bare RuntimeError/ValueError for bad files
+        raise InputError(folder, f"COLMAP model could not be read: {_first_line(error)}") from None
+    points = list(model.points3D.values())
+    # pycolmap exposes points one object at a time; sparse models are ~1e3-1e6 points.
+    positions = np.array([p.xyz for p in points], np.float64).reshape(-1, 3)
+    colors = np.ones((len(points), 4), np.float32)
+    colors[:, :3] = np.array([p.color for p in points], np.float32).reshape(-1, 3) / 255.0
+    attributes = {
+        "track_length": np.array([p.track.length() for p in points], np.int32),
+        "reprojection_error": np.array([p.error for p in points], np.float32),
+    }
+    cameras = [_camera_view(image) for image in model.images.values() if image.has_pose] if with_cameras else []
+    return Reconstruction(
+        positions=checked_positions(folder, positions),
+        kind="colmap", source=folder, sha256=sha256_of_files(files),
+        colors=colors, attributes=attributes, cameras=sorted(cameras, key=lambda c: c.name),
+    )
+
+
+def _camera_view(image) -> CameraView:
+    camera = image.camera
+    world_from_camera = np.eye(4)
+    world_from_camera[:3] = image.cam_from_world().inverse().matrix()
+    return CameraView(
+        name=image.name, width=int(camera.width), height=int(camera.height),
+        fx=float(camera.focal_length_x), fy=float(camera.focal_length_y),
+        cx=float(camera.principal_point_x), cy=float(camera.principal_point_y),
+        world_from_camera=world_from_camera,
+        model=camera.model.name, params=tuple(float(p) for p in camera.params),
+    )
+
+
+def _first_line(error: Exception) -> str:
+    text = str(error).strip() or type(error).__name__
+    return text.splitlines()[-1] if "\n" in text else text

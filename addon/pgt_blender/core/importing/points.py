@@ -1,0 +1,101 @@
+"""Point PLY and Gaussian-splat PLY -> Reconstruction (vectorised numpy)."""
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..reconstruction import Reconstruction
+from .ply import PlyHeader, read_vertices
+from .source import checked_positions, sha256_of_files
+
+SH_C0 = 0.28209479177387814  # zeroth real spherical-harmonic basis, 1 / (2 sqrt(pi))
+SPLAT_FIELDS = ("f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+                "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
+_XYZ = ("x", "y", "z")
+_RGB = ("red", "green", "blue")
+_NORMAL = ("nx", "ny", "nz")
+
+
+def is_gaussian_splat(header: PlyHeader) -> bool:
+    """True when the vertex element carries the 3DGS fields (f_dc, opacity, scale, rot)."""
+    vertex = header.element("vertex")
+    names = {name for name, _ in vertex.properties} if vertex else set()
+    return set(SPLAT_FIELDS) <= names
+
+
+def load_point_ply(path: Path, header: PlyHeader) -> Reconstruction:
+    """Points with optional colours (red/green/blue[/alpha], uchar 0..255 or float 0..1)
+    and normals (nx, ny, nz -> ``normal``); every other scalar property is kept as an
+    attribute under its own name."""
+    data = read_vertices(path, header)
+    names = set(data.dtype.names)
+    _require(path, names, _XYZ, "a point PLY")
+    attributes = _leftover_attributes(data, _XYZ + _RGB + ("alpha",) + _NORMAL)
+    if set(_NORMAL) <= names:
+        attributes["normal"] = _stack(data, _NORMAL)
+    colors = None
+    if set(_RGB) <= names:
+        channels = _RGB + (("alpha",) if "alpha" in names else ())
+        colors = np.ones((len(data), 4), np.float32)
+        colors[:, : len(channels)] = _stack(data, channels)
+        if data.dtype["red"].kind in "iu":
+            colors[:, : len(channels)] /= 255.0
+    return Reconstruction(
+        positions=checked_positions(path, _stack(data, _XYZ)),
+        kind="point_ply", source=Path(path), sha256=sha256_of_files([path]),
+        colors=colors, attributes=attributes,
+    )
+
+
+def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
+    """A 3D Gaussian Splatting PLY with 3DGS's activations applied:
+
+    - colour = clip(0.5 + SH_C0 * f_dc, 0, 1) (the view-independent DC term);
+    - ``opacity`` = sigmoid(stored logit), in (0, 1);
+    - ``scale`` (N, 3) = exp(stored log-scale), in source units;
+    - ``rotation`` (N, 4) = stored quaternion (w, x, y, z) normalised to unit length;
+    - ``f_dc_*``, ``f_rest_*`` (SH degree 0..3) and any other field kept raw.
+    """
+    data = read_vertices(path, header)
+    names = set(data.dtype.names)
+    _require(path, names, _XYZ + SPLAT_FIELDS, "a Gaussian-splat PLY")
+    rest = sorted((n for n in names if n.startswith("f_rest_")), key=lambda n: int(n[7:]))
+    if len(rest) not in (0, 9, 24, 45) or rest != [f"f_rest_{i}" for i in range(len(rest))]:
+        raise InputError(
+            path, f"{len(rest)} f_rest_* fields; spherical harmonics of degree 1, 2 or 3 "
+            "need 9, 24 or 45 numbered from f_rest_0"
+        )
+    rotation = _stack(data, ("rot_0", "rot_1", "rot_2", "rot_3")).astype(np.float64)
+    length = np.linalg.norm(rotation, axis=1)
+    if not (length > 0).all():
+        raise InputError(path, f"{int((length <= 0).sum())} splats have a zero-length rotation quaternion")
+    attributes = _leftover_attributes(data, _XYZ + SPLAT_FIELDS[3:])
+    attributes["opacity"] = (1.0 / (1.0 + np.exp(-data["opacity"].astype(np.float64)))).astype(np.float32)
+    attributes["scale"] = np.exp(_stack(data, ("scale_0", "scale_1", "scale_2")).astype(np.float64)).astype(np.float32)
+    attributes["rotation"] = (rotation / length[:, None]).astype(np.float32)
+    colors = np.ones((len(data), 4), np.float32)
+    colors[:, :3] = np.clip(0.5 + SH_C0 * _stack(data, SPLAT_FIELDS[:3]), 0.0, 1.0)
+    return Reconstruction(
+        positions=checked_positions(path, _stack(data, _XYZ)),
+        kind="gaussian_splat", source=Path(path), sha256=sha256_of_files([path]),
+        colors=colors, attributes=attributes,
+    )
+
+
+def _require(path, names, required, what):
+    missing = [name for name in required if name not in names]
+    if missing:
+        raise InputError(path, f"not {what}: missing vertex properties {', '.join(missing)}")
+
+
+def _stack(data: np.ndarray, names) -> np.ndarray:
+    return np.column_stack([data[name] for name in names]).astype(np.float32, copy=False)
+
+
+def _leftover_attributes(data: np.ndarray, consumed) -> dict:
+    """Every property not in ``consumed`` as a per-point attribute (ints stay ints)."""
+    return {
+        name: data[name].astype(np.int32 if data.dtype[name].kind in "iu" else np.float32)
+        for name in data.dtype.names if name not in consumed
+    }

@@ -1,0 +1,54 @@
+"""Import a reconstruction (COLMAP folder, Gaussian-splat / point / mesh PLY, OBJ, GLB,
+GLTF, STL) into a Blender scene, headless.
+
+    .venv/bin/python headless_scripts/import_reconstruction.py INPUT [--out scene.blend] [--json]
+    blender -b [file.blend] -P headless_scripts/import_reconstruction.py -- INPUT [...]
+
+--json prints one JSON object (points, faces, cameras, attributes, kind, sha256, ...).
+Exit status 1 and a one-line message on bad input; nothing is written then.
+"""
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
+
+import bpy  # noqa: E402
+
+from pgt_blender.blender import headless, objects  # noqa: E402
+from pgt_blender.core.errors import InputError  # noqa: E402
+from pgt_blender.core.importing import load_reconstruction  # noqa: E402
+
+
+def main(argv: list) -> int:
+    parser = argparse.ArgumentParser(prog="import_reconstruction.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("input", type=Path, help="COLMAP model folder or reconstruction file")
+    parser.add_argument("--out", type=Path, help="save the scene to this .blend")
+    parser.add_argument("--json", action="store_true", help="print what arrived as one JSON object")
+    parser.add_argument("--no-cameras", action="store_true", help="skip COLMAP cameras")
+    args = parser.parse_args(argv)
+    headless.ensure_registered()
+    headless.start_scene()
+    try:
+        recon = load_reconstruction(args.input, with_cameras=not args.no_cameras)
+    except InputError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 1
+    obj = objects.add_reconstruction(bpy.context.scene.collection, recon, not args.no_cameras)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        bpy.ops.wm.save_as_mainfile(filepath=str(args.out.resolve()))
+    summary = headless.object_summary(obj)
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"imported {summary['object']} ({summary['kind']}): {summary['points']} points, "
+              f"{summary['faces']} faces, {summary['cameras']} cameras"
+              + (f" -> {args.out}" if args.out else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(headless.script_argv()))
