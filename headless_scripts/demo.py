@@ -32,7 +32,7 @@ def main(argv: list) -> int:
     for class_name in MINORITY_CLASSES:
         paths = write_sample(out / "samples", class_name, seed=args.seed)
         for role in ("reconstruction.ply", "mesh.ply"):
-            obj = objects.add_reconstruction(bpy.context.scene.collection, load_reconstruction(paths[role]))
+            obj = objects.add_reconstruction(bpy.context.scene, load_reconstruction(paths[role]))
             obj.pgt.class_name = class_name
             rows.append(headless.object_summary(obj))
     blend = out / "demo.blend"

@@ -36,7 +36,7 @@ def main(argv: list) -> int:
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 1
-    obj = objects.add_reconstruction(bpy.context.scene.collection, recon, not args.no_cameras)
+    obj = objects.add_reconstruction(bpy.context.scene, recon, not args.no_cameras)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         bpy.ops.wm.save_as_mainfile(filepath=str(args.out.resolve()))

@@ -21,10 +21,13 @@ _ATTRIBUTE_TYPES = {  # (dtype kind, columns) -> (Blender type, foreach_set fiel
 }
 
 
-def add_reconstruction(collection: bpy.types.Collection, recon: Reconstruction,
-                       with_cameras: bool = True) -> bpy.types.Object:
+def add_reconstruction(scene: bpy.types.Scene, recon: Reconstruction, with_cameras: bool = True,
+                       collection: bpy.types.Collection | None = None) -> bpy.types.Object:
     """Link a new object holding ``recon`` (and its cameras as children) into
-    ``collection``. On any failure every datablock made so far is removed again."""
+    ``collection`` (default: the scene's master collection). With cameras, the scene's
+    render resolution becomes the first camera's, so the camera views match the photos.
+    On any failure every datablock made so far is removed again."""
+    collection = collection or scene.collection
     made = []
     try:
         mesh = _mesh(recon, made)
@@ -36,6 +39,8 @@ def add_reconstruction(collection: bpy.types.Collection, recon: Reconstruction,
         settings.source_sha256 = recon.sha256
         collection.objects.link(obj)
         if with_cameras and recon.cameras:
+            scene.render.resolution_x, scene.render.resolution_y = recon.cameras[0].width, recon.cameras[0].height
+            scene.render.resolution_percentage = 100
             extent = float(np.ptp(recon.positions, axis=0).max())
             for view in recon.cameras:
                 camera = _camera(view, extent, made)

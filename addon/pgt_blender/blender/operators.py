@@ -32,7 +32,7 @@ class _ImportReconstruction:
         try:
             recon = load_reconstruction(self.input_path(), kind=self.source_kind,
                                         with_cameras=self.with_cameras)
-            obj = objects.add_reconstruction(context.collection, recon, self.with_cameras)
+            obj = objects.add_reconstruction(context.scene, recon, self.with_cameras, context.collection)
         except InputError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
@@ -108,7 +108,7 @@ class OBJECT_OT_pgt_add_sample(bpy.types.Operator):
         from ..core.samples import synthetic_reconstruction
 
         sample = synthetic_reconstruction(self.class_name, seed=self.seed, points=self.points)
-        obj = objects.add_reconstruction(context.collection, sample.to_reconstruction())
+        obj = objects.add_reconstruction(context.scene, sample.to_reconstruction(), collection=context.collection)
         _link_and_select(context, obj)
         return {"FINISHED"}
 

@@ -29,7 +29,7 @@ def load_point_ply(path: Path, header: PlyHeader) -> Reconstruction:
     and normals (nx, ny, nz -> ``normal``); every other scalar property is kept as an
     attribute under its own name."""
     data = read_vertices(path, header)
-    names = set(data.dtype.names)
+    names = set(data)
     _require(path, names, _XYZ, "a point PLY")
     attributes = _leftover_attributes(data, _XYZ + _RGB + ("alpha",) + _NORMAL)
     if set(_NORMAL) <= names:
@@ -37,9 +37,9 @@ def load_point_ply(path: Path, header: PlyHeader) -> Reconstruction:
     colors = None
     if set(_RGB) <= names:
         channels = _RGB + (("alpha",) if "alpha" in names else ())
-        colors = np.ones((len(data), 4), np.float32)
+        colors = np.ones((len(data["x"]), 4), np.float32)
         colors[:, : len(channels)] = _stack(data, channels)
-        if data.dtype["red"].kind in "iu":
+        if data["red"].dtype.kind in "iu":
             colors[:, : len(channels)] /= 255.0
     return Reconstruction(
         positions=checked_positions(path, _stack(data, _XYZ)),
@@ -58,7 +58,7 @@ def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
     - ``f_dc_*``, ``f_rest_*`` (SH degree 0..3) and any other field kept raw.
     """
     data = read_vertices(path, header)
-    names = set(data.dtype.names)
+    names = set(data)
     _require(path, names, _XYZ + SPLAT_FIELDS, "a Gaussian-splat PLY")
     rest = sorted((n for n in names if n.startswith("f_rest_")), key=lambda n: int(n[7:]))
     if len(rest) not in (0, 9, 24, 45) or rest != [f"f_rest_{i}" for i in range(len(rest))]:
@@ -74,7 +74,7 @@ def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
     attributes["opacity"] = (1.0 / (1.0 + np.exp(-data["opacity"].astype(np.float64)))).astype(np.float32)
     attributes["scale"] = np.exp(_stack(data, ("scale_0", "scale_1", "scale_2")).astype(np.float64)).astype(np.float32)
     attributes["rotation"] = (rotation / length[:, None]).astype(np.float32)
-    colors = np.ones((len(data), 4), np.float32)
+    colors = np.ones((len(data["x"]), 4), np.float32)
     colors[:, :3] = np.clip(0.5 + SH_C0 * _stack(data, SPLAT_FIELDS[:3]), 0.0, 1.0)
     return Reconstruction(
         positions=checked_positions(path, _stack(data, _XYZ)),
@@ -89,13 +89,13 @@ def _require(path, names, required, what):
         raise InputError(path, f"not {what}: missing vertex properties {', '.join(missing)}")
 
 
-def _stack(data: np.ndarray, names) -> np.ndarray:
+def _stack(data: dict, names) -> np.ndarray:
     return np.column_stack([data[name] for name in names]).astype(np.float32, copy=False)
 
 
-def _leftover_attributes(data: np.ndarray, consumed) -> dict:
+def _leftover_attributes(data: dict, consumed) -> dict:
     """Every property not in ``consumed`` as a per-point attribute (ints stay ints)."""
     return {
-        name: data[name].astype(np.int32 if data.dtype[name].kind in "iu" else np.float32)
-        for name in data.dtype.names if name not in consumed
+        name: values.astype(np.int32 if values.dtype.kind in "iu" else np.float32, copy=False)
+        for name, values in data.items() if name not in consumed
     }

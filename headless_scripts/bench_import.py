@@ -1,0 +1,116 @@
+"""Import throughput: points/s for 10^4 .. 10^7 points, file read (core) and Blender
+object build (foreach_set) timed apart, for point PLY (xyz + uchar RGB) and
+Gaussian-splat PLY (62 floats per splat, SH degree 3).
+
+    .venv/bin/python headless_scripts/bench_import.py [--sizes 1e4 1e5 1e6 1e7] [--repeats 5] [--out bench/import]
+
+Prints a Markdown table of medians and writes <out>.json and <out>.png.
+"""
+
+import argparse
+import json
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
+
+import bpy  # noqa: E402
+import numpy as np  # noqa: E402
+
+from pgt_blender.blender import headless, objects  # noqa: E402
+from pgt_blender.core.importing import load_reconstruction  # noqa: E402
+from pgt_blender.core.importing.ply import write_ply  # noqa: E402
+
+
+def make_input(kind: str, count: int, directory: Path) -> Path:
+    """A seeded random cloud of ``count`` points as a binary PLY of ``kind``."""
+    rng = np.random.default_rng(count)
+    columns = {axis: rng.normal(size=count).astype(np.float32) for axis in "xyz"}
+    if kind == "point_ply":
+        columns.update({c: rng.integers(0, 256, count, dtype=np.uint8) for c in ("red", "green", "blue")})
+    else:
+        names = ([f"f_dc_{i}" for i in range(3)] + [f"f_rest_{i}" for i in range(45)]
+                 + ["opacity"] + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
+        columns.update({name: rng.normal(size=count).astype(np.float32) for name in names})
+    path = directory / f"{kind}_{count}.ply"
+    write_ply(path, columns)
+    return path
+
+
+def time_import(path: Path, repeats: int) -> tuple:
+    """Median seconds of (core read, Blender build), each on a fresh scene."""
+    reads, builds = [], []
+    for _ in range(repeats):
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        start = time.perf_counter()
+        recon = load_reconstruction(path)
+        middle = time.perf_counter()
+        objects.add_reconstruction(bpy.context.scene, recon)
+        end = time.perf_counter()
+        reads.append(middle - start)
+        builds.append(end - middle)
+    return statistics.median(reads), statistics.median(builds)
+
+
+def main(argv: list) -> int:
+    parser = argparse.ArgumentParser(prog="bench_import.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", type=float, nargs="+", default=[1e4, 1e5, 1e6, 1e7])
+    parser.add_argument("--splat-max", type=float, default=1e6, help="largest Gaussian-splat size (62 floats each)")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--out", type=Path, default=Path("bench/import"))
+    args = parser.parse_args(argv)
+    headless.ensure_registered()
+    rows = []
+    with tempfile.TemporaryDirectory() as temporary:
+        for kind in ("point_ply", "gaussian_splat"):
+            for count in (int(s) for s in args.sizes):
+                if kind == "gaussian_splat" and count > args.splat_max:
+                    continue
+                path = make_input(kind, count, Path(temporary))
+                read, build = time_import(path, args.repeats)
+                rows.append({"kind": kind, "points": count, "file_mb": path.stat().st_size / 1e6,
+                             "read_s": read, "build_s": build, "total_s": read + build,
+                             "points_per_s": count / (read + build)})
+                path.unlink()
+    machine = {"cpu": platform.processor() or platform.machine(), "cores": __import__("os").cpu_count(),
+               "python": platform.python_version(), "blender": bpy.app.version_string,
+               "numpy": np.__version__, "repeats": args.repeats, "statistic": "median"}
+    print(f"machine: {machine}\n")
+    print("| input | points | file MB | read s | Blender build s | total s | points/s |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['kind']} | {r['points']:,} | {r['file_mb']:.1f} | {r['read_s']:.4f} | "
+              f"{r['build_s']:.4f} | {r['total_s']:.4f} | {r['points_per_s']:,.0f} |")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".json").write_text(json.dumps({"machine": machine, "rows": rows}, indent=2))
+    plot(rows, args.out.with_suffix(".png"))
+    print(f"\nwrote {args.out.with_suffix('.json')} and {args.out.with_suffix('.png')}")
+    return 0
+
+
+def plot(rows: list, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(6, 4))
+    for kind in dict.fromkeys(r["kind"] for r in rows):
+        mine = [r for r in rows if r["kind"] == kind]
+        axis.loglog([r["points"] for r in mine], [r["total_s"] for r in mine], "o-", label=f"{kind} total")
+        axis.loglog([r["points"] for r in mine], [r["build_s"] for r in mine], "x--", label=f"{kind} Blender build")
+    axis.set_xlabel("points")
+    axis.set_ylabel("median seconds")
+    axis.set_title("pgt_blender import time")
+    axis.grid(True, which="both", alpha=0.3)
+    axis.legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+
+
+if __name__ == "__main__":
+    sys.exit(main(headless.script_argv()))

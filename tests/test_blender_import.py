@@ -1,0 +1,206 @@
+"""The Blender layer on real headless bpy: operators, menus, panel, bulk data, cameras."""
+
+import shutil
+
+import numpy as np
+import pytest
+
+from pgt_blender.core.importing import load_reconstruction
+from pgt_blender.core.importing.ply import write_ply
+from pgt_blender.core.samples import sample_vehicle
+
+from .conftest import datablock_counts
+
+
+def attribute_values(mesh, name, width):
+    attribute = mesh.attributes[name]
+    field = "vector" if attribute.data_type.startswith("FLOAT_VECTOR") or attribute.data_type == "FLOAT2" else "value"
+    if attribute.data_type == "BYTE_COLOR":
+        field = "color_srgb"
+    values = np.empty(len(attribute.data) * width, np.int32 if attribute.data_type == "INT" else np.float32)
+    attribute.data.foreach_get(field, values)
+    return values.reshape(len(attribute.data), width) if width > 1 else values
+
+
+def test_colmap_operator(scene, statue):
+    bpy = pytest.importorskip("bpy")
+    assert bpy.ops.import_scene.pgt_colmap(directory=str(statue)) == {"FINISHED"}
+    obj = bpy.context.active_object
+    assert obj.name == "colmap_statue" and len(obj.data.vertices) == 1816
+    assert obj.pgt.source_kind == "colmap" and obj.pgt.source_path == str(statue)
+    assert obj.pgt.source_sha256 == load_reconstruction(statue).sha256 and obj.pgt.class_name == ""
+    cameras = [child for child in obj.children if child.type == "CAMERA"]
+    assert len(cameras) == 40 and len(bpy.data.cameras) == 40
+    recon = load_reconstruction(statue)
+    positions = attribute_values(obj.data, "position", 3)
+    np.testing.assert_array_equal(positions, recon.positions)
+    np.testing.assert_array_equal(attribute_values(obj.data, "track_length", 1), recon.attributes["track_length"])
+    np.testing.assert_allclose(attribute_values(obj.data, "Col", 4), recon.colors, atol=1 / 255)
+    assert obj.data.color_attributes.active_color.name == "Col"
+
+
+def test_colmap_cameras_see_what_the_photos_saw(scene, statue):
+    """Blender's own projection through each imported camera equals COLMAP's pinhole
+    projection (u = fx x / z + cx, v = fy y / z + cy) of the points."""
+    bpy = pytest.importorskip("bpy")
+    from bpy_extras.object_utils import world_to_camera_view
+    from mathutils import Vector
+
+    bpy.ops.import_scene.pgt_colmap(directory=str(statue))
+    recon = load_reconstruction(statue)
+    assert (scene.render.resolution_x, scene.render.resolution_y) == (800, 1200)
+    for view in recon.cameras[::8]:
+        camera = bpy.data.objects[view.name]
+        camera_from_world = np.linalg.inv(view.world_from_camera)
+        local = recon.positions[::50].astype(np.float64) @ camera_from_world[:3, :3].T + camera_from_world[:3, 3]
+        local = local[local[:, 2] > 0]
+        expected = np.column_stack([view.fx * local[:, 0] / local[:, 2] + view.cx,
+                                    view.fy * local[:, 1] / local[:, 2] + view.cy])
+        world = local @ view.world_from_camera[:3, :3].T + view.world_from_camera[:3, 3]
+        ndc = np.array([world_to_camera_view(scene, camera, Vector(p))[:] for p in world])
+        blender = np.column_stack([ndc[:, 0] * view.width, (1 - ndc[:, 1]) * view.height])
+        np.testing.assert_allclose(blender, expected, atol=1e-3)
+        np.testing.assert_allclose(ndc[:, 2], local[:, 2], rtol=1e-5)  # depth along the optical axis
+
+
+def test_gaussian_splat_operator(scene, donut):
+    bpy = pytest.importorskip("bpy")
+    assert bpy.ops.import_scene.pgt_gaussian_splat(filepath=str(donut)) == {"FINISHED"}
+    mesh = bpy.context.active_object.data
+    recon = load_reconstruction(donut)
+    assert len(mesh.vertices) == 45624
+    assert mesh.attributes["opacity"].data_type == "FLOAT"
+    assert mesh.attributes["scale"].data_type == "FLOAT_VECTOR"
+    assert mesh.attributes["rotation"].data_type == "QUATERNION"
+    np.testing.assert_array_equal(attribute_values(mesh, "rotation", 4), recon.attributes["rotation"])
+    np.testing.assert_array_equal(attribute_values(mesh, "scale", 3), recon.attributes["scale"])
+    np.testing.assert_array_equal(attribute_values(mesh, "opacity", 1), recon.attributes["opacity"])
+
+
+def test_point_cloud_operator_keeps_normals(scene, tmp_path):
+    bpy = pytest.importorskip("bpy")
+    xyz = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)
+    path = tmp_path / "cloud.ply"
+    write_ply(path, {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
+                     "nx": xyz[:, 2], "ny": xyz[:, 0], "nz": xyz[:, 1]}, binary=False)
+    assert bpy.ops.import_scene.pgt_point_cloud(filepath=str(path)) == {"FINISHED"}
+    mesh = bpy.context.active_object.data
+    np.testing.assert_array_equal(attribute_values(mesh, "normal", 3), xyz[:, [2, 0, 1]])
+    assert "Col" not in mesh.attributes
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".glb", ".stl"])
+def test_mesh_operator(scene, tmp_path, suffix):
+    bpy = pytest.importorskip("bpy")
+    vehicle = sample_vehicle("truck")
+    path = tmp_path / f"truck{suffix}"
+    vehicle.trimesh().export(path)
+    assert bpy.ops.import_scene.pgt_mesh(filepath=str(path)) == {"FINISHED"}
+    mesh = bpy.context.active_object.data
+    assert len(mesh.polygons) == len(vehicle.faces)
+    assert all(p.loop_total == 3 for p in mesh.polygons)
+    assert not mesh.validate()  # nothing to fix
+    corners = np.empty(len(mesh.loops), np.int32)
+    mesh.loops.foreach_get("vertex_index", corners)
+    np.testing.assert_array_equal(corners.reshape(-1, 3), load_reconstruction(path).faces)
+
+
+def test_chrono_mesh_operator(scene, chrono_meshes):
+    bpy = pytest.importorskip("bpy")
+    path = next(p for p in chrono_meshes if p.name == "CityBus_Vis.obj")
+    assert bpy.ops.import_scene.pgt_mesh(filepath=str(path)) == {"FINISHED"}
+    assert bpy.context.active_object.pgt.source_kind == "mesh"
+    assert len(bpy.context.active_object.data.polygons) == len(load_reconstruction(path).faces)
+
+
+def test_add_sample_operator(scene):
+    bpy = pytest.importorskip("bpy")
+    assert bpy.ops.object.pgt_add_sample(class_name="trailer", seed=2, points=3000) == {"FINISHED"}
+    obj = bpy.context.active_object
+    assert obj.name == "sample_trailer_seed2" and len(obj.data.vertices) == 3000
+
+
+# --- bad input: ERROR report, CANCELLED, scene untouched ----------------------------------
+# bpy.ops raises RuntimeError carrying the report when an operator reports an ERROR;
+# the importers only do so on the path that returns {'CANCELLED'}.
+
+def broken_inputs(tmp_path, statue, donut):
+    nan = tmp_path / "nan.ply"
+    write_ply(nan, {"x": np.array([0, np.nan], np.float32), "y": np.zeros(2, np.float32), "z": np.zeros(2, np.float32)})
+    truncated = tmp_path / "truncated.ply"
+    truncated.write_bytes(donut.read_bytes()[:100000])
+    mismatched = tmp_path / "mismatched.ply"
+    mismatched.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                          "property float z\nend_header\n0 0 0\n1 1 1\n")
+    empty = tmp_path / "empty.ply"
+    empty.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+                     "property float z\nend_header\n")
+    no_points = shutil.copytree(statue, tmp_path / "model")
+    for name in ("points3D.bin", "points3D.txt"):
+        (no_points / name).unlink()
+    unsupported = tmp_path / "scan.las"
+    unsupported.write_bytes(b"LASF")
+    corrupt = tmp_path / "corrupt.stl"
+    corrupt.write_bytes(b"solid x\nfacet normal 0 0 nan\nendsolid\n")
+    return [
+        ("pgt_point_cloud", {"filepath": str(nan)}, nan, "NaN/Inf coordinates"),
+        ("pgt_gaussian_splat", {"filepath": str(truncated)}, truncated, "truncated"),
+        ("pgt_point_cloud", {"filepath": str(mismatched)}, mismatched, "declares 3 data rows"),
+        ("pgt_point_cloud", {"filepath": str(empty)}, empty, "empty cloud"),
+        ("pgt_colmap", {"directory": str(no_points)}, no_points, "missing points3D.bin"),
+        ("pgt_mesh", {"filepath": str(unsupported)}, unsupported, "unsupported format"),
+        ("pgt_mesh", {"filepath": str(corrupt)}, corrupt, "mesh"),
+        ("pgt_gaussian_splat", {"filepath": str(donut.with_name("color.ply"))}, donut.with_name("color.ply"),
+         "expected a gaussian splat"),
+    ]
+
+
+def test_bad_input_is_cancelled_and_leaves_nothing(scene, tmp_path, statue, donut):
+    bpy = pytest.importorskip("bpy")
+    bpy.ops.import_scene.pgt_colmap(directory=str(statue))  # something already in the scene
+    before = datablock_counts(bpy)
+    for operator, arguments, path, problem in broken_inputs(tmp_path, statue, donut):
+        with pytest.raises(RuntimeError) as error:
+            getattr(bpy.ops.import_scene, operator)(**arguments)
+        message = str(error.value).removeprefix("Error: ").strip()
+        assert message.startswith(f"{path}: ") and problem in message and "\n" not in message
+        assert datablock_counts(bpy) == before, operator
+
+
+def test_failure_while_building_removes_partial_data(scene, statue):
+    """A failure after some Blender data exists (here: a camera that cannot be made)
+    removes the points object, its mesh and the cameras already built."""
+    bpy = pytest.importorskip("bpy")
+    from pgt_blender.blender import objects
+
+    recon = load_reconstruction(statue)
+    recon.cameras[5].name = 7  # not a string: bpy.data.cameras.new raises TypeError
+    before = datablock_counts(bpy)
+    with pytest.raises(TypeError):
+        objects.add_reconstruction(scene, recon)
+    assert datablock_counts(bpy) == before
+
+
+# --- registration, menus, panel -----------------------------------------------------------
+
+def test_menu_panel_and_properties_registered(registered):
+    bpy = registered
+    from pgt_blender.blender.ui import menu_import
+
+    assert menu_import in bpy.types.TOPBAR_MT_file_import._dyn_ui_initialize()
+    assert hasattr(bpy.types, "VIEW3D_PT_pgt_import")
+    for name in ("pgt_colmap", "pgt_gaussian_splat", "pgt_point_cloud", "pgt_mesh"):
+        assert hasattr(bpy.ops.import_scene, name)
+    assert {"source_path", "source_kind", "source_sha256", "class_name", "object_from_source"} <= set(
+        bpy.types.Object.bl_rna.properties["pgt"].fixed_type.properties.keys())
+
+
+def test_register_unregister_twice(registered):
+    bpy = registered
+    import pgt_blender
+
+    for _ in range(2):
+        pgt_blender.unregister()
+        assert not hasattr(bpy.types.Object, "pgt") and not hasattr(bpy.types, "VIEW3D_PT_pgt_import")
+        pgt_blender.register()
+        assert hasattr(bpy.types.Object, "pgt") and hasattr(bpy.types, "VIEW3D_PT_pgt_import")

@@ -1,0 +1,200 @@
+"""Core importers on the real data in ../shared/data and on bad input (no bpy)."""
+
+import shutil
+
+import numpy as np
+import pytest
+
+from pgt_blender.core.errors import InputError
+from pgt_blender.core.importing import detect_kind, load_reconstruction
+from pgt_blender.core.importing.ply import read_vertices, write_ply
+from pgt_blender.core.importing.points import SH_C0
+from pgt_blender.core.samples import sample_vehicle
+
+
+def test_colmap_statue(statue):
+    recon = load_reconstruction(statue)
+    assert recon.kind == "colmap" and recon.name == "colmap_statue"
+    assert recon.positions.shape == (1816, 3) and recon.positions.dtype == np.float32
+    assert len(recon.cameras) == 40
+    # README of the data: mean track length 4.27, mean reprojection error about 1.2 px.
+    assert recon.attributes["track_length"].mean() == pytest.approx(4.273, abs=1e-3)
+    assert recon.attributes["reprojection_error"].mean() == pytest.approx(1.15, abs=0.05)
+    assert recon.colors.shape == (1816, 4) and 0.2 < recon.colors[:, :3].mean() < 0.6
+    camera = recon.cameras[0]
+    assert (camera.width, camera.height, camera.model) == (800, 1200, "SIMPLE_RADIAL")
+    assert camera.fx == pytest.approx(2395.646389) and (camera.cx, camera.cy) == (400.0, 600.0)
+    rotation = camera.world_from_camera[:3, :3]
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-9)
+
+
+def test_colmap_cameras_reproject_the_points(statue):
+    """Each 3-D point seen in an image projects (pinhole + SIMPLE_RADIAL k1) onto its
+    2-D observation within its reprojection error: poses and intrinsics are right."""
+    import pycolmap
+
+    recon = load_reconstruction(statue)
+    model = pycolmap.Reconstruction(str(statue))
+    by_name = {view.name: view for view in recon.cameras}
+    errors = {}  # point id -> its observations' pixel errors
+    for image in model.images.values():
+        view = by_name[image.name]
+        camera_from_world = np.linalg.inv(view.world_from_camera)
+        for point2d in image.points2D:
+            if not point2d.has_point3D():
+                continue
+            x, y, z = camera_from_world[:3, :3] @ model.points3D[point2d.point3D_id].xyz + camera_from_world[:3, 3]
+            u, v = x / z, y / z
+            radial = 1 + view.params[3] * (u * u + v * v)
+            projected = np.array([view.fx * u * radial + view.cx, view.fy * v * radial + view.cy])
+            errors.setdefault(point2d.point3D_id, []).append(np.linalg.norm(projected - point2d.xy))
+    assert sum(map(len, errors.values())) == 7760  # observations in the model
+    # COLMAP's mean reprojection error averages each point's mean error (summary: 1.14592).
+    assert np.mean([np.mean(e) for e in errors.values()]) == pytest.approx(1.14592, abs=1e-4)
+
+
+def test_colmap_text_and_binary_agree(statue, tmp_path):
+    text_only = tmp_path / "text"
+    text_only.mkdir()
+    for name in ("cameras", "images", "points3D"):
+        shutil.copy(statue / f"{name}.txt", text_only)
+    text, binary = load_reconstruction(text_only), load_reconstruction(statue)
+    order_t, order_b = np.lexsort(text.positions.T), np.lexsort(binary.positions.T)
+    np.testing.assert_allclose(text.positions[order_t], binary.positions[order_b], atol=1e-5)
+    np.testing.assert_array_equal(text.attributes["track_length"][order_t],
+                                  binary.attributes["track_length"][order_b])
+    np.testing.assert_allclose([c.world_from_camera for c in text.cameras],
+                               [c.world_from_camera for c in binary.cameras], atol=2e-5)  # .txt rounds
+
+
+def test_gaussian_splat_donut(donut):
+    recon = load_reconstruction(donut)
+    raw = read_vertices(donut)
+    assert recon.kind == "gaussian_splat" and recon.positions.shape == (45624, 3)
+    assert {"opacity", "scale", "rotation", "f_dc_0", "f_dc_1", "f_dc_2"} <= set(recon.attributes)
+    np.testing.assert_allclose(recon.attributes["opacity"], 1 / (1 + np.exp(-raw["opacity"])), rtol=1e-6)
+    np.testing.assert_allclose(recon.attributes["scale"][:, 1], np.exp(raw["scale_1"]), rtol=1e-6)
+    # Real files store unnormalised quaternions (README: lengths 0.61-2.72).
+    stored = np.column_stack([raw[f"rot_{i}"] for i in range(4)])
+    assert np.linalg.norm(stored, axis=1).min() < 0.7 and np.linalg.norm(stored, axis=1).max() > 2.5
+    np.testing.assert_allclose(np.linalg.norm(recon.attributes["rotation"], axis=1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(recon.attributes["rotation"] * np.linalg.norm(stored, axis=1)[:, None],
+                               stored, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(recon.colors[:, 0], np.clip(0.5 + SH_C0 * raw["f_dc_0"], 0, 1), atol=1e-6)
+
+
+def test_point_ply_with_colours_matches_splat_centres(donut):
+    points = load_reconstruction(donut.with_name("color.ply"))
+    assert points.kind == "point_ply" and points.colors is not None
+    np.testing.assert_array_equal(points.positions, load_reconstruction(donut).positions)
+
+
+def test_point_ply_normals_and_float_colours(tmp_path):
+    rng = np.random.default_rng(3)
+    xyz, normals, rgb = rng.normal(size=(3, 50, 3)).astype(np.float32)
+    path = tmp_path / "n.ply"
+    write_ply(path, {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "nx": normals[:, 0], "ny": normals[:, 1],
+                     "nz": normals[:, 2], "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2],
+                     "confidence": np.arange(50, dtype=np.int32)}, binary=False)
+    recon = load_reconstruction(path)
+    np.testing.assert_allclose(recon.attributes["normal"], normals, rtol=1e-6)
+    np.testing.assert_allclose(recon.colors[:, :3], rgb, rtol=1e-6)  # float colours kept as they are
+    assert recon.attributes["confidence"].dtype == np.int32
+
+
+def test_chrono_meshes(chrono_meshes):
+    assert len(chrono_meshes) == 7
+    for path in chrono_meshes:
+        recon = load_reconstruction(path)
+        assert recon.kind == "mesh" and len(recon.faces) > 100
+        assert recon.faces.max() < len(recon.positions)
+    truck = load_reconstruction(next(p for p in chrono_meshes if p.name == "truck_chassis.obj"))
+    np.testing.assert_allclose(np.ptp(truck.positions, axis=0), [11.48, 3.64, 4.21], atol=0.01)
+
+
+@pytest.mark.parametrize("suffix", [".stl", ".glb", ".obj", ".ply"])
+def test_mesh_formats_round_trip(tmp_path, suffix):
+    vehicle = sample_vehicle("bus")
+    path = tmp_path / f"bus{suffix}"
+    vehicle.trimesh().export(path)
+    recon = load_reconstruction(path)
+    assert detect_kind(path) == "mesh"
+    assert len(recon.faces) == len(vehicle.faces)
+    np.testing.assert_allclose(np.ptp(recon.positions, axis=0), vehicle.dims, rtol=1e-6)
+
+
+# --- bad input: a one-line InputError naming the path -------------------------------------
+
+def write_points(path, xyz, binary=True):
+    write_ply(path, {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}, binary=binary)
+    return path
+
+
+def break_truncate(path):
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) * 2 // 3])
+
+
+BAD_INPUTS = {
+    "nan coordinates": (lambda d: write_points(d / "nan.ply", np.array([[0, 0, 0], [np.nan, 1, 2.0]], np.float32)),
+                        r"1 of 2 points have NaN/Inf coordinates \(first at index 1\)"),
+    "inf coordinates": (lambda d: write_points(d / "inf.ply", np.array([[np.inf, 0, 0.0]]), binary=False),
+                        "NaN/Inf coordinates"),
+    "empty cloud": (lambda d: write_points(d / "empty.ply", np.zeros((0, 3), np.float32)), "empty cloud"),
+    "unsupported format": (lambda d: (d / "scan.xyz").write_text("1 2 3\n") and d / "scan.xyz", "unsupported format '.xyz'"),
+    "missing file": (lambda d: d / "nothing.ply", "no such file or folder"),
+    "corrupt mesh": (lambda d: (d / "bad.glb").write_bytes(b"glTF\x02\x00\x00\x00garbage") and d / "bad.glb",
+                     "could not be read as a mesh"),
+    "mesh without faces": (lambda d: (d / "v.obj").write_text("v 0 0 0\nv 1 0 0\n") and d / "v.obj", "no faces"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_input(tmp_path, case):
+    make, problem = BAD_INPUTS[case]
+    path = make(tmp_path)
+    with pytest.raises(InputError, match=problem) as error:
+        load_reconstruction(path)
+    assert str(error.value).startswith(f"{path}: ") and "\n" not in str(error.value)
+
+
+def test_truncated_gaussian_splat(donut, tmp_path):
+    path = tmp_path / "splat.ply"
+    shutil.copy(donut, path)
+    break_truncate(path)
+    with pytest.raises(InputError, match=f"{path}: truncated: the header declares 45624 vertex"):
+        load_reconstruction(path)
+
+
+def test_splat_with_wrong_sh_count(donut, tmp_path):
+    columns = {name: values[:10] for name, values in read_vertices(donut).items()}
+    columns.update({f"f_rest_{i}": np.zeros(10, np.float32) for i in range(5)})
+    write_ply(tmp_path / "sh.ply", columns)
+    with pytest.raises(InputError, match="5 f_rest_\\* fields"):
+        load_reconstruction(tmp_path / "sh.ply")
+
+
+def test_kind_mismatch(donut):
+    with pytest.raises(InputError, match="expected a gaussian splat input but this is a point ply"):
+        load_reconstruction(donut.with_name("color.ply"), kind="gaussian_splat")
+
+
+@pytest.mark.parametrize("missing", ["points3D.bin", "cameras.bin"])
+def test_colmap_missing_file(statue_copy, missing):
+    for text in statue_copy.glob("*.txt"):
+        text.unlink()
+    (statue_copy / missing).unlink()
+    with pytest.raises(InputError, match=f"COLMAP model is missing {missing}"):
+        load_reconstruction(statue_copy)
+
+
+def test_colmap_truncated_file(statue_copy):
+    break_truncate(statue_copy / "points3D.bin")
+    with pytest.raises(InputError, match=f"{statue_copy}: COLMAP model could not be read"):
+        load_reconstruction(statue_copy)
+
+
+def test_colmap_folder_without_model(statue, tmp_path):
+    (tmp_path / "sparse" / "0").mkdir(parents=True)
+    with pytest.raises(InputError, match=r"no COLMAP model files .* \(try its sparse/0 sub-folder\)"):
+        load_reconstruction(tmp_path)
