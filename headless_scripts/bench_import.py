@@ -9,6 +9,7 @@ Prints a Markdown table of medians and writes <out>.json and <out>.png.
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import sys
@@ -76,7 +77,7 @@ def main(argv: list) -> int:
                              "read_s": read, "build_s": build, "total_s": read + build,
                              "points_per_s": count / (read + build)})
                 path.unlink()
-    machine = {"cpu": platform.processor() or platform.machine(), "cores": __import__("os").cpu_count(),
+    machine = {"cpu": cpu_name(), "cores": os.cpu_count(),
                "python": platform.python_version(), "blender": bpy.app.version_string,
                "numpy": np.__version__, "repeats": args.repeats, "statistic": "median"}
     print(f"machine: {machine}\n")
@@ -90,6 +91,15 @@ def main(argv: list) -> int:
     plot(rows, args.out.with_suffix(".png"))
     print(f"\nwrote {args.out.with_suffix('.json')} and {args.out.with_suffix('.png')}")
     return 0
+
+
+def cpu_name() -> str:
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.exists():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
 
 
 def plot(rows: list, path: Path) -> None:
