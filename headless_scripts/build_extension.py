@@ -99,8 +99,8 @@ def main(argv: list) -> int:
     try:
         build(args.platform or ["linux-x64"], output)
     except subprocess.CalledProcessError as error:
-        print(f"error: {error.cmd[2] if len(error.cmd) > 2 else error.cmd[0]} failed "
-              f"with exit code {error.returncode}", file=sys.stderr)
+        step = "wheel download (pip)" if "pip" in error.cmd else "Blender extension build"
+        print(f"error: {output}: {step} failed with exit code {error.returncode}", file=sys.stderr)
         return 1
     print(f"built {output} ({output.stat().st_size / 1e6:.1f} MB)")
     return 0

@@ -59,5 +59,7 @@ def scene(registered):
 
 
 def datablock_counts(bpy) -> dict:
-    """How many objects, meshes and cameras the file holds (nothing half-imported may stay)."""
-    return {"objects": len(bpy.data.objects), "meshes": len(bpy.data.meshes), "cameras": len(bpy.data.cameras)}
+    """How many objects, meshes, cameras and node groups the file holds (nothing
+    half-imported may stay)."""
+    return {"objects": len(bpy.data.objects), "meshes": len(bpy.data.meshes),
+            "cameras": len(bpy.data.cameras), "node_groups": len(bpy.data.node_groups)}

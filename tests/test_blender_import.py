@@ -63,6 +63,19 @@ def test_colmap_cameras_see_what_the_photos_saw(scene, statue):
         np.testing.assert_allclose(ndc[:, 2], local[:, 2], rtol=1e-5)  # depth along the optical axis
 
 
+def test_point_clouds_are_drawn_as_points(scene, donut):
+    """Loose vertices are invisible in Object Mode: the evaluated object is a point cloud."""
+    bpy = pytest.importorskip("bpy")
+    bpy.ops.import_scene.pgt_gaussian_splat(filepath=str(donut))
+    obj = bpy.context.active_object
+    assert [m.type for m in obj.modifiers] == ["NODES"] and obj.modifiers[0].node_group.name == "PGT Points"
+    evaluated = obj.evaluated_get(bpy.context.evaluated_depsgraph_get())
+    if hasattr(evaluated, "evaluated_geometry"):  # Blender 4.4+
+        assert len(evaluated.evaluated_geometry().pointcloud.points) == 45624
+    bpy.ops.import_scene.pgt_gaussian_splat(filepath=str(donut))
+    assert len(bpy.data.node_groups) == 1  # one shared group
+
+
 def test_gaussian_splat_operator(scene, donut):
     bpy = pytest.importorskip("bpy")
     assert bpy.ops.import_scene.pgt_gaussian_splat(filepath=str(donut)) == {"FINISHED"}
@@ -169,7 +182,7 @@ def test_bad_input_is_cancelled_and_leaves_nothing(scene, tmp_path, statue, donu
 
 def test_failure_while_building_removes_partial_data(scene, statue):
     """A failure after some Blender data exists (here: a camera that cannot be made)
-    removes the points object, its mesh and the cameras already built."""
+    removes the points object, its mesh, its display node group and the cameras already built."""
     bpy = pytest.importorskip("bpy")
     from pgt_blender.blender import objects
 

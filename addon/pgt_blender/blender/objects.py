@@ -38,10 +38,12 @@ def add_reconstruction(scene: bpy.types.Scene, recon: Reconstruction, with_camer
         settings.source_kind = recon.kind
         settings.source_sha256 = recon.sha256
         collection.objects.link(obj)
+        extent = float(np.ptp(recon.positions, axis=0).max())
+        if not len(recon.faces):
+            _show_as_points(obj, radius=0.5 * extent / np.sqrt(len(recon.positions)), made=made)
         if with_cameras and recon.cameras:
             scene.render.resolution_x, scene.render.resolution_y = recon.cameras[0].width, recon.cameras[0].height
             scene.render.resolution_percentage = 100
-            extent = float(np.ptp(recon.positions, axis=0).max())
             for view in recon.cameras:
                 camera = _camera(view, extent, made)
                 camera.parent = obj
@@ -53,11 +55,36 @@ def add_reconstruction(scene: bpy.types.Scene, recon: Reconstruction, with_camer
 
 
 def remove_datablocks(datablocks) -> None:
-    """Remove objects, meshes and cameras (objects first, so data has no users)."""
+    """Remove objects, meshes, cameras and node groups (objects first, so data has no users)."""
     for block in sorted(datablocks, key=lambda b: not isinstance(b, bpy.types.Object)):
         collection = {bpy.types.Object: bpy.data.objects, bpy.types.Mesh: bpy.data.meshes,
-                      bpy.types.Camera: bpy.data.cameras}[type(block)]
+                      bpy.types.Camera: bpy.data.cameras,
+                      bpy.types.GeometryNodeTree: bpy.data.node_groups}[type(block)]
         collection.remove(block)
+
+
+POINTS_GROUP = "PGT Points"
+
+
+def _show_as_points(obj: bpy.types.Object, radius: float, made: list) -> None:
+    """Blender does not draw loose vertices in Object Mode: a Mesh to Points geometry
+    nodes modifier shows the cloud (viewport and render, colour attributes carried
+    over) while the mesh keeps the imported data untouched."""
+    group = bpy.data.node_groups.get(POINTS_GROUP)
+    if group is None:
+        group = bpy.data.node_groups.new(POINTS_GROUP, "GeometryNodeTree")
+        made.append(group)
+        group.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+        group.interface.new_socket("Radius", in_out="INPUT", socket_type="NodeSocketFloat")
+        group.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+        inputs, outputs = group.nodes.new("NodeGroupInput"), group.nodes.new("NodeGroupOutput")
+        to_points = group.nodes.new("GeometryNodeMeshToPoints")
+        group.links.new(inputs.outputs["Geometry"], to_points.inputs["Mesh"])
+        group.links.new(inputs.outputs["Radius"], to_points.inputs["Radius"])
+        group.links.new(to_points.outputs["Points"], outputs.inputs["Geometry"])
+    modifier = obj.modifiers.new(POINTS_GROUP, "NODES")
+    modifier.node_group = group
+    modifier[group.interface.items_tree["Radius"].identifier] = max(radius, 1e-6)
 
 
 def _mesh(recon: Reconstruction, made: list) -> bpy.types.Mesh:

@@ -10,7 +10,7 @@ from ..core.importing import load_reconstruction
 from . import objects
 
 
-def _link_and_select(context, obj):
+def _select_only(context, obj):
     for other in context.selected_objects:
         other.select_set(False)
     obj.select_set(True)
@@ -36,7 +36,7 @@ class _ImportReconstruction:
         except InputError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
-        _link_and_select(context, obj)
+        _select_only(context, obj)
         summary = recon.summary()
         self.report({"INFO"}, f"Imported {obj.name}: {summary['points']} points, "
                               f"{summary['faces']} faces, {len(obj.children)} cameras")
@@ -109,7 +109,7 @@ class OBJECT_OT_pgt_add_sample(bpy.types.Operator):
 
         sample = synthetic_reconstruction(self.class_name, seed=self.seed, points=self.points)
         obj = objects.add_reconstruction(context.scene, sample.to_reconstruction(), collection=context.collection)
-        _link_and_select(context, obj)
+        _select_only(context, obj)
         return {"FINISHED"}
 
 

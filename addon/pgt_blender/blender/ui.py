@@ -5,6 +5,10 @@ import bpy
 from .operators import IMPORTERS
 
 
+def short_label(operator) -> str:
+    return operator.bl_label.replace("Import ", "")
+
+
 class VIEW3D_PT_pgt_import(bpy.types.Panel):
     bl_label = "Import"
     bl_idname = "VIEW3D_PT_pgt_import"
@@ -16,7 +20,7 @@ class VIEW3D_PT_pgt_import(bpy.types.Panel):
         layout = self.layout
         column = layout.column(align=True)
         for operator in IMPORTERS:
-            column.operator(operator.bl_idname, text=operator.bl_label.replace("Import ", ""), icon="IMPORT")
+            column.operator(operator.bl_idname, text=short_label(operator), icon="IMPORT")
         layout.operator("object.pgt_add_sample", icon="AUTO")
         obj = context.active_object
         if obj is None or obj.pgt.source_kind == "none":
@@ -36,7 +40,7 @@ class VIEW3D_PT_pgt_import(bpy.types.Panel):
 
 def menu_import(self, context):
     for operator in IMPORTERS:
-        self.layout.operator(operator.bl_idname, text=f"PGT: {operator.bl_label.replace('Import ', '')}")
+        self.layout.operator(operator.bl_idname, text=f"PGT: {short_label(operator)}")
 
 
 classes = (VIEW3D_PT_pgt_import,)
