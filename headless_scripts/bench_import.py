@@ -25,6 +25,7 @@ import numpy as np  # noqa: E402
 from pgt_blender.blender import headless, objects  # noqa: E402
 from pgt_blender.core.importing import load_reconstruction  # noqa: E402
 from pgt_blender.core.importing.ply import write_ply  # noqa: E402
+from pgt_blender.core.importing.points import SPLAT_FIELDS  # noqa: E402
 
 
 def make_input(kind: str, count: int, directory: Path) -> Path:
@@ -34,8 +35,7 @@ def make_input(kind: str, count: int, directory: Path) -> Path:
     if kind == "point_ply":
         columns.update({c: rng.integers(0, 256, count, dtype=np.uint8) for c in ("red", "green", "blue")})
     else:
-        names = ([f"f_dc_{i}" for i in range(3)] + [f"f_rest_{i}" for i in range(45)]
-                 + ["opacity"] + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])
+        names = SPLAT_FIELDS + tuple(f"f_rest_{i}" for i in range(45))  # SH degree 3
         columns.update({name: rng.normal(size=count).astype(np.float32) for name in names})
     path = directory / f"{kind}_{count}.ply"
     write_ply(path, columns)

@@ -11,6 +11,8 @@ from pgt_blender.core.samples import sample_vehicle
 
 from .conftest import datablock_counts
 
+bpy = pytest.importorskip("bpy")
+
 
 def attribute_values(mesh, name, width):
     attribute = mesh.attributes[name]
@@ -23,7 +25,6 @@ def attribute_values(mesh, name, width):
 
 
 def test_colmap_operator(scene, statue):
-    bpy = pytest.importorskip("bpy")
     assert bpy.ops.import_scene.pgt_colmap(directory=str(statue)) == {"FINISHED"}
     obj = bpy.context.active_object
     assert obj.name == "colmap_statue" and len(obj.data.vertices) == 1816
@@ -42,7 +43,6 @@ def test_colmap_operator(scene, statue):
 def test_colmap_cameras_see_what_the_photos_saw(scene, statue):
     """Blender's own projection through each imported camera equals COLMAP's pinhole
     projection (u = fx x / z + cx, v = fy y / z + cy) of the points."""
-    bpy = pytest.importorskip("bpy")
     from bpy_extras.object_utils import world_to_camera_view
     from mathutils import Vector
 
@@ -65,7 +65,6 @@ def test_colmap_cameras_see_what_the_photos_saw(scene, statue):
 
 def test_point_clouds_are_drawn_as_points(scene, donut):
     """Loose vertices are invisible in Object Mode: the evaluated object is a point cloud."""
-    bpy = pytest.importorskip("bpy")
     bpy.ops.import_scene.pgt_gaussian_splat(filepath=str(donut))
     obj = bpy.context.active_object
     assert [m.type for m in obj.modifiers] == ["NODES"] and obj.modifiers[0].node_group.name == "PGT Points"
@@ -77,7 +76,6 @@ def test_point_clouds_are_drawn_as_points(scene, donut):
 
 
 def test_gaussian_splat_operator(scene, donut):
-    bpy = pytest.importorskip("bpy")
     assert bpy.ops.import_scene.pgt_gaussian_splat(filepath=str(donut)) == {"FINISHED"}
     mesh = bpy.context.active_object.data
     recon = load_reconstruction(donut)
@@ -91,7 +89,6 @@ def test_gaussian_splat_operator(scene, donut):
 
 
 def test_point_cloud_operator_keeps_normals(scene, tmp_path):
-    bpy = pytest.importorskip("bpy")
     xyz = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)
     path = tmp_path / "cloud.ply"
     write_ply(path, {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
@@ -104,7 +101,6 @@ def test_point_cloud_operator_keeps_normals(scene, tmp_path):
 
 @pytest.mark.parametrize("suffix", [".obj", ".glb", ".stl"])
 def test_mesh_operator(scene, tmp_path, suffix):
-    bpy = pytest.importorskip("bpy")
     vehicle = sample_vehicle("truck")
     path = tmp_path / f"truck{suffix}"
     vehicle.trimesh().export(path)
@@ -119,7 +115,6 @@ def test_mesh_operator(scene, tmp_path, suffix):
 
 
 def test_chrono_mesh_operator(scene, chrono_meshes):
-    bpy = pytest.importorskip("bpy")
     path = next(p for p in chrono_meshes if p.name == "CityBus_Vis.obj")
     assert bpy.ops.import_scene.pgt_mesh(filepath=str(path)) == {"FINISHED"}
     assert bpy.context.active_object.pgt.source_kind == "mesh"
@@ -127,7 +122,6 @@ def test_chrono_mesh_operator(scene, chrono_meshes):
 
 
 def test_add_sample_operator(scene):
-    bpy = pytest.importorskip("bpy")
     assert bpy.ops.object.pgt_add_sample(class_name="trailer", seed=2, points=3000) == {"FINISHED"}
     obj = bpy.context.active_object
     assert obj.name == "sample_trailer_seed2" and len(obj.data.vertices) == 3000
@@ -169,7 +163,6 @@ def broken_inputs(tmp_path, statue, donut):
 
 
 def test_bad_input_is_cancelled_and_leaves_nothing(scene, tmp_path, statue, donut):
-    bpy = pytest.importorskip("bpy")
     bpy.ops.import_scene.pgt_colmap(directory=str(statue))  # something already in the scene
     before = datablock_counts(bpy)
     for operator, arguments, path, problem in broken_inputs(tmp_path, statue, donut):
@@ -183,7 +176,6 @@ def test_bad_input_is_cancelled_and_leaves_nothing(scene, tmp_path, statue, donu
 def test_failure_while_building_removes_partial_data(scene, statue):
     """A failure after some Blender data exists (here: a camera that cannot be made)
     removes the points object, its mesh, its display node group and the cameras already built."""
-    bpy = pytest.importorskip("bpy")
     from pgt_blender.blender import objects
 
     recon = load_reconstruction(statue)
@@ -197,7 +189,6 @@ def test_failure_while_building_removes_partial_data(scene, statue):
 # --- registration, menus, panel -----------------------------------------------------------
 
 def test_menu_panel_and_properties_registered(registered):
-    bpy = registered
     from pgt_blender.blender.ui import menu_import
 
     assert menu_import in bpy.types.TOPBAR_MT_file_import._dyn_ui_initialize()
@@ -209,7 +200,6 @@ def test_menu_panel_and_properties_registered(registered):
 
 
 def test_register_unregister_twice(registered):
-    bpy = registered
     import pgt_blender
 
     for _ in range(2):

@@ -107,7 +107,7 @@ def read_vertices(path: Path, header: PlyHeader | None = None) -> dict:
                 path, f"element '{element.name}' has list properties; a point PLY cannot hold them"
             )
     if header.format == "ascii":
-        return _columns(_read_ascii_vertices(path, header, vertex))
+        return _read_ascii_vertices(path, header, vertex)
     return _columns(_read_binary_vertices(path, header, vertex))
 
 
@@ -175,10 +175,8 @@ def _read_ascii_vertices(path, header, vertex):
     if values.size != vertex.count * columns:
         raise InputError(path, f"vertex rows must hold {columns} values each; some rows differ")
     table = values.reshape(vertex.count, columns)
-    data = np.empty(vertex.count, vertex.dtype("="))
-    for index, (name, _) in enumerate(vertex.properties):
-        data[name] = table[:, index]
-    return data
+    return {name: np.ascontiguousarray(table[:, index], dtype=code)
+            for index, (name, code) in enumerate(vertex.properties)}
 
 
 def write_ply(path: Path, columns: dict, binary: bool = True) -> None:
