@@ -2,14 +2,10 @@
 ``blender -b [file.blend] -P script.py -- ARGS`` and as ``python script.py ARGS``."""
 
 import atexit
-import sys
 
 import bpy
 
-
-def script_argv() -> list:
-    """The script's own arguments: those after ``--`` (Blender's convention), else argv[1:]."""
-    return sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+from ..cli import script_argv  # noqa: F401  (the scripts' one import for both)
 
 
 def ensure_registered() -> None:

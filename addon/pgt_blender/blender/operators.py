@@ -4,10 +4,11 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
+from ..core.authoring import prepare
 from ..core.classes import MINORITY_CLASSES
 from ..core.errors import InputError
 from ..core.importing import load_reconstruction
-from . import objects
+from . import authoring, objects
 
 
 def _select_only(context, obj):
@@ -113,6 +114,113 @@ class OBJECT_OT_pgt_add_sample(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class _AuthoringStep:
+    """Shared poll and execute of the authoring operators: one core step on the active
+    reconstruction; bad input is reported as an ERROR and changes nothing."""
+
+    bl_options = {"REGISTER", "UNDO"}
+    needs_alignment = True
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.active_object
+        if obj is None or obj.type != "MESH" or obj.pgt.source_kind == "none":
+            cls.poll_message_set("Select an imported reconstruction")
+            return False
+        if cls.needs_alignment and not obj.pgt.aligned:
+            cls.poll_message_set("Align the axes first")
+            return False
+        return True
+
+    def execute(self, context):
+        obj = context.active_object
+        try:
+            step = self.step(context, obj, context.scene.pgt_authoring)
+        except (InputError, ValueError) as error:
+            message = str(error) if isinstance(error, InputError) else f"{obj.name}: {error}"
+            self.report({"ERROR"}, message)
+            return {"CANCELLED"}
+        authoring.apply_step(obj, step)
+        self.record(obj.pgt, step, context.scene.pgt_authoring)
+        self.report({"INFO"}, f"{obj.name}: {self.bl_label.lower()}, box "
+                              + " x ".join(f"{d:.3g}" for d in obj.pgt.dims))
+        return {"FINISHED"}
+
+    def record(self, record, step, settings):
+        record.heading_by = step.details["by"]
+
+
+class OBJECT_OT_pgt_align(_AuthoringStep, bpy.types.Operator):
+    """Rotate the principal axes onto x (length), y (width), z (up) and centre the box"""
+
+    bl_idname = "object.pgt_align"
+    bl_label = "Align Axes"
+    needs_alignment = False
+
+    def step(self, context, obj, settings):
+        if not len(obj.data.vertices):
+            raise InputError(obj.pgt.source_path or obj.name, "has no points to align")
+        up = prepare.up_vector(settings.up, authoring.camera_poses(obj), obj.pgt.source_path)
+        return prepare.align_step(authoring.positions(obj), authoring.weights(obj), up, obj.pgt.source_path)
+
+    def record(self, record, step, settings):
+        record.aligned = True
+        record.heading_by = ""  # PCA may have turned the front away again
+
+
+class OBJECT_OT_pgt_turn(_AuthoringStep, bpy.types.Operator):
+    """Turn the object about its up axis by quarter turns (2: swap front and back)"""
+
+    bl_idname = "object.pgt_turn"
+    bl_label = "Turn"
+
+    turns: IntProperty(name="Quarter turns", default=2, min=-3, max=3,
+                       description="Counter-clockwise quarter turns seen from above")
+
+    def step(self, context, obj, settings):
+        return prepare.turn_step(self.turns, authoring.current_dims(obj))
+
+
+class OBJECT_OT_pgt_front_from_cursor(_AuthoringStep, bpy.types.Operator):
+    """Make the box side facing the 3D cursor the front (+x)"""
+
+    bl_idname = "object.pgt_front_from_cursor"
+    bl_label = "Front from Cursor"
+
+    def step(self, context, obj, settings):
+        cursor = obj.matrix_world.inverted() @ context.scene.cursor.location
+        return prepare.front_step(tuple(cursor), authoring.current_dims(obj))
+
+
+class OBJECT_OT_pgt_auto_heading(_AuthoringStep, bpy.types.Operator):
+    """Decide front and back automatically (PointNet classifier or geometric baseline)"""
+
+    bl_idname = "object.pgt_auto_heading"
+    bl_label = "Detect Front"
+
+    def step(self, context, obj, settings):
+        checkpoint = bpy.path.abspath(settings.checkpoint) if settings.checkpoint else None
+        return prepare.automatic_heading_step(authoring.positions(obj), authoring.current_dims(obj),
+                                              settings.heading_method, checkpoint)
+
+
+class OBJECT_OT_pgt_set_size(_AuthoringStep, bpy.types.Operator):
+    """Scale the object to a class size (with the paper's noise), an exact size, or keep it"""
+
+    bl_idname = "object.pgt_set_size"
+    bl_label = "Set Size"
+
+    def step(self, context, obj, settings):
+        return prepare.size_step(authoring.current_dims(obj), settings.size_mode, settings.dataset, settings.class_name,
+                                 settings.seed, settings.uniform, tuple(settings.exact_dims))
+
+    def record(self, record, step, settings):
+        record.size_by = step.details["mode"]
+        record.dataset, record.class_name = settings.dataset, settings.class_name
+
+
+AUTHORING = (OBJECT_OT_pgt_align, OBJECT_OT_pgt_turn, OBJECT_OT_pgt_front_from_cursor,
+             OBJECT_OT_pgt_auto_heading, OBJECT_OT_pgt_set_size)
 IMPORTERS = (IMPORT_SCENE_OT_pgt_colmap, IMPORT_SCENE_OT_pgt_gaussian_splat,
              IMPORT_SCENE_OT_pgt_point_cloud, IMPORT_SCENE_OT_pgt_mesh)
-classes = IMPORTERS + (OBJECT_OT_pgt_add_sample,)
+classes = IMPORTERS + (OBJECT_OT_pgt_add_sample,) + AUTHORING

@@ -1,8 +1,12 @@
-"""Data pgt_blender stores on Blender objects."""
+"""Data pgt_blender stores on Blender objects (``Object.pgt``) and the authoring
+settings of the scene (``Scene.pgt_authoring``)."""
 
 import bpy
-from bpy.props import EnumProperty, FloatVectorProperty, StringProperty
+from bpy.props import (BoolProperty, EnumProperty, FloatVectorProperty, IntProperty, PointerProperty,
+                       StringProperty)
 
+from ..core.authoring.prepare import UP_CHOICES
+from ..core.classes import CLASS_SIZES
 from ..core.reconstruction import SOURCE_KINDS
 
 _KIND_LABELS = {
@@ -10,6 +14,17 @@ _KIND_LABELS = {
     "point_ply": "Point cloud", "mesh": "Mesh",
 }
 _IDENTITY = ((1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1))
+_UP_LABELS = {"auto": ("Auto", "Cameras' mean up when the object has cameras, else the PCA minor axis"),
+              "cameras": ("Cameras", "Mean up vector of the reconstruction's cameras"),
+              "pca": ("PCA", "Minor principal axis: right for objects lower than they are wide")}
+# Enum items must outlive the callback that returns them (Blender keeps raw pointers).
+_CLASS_ITEMS = {dataset: [(name, name.replace("_", " ").title(), f"{dataset} {name}: mean size "
+                           + " x ".join(f"{v:.2f}" for v in dims) + " m") for name, dims in sizes.items()]
+                for dataset, sizes in CLASS_SIZES.items()}
+
+
+def _class_items(settings, context):
+    return _CLASS_ITEMS[settings.dataset]
 
 
 class PGT_PG_object(bpy.types.PropertyGroup):
@@ -24,18 +39,53 @@ class PGT_PG_object(bpy.types.PropertyGroup):
         default="none",
     )
     source_sha256: StringProperty(name="Checksum", description="sha256 of the source file(s) content")
-    class_name: StringProperty(name="Class", description="Dataset class; empty until set")
-    # Filled by the authoring steps: the 4x4 from the source file's frame to the object frame.
+    class_name: StringProperty(name="Class", description="Dataset class; empty until the size is set")
+    dataset: StringProperty(name="Dataset", description="Dataset whose class sizes were used")
+    # The authoring record: the 4x4 from the source file's frame to the object frame
+    # (the mesh data holds object-frame coordinates), the box and what is done.
     object_from_source: FloatVectorProperty(name="Object from source", size=(4, 4),
                                             subtype="MATRIX", default=_IDENTITY)
+    dims: FloatVectorProperty(name="Box", size=3, subtype="XYZ", unit="LENGTH",
+                              description="Box length, width, height in the object frame")
+    aligned: BoolProperty(name="Aligned", description="PCA axes applied")
+    heading_by: StringProperty(name="Heading", description="How the front was set: manual, baseline, classifier")
+    size_by: StringProperty(name="Size", description="How the size was set: class, exact, keep")
+    steps_json: StringProperty(name="Steps", description="JSON list of the authoring steps applied")
 
 
-classes = (PGT_PG_object,)
+class PGT_PG_authoring(bpy.types.PropertyGroup):
+    """Settings of the Align, Heading and Size sections (``Scene.pgt_authoring``)."""
+
+    up: EnumProperty(name="Up", default="auto", items=[
+        (choice, *_UP_LABELS.get(choice, (f"Source {choice.upper()}", f"The source frame's {choice} axis")))
+        for choice in UP_CHOICES])
+    heading_method: EnumProperty(name="Method", default="classifier", items=[
+        ("classifier", "Classifier", "PointNet front/back classifier (needs torch)"),
+        ("baseline", "Baseline", "Geometric rule: the lower end is the front")])
+    checkpoint: StringProperty(name="Checkpoint", subtype="FILE_PATH",
+                               description="Heading classifier checkpoint; empty: the one shipped with pgt_blender")
+    dataset: EnumProperty(name="Dataset", default="nuscenes",
+                          items=[(d, {"nuscenes": "nuScenes", "kitti": "KITTI", "lyft": "Lyft"}[d], "")
+                                 for d in CLASS_SIZES])
+    class_name: EnumProperty(name="Class", items=_class_items)
+    size_mode: EnumProperty(name="Size", default="class", items=[
+        ("class", "Class", "Class mean with Gaussian noise (sigma 10 %, clipped at 1 sigma)"),
+        ("exact", "Exact", "The size given below"),
+        ("keep", "Keep", "The source is already metric")])
+    uniform: BoolProperty(name="Uniform", description="One scale factor for all axes (keeps the proportions)")
+    seed: IntProperty(name="Seed", min=0, description="Seed of the size noise")
+    exact_dims: FloatVectorProperty(name="Exact size", size=3, default=(4.0, 2.0, 1.5), min=0.001,
+                                    subtype="XYZ", unit="LENGTH")
+
+
+classes = (PGT_PG_object, PGT_PG_authoring)
 
 
 def register():
-    bpy.types.Object.pgt = bpy.props.PointerProperty(type=PGT_PG_object)
+    bpy.types.Object.pgt = PointerProperty(type=PGT_PG_object)
+    bpy.types.Scene.pgt_authoring = PointerProperty(type=PGT_PG_authoring)
 
 
 def unregister():
+    del bpy.types.Scene.pgt_authoring
     del bpy.types.Object.pgt

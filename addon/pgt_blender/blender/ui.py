@@ -2,6 +2,7 @@
 
 import bpy
 
+from . import authoring
 from .operators import IMPORTERS
 
 
@@ -38,12 +39,105 @@ class VIEW3D_PT_pgt_import(bpy.types.Panel):
         box.prop(settings, "class_name")
 
 
+def reconstruction(context):
+    """The active object when it is an imported reconstruction, else None."""
+    obj = context.active_object
+    return obj if obj is not None and obj.type == "MESH" and obj.pgt.source_kind != "none" else None
+
+
+def status_text(obj) -> str:
+    """One line: what is done and what is left for ``obj``."""
+    done = authoring.status(obj)
+    parts = ["aligned" if done["aligned"] else "not aligned",
+             f"heading: {done['heading']}" if done["heading"] else "heading unset",
+             f"size: {done['size']}" if done["size"] else "size unset"]
+    return " | ".join(parts)
+
+
+class _AuthoringPanel:
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "PGT"
+
+    @classmethod
+    def poll(cls, context):
+        return reconstruction(context) is not None
+
+
+class VIEW3D_PT_pgt_align(_AuthoringPanel, bpy.types.Panel):
+    bl_label = "Align"
+    bl_idname = "VIEW3D_PT_pgt_align"
+
+    def draw(self, context):
+        obj = reconstruction(context)
+        layout = self.layout
+        layout.label(text=status_text(obj), icon="CHECKMARK" if all(authoring.status(obj).values()) else "INFO")
+        layout.prop(context.scene.pgt_authoring, "up")
+        layout.operator("object.pgt_align", icon="ORIENTATION_GIMBAL")
+        if obj.pgt.aligned:
+            layout.label(text="Box " + " x ".join(f"{d:.3g}" for d in obj.pgt.dims))
+
+
+class VIEW3D_PT_pgt_heading(_AuthoringPanel, bpy.types.Panel):
+    bl_label = "Heading"
+    bl_idname = "VIEW3D_PT_pgt_heading"
+
+    def draw(self, context):
+        layout, settings = self.layout, context.scene.pgt_authoring
+        row = layout.row(align=True)
+        row.operator("object.pgt_turn", text="Flip 180", icon="LOOP_BACK").turns = 2
+        row.operator("object.pgt_turn", text="+90", icon="LOOP_FORWARDS").turns = 1
+        row.operator("object.pgt_turn", text="-90", icon="LOOP_BACK").turns = -1
+        layout.operator("object.pgt_front_from_cursor", icon="PIVOT_CURSOR")
+        layout.prop(settings, "heading_method")
+        if settings.heading_method == "classifier":
+            layout.prop(settings, "checkpoint")
+        layout.operator("object.pgt_auto_heading", icon="AUTO")
+
+
+class VIEW3D_PT_pgt_size(_AuthoringPanel, bpy.types.Panel):
+    bl_label = "Size"
+    bl_idname = "VIEW3D_PT_pgt_size"
+
+    def draw(self, context):
+        layout, settings = self.layout, context.scene.pgt_authoring
+        layout.prop(settings, "size_mode", expand=True)
+        if settings.size_mode == "class":
+            layout.prop(settings, "dataset")
+            layout.prop(settings, "class_name")
+            layout.prop(settings, "seed")
+        elif settings.size_mode == "exact":
+            layout.prop(settings, "exact_dims")
+        if settings.size_mode != "keep":
+            layout.prop(settings, "uniform")
+        layout.operator("object.pgt_set_size", icon="FULLSCREEN_ENTER")
+
+
+class VIEW3D_PT_pgt_objects(bpy.types.Panel):
+    """Every reconstruction in the scene with what is left to do."""
+
+    bl_label = "Objects"
+    bl_idname = "VIEW3D_PT_pgt_objects"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "PGT"
+
+    def draw(self, context):
+        column = self.layout.column(align=True)
+        for obj in context.scene.objects:
+            if obj.type == "MESH" and obj.pgt.source_kind != "none":
+                row = column.row()
+                row.label(text=obj.name, icon="CHECKMARK" if all(authoring.status(obj).values()) else "DOT")
+                row.label(text=status_text(obj))
+
+
 def menu_import(self, context):
     for operator in IMPORTERS:
         self.layout.operator(operator.bl_idname, text=f"PGT: {short_label(operator)}")
 
 
-classes = (VIEW3D_PT_pgt_import,)
+classes = (VIEW3D_PT_pgt_import, VIEW3D_PT_pgt_align, VIEW3D_PT_pgt_heading, VIEW3D_PT_pgt_size,
+           VIEW3D_PT_pgt_objects)
 
 
 def register():

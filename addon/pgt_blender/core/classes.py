@@ -1,6 +1,10 @@
-"""Object classes and their dataset sizes (metres), from REFERENCE.md section 3."""
+"""Object classes and their dataset sizes (metres), from REFERENCE.md section 3.
 
-# nuScenes (length, width, height) mean and std; length is along the heading (+x).
+Sizes are (length, width, height): length along the heading (+x), width along +y,
+height along +z. Class names are the datasets' own, lower case.
+"""
+
+# nuScenes mean and std.
 NUSCENES_SIZES = {
     "car": ((4.62, 1.96, 1.73), (0.46, 0.16, 0.24)),
     "truck": ((6.94, 2.52, 2.84), (2.11, 0.45, 0.84)),
@@ -13,6 +17,19 @@ NUSCENES_SIZES = {
     "traffic_cone": ((0.41, 0.41, 1.08), (0.14, 0.13, 0.27)),
     "barrier": ((0.50, 2.52, 0.99), (0.17, 0.62, 0.15)),
 }
+
+# Mean sizes by dataset (KITTI and Lyft: OpenPCDet's anchor sizes; no std published).
+CLASS_SIZES = {
+    "nuscenes": {name: mean for name, (mean, _) in NUSCENES_SIZES.items()},
+    "kitti": {"car": (3.9, 1.6, 1.56), "pedestrian": (0.8, 0.6, 1.73), "cyclist": (1.76, 0.6, 1.73)},
+    "lyft": {
+        "car": (4.75, 1.92, 1.71), "truck": (10.24, 2.84, 3.44), "bus": (12.70, 2.92, 3.42),
+        "emergency_vehicle": (6.52, 2.42, 2.34), "other_vehicle": (8.17, 2.75, 3.20),
+        "motorcycle": (2.35, 0.96, 1.59), "bicycle": (1.76, 0.63, 1.44),
+        "pedestrian": (0.80, 0.76, 1.76), "animal": (0.73, 0.35, 0.5),
+    },
+}
+DATASETS = tuple(CLASS_SIZES)
 
 # The paper's minority classes: the ones pgt_blender builds banks for.
 MINORITY_CLASSES = ("truck", "bus", "trailer", "construction_vehicle", "motorcycle", "bicycle")

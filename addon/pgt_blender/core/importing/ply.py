@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..files import atomic_output
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -194,15 +195,10 @@ def write_ply(path: Path, columns: dict, binary: bool = True) -> None:
     table = np.empty(count, dtype)
     for name, values in arrays.items():
         table[name] = values
-    temporary = path.with_name(path.name + ".partial")
-    try:
-        with open(temporary, "wb") as stream:
-            stream.write(("\n".join(lines) + "\n").encode("ascii"))
-            if binary:
-                table.tofile(stream)
-            else:
-                formats = ["%d" if dtype[n].kind in "iu" else "%.9g" for n in dtype.names]
-                np.savetxt(stream, np.column_stack([table[n] for n in dtype.names]), fmt=formats)
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
+    with atomic_output(path) as stream:
+        stream.write(("\n".join(lines) + "\n").encode("ascii"))
+        if binary:
+            table.tofile(stream)
+        else:
+            formats = ["%d" if dtype[n].kind in "iu" else "%.9g" for n in dtype.names]
+            np.savetxt(stream, np.column_stack([table[n] for n in dtype.names]), fmt=formats)

@@ -1,0 +1,108 @@
+"""Apply core authoring steps to Blender objects, in bulk.
+
+The mesh data is rewritten in the object frame (``foreach_get`` -> the core's
+``apply_transform`` -> ``foreach_set``), exactly as ``prepare_objects.py`` does with
+the same arrays; an object's own matrix (where the user put it) is left alone. Child
+cameras follow the rigid part of each step. A child empty, "PGT Box", shows the box.
+"""
+
+import json
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+from ..core.authoring.prepare import Step, apply_transform
+from .objects import _BLENDER_FROM_OPENCV, POINTS_GROUP
+
+BOX_TAG = "pgt_box"
+
+
+def positions(obj: bpy.types.Object) -> np.ndarray:
+    """(N, 3) float32 vertex positions of ``obj``'s mesh (its local frame)."""
+    values = np.empty(len(obj.data.vertices) * 3, np.float32)
+    obj.data.attributes["position"].data.foreach_get("vector", values)
+    return values.reshape(-1, 3)
+
+
+def weights(obj: bpy.types.Object):
+    """(N,) float32 Gaussian-splat opacity of ``obj``, or None."""
+    attribute = obj.data.attributes.get("opacity")
+    if attribute is None or attribute.data_type != "FLOAT" or attribute.domain != "POINT":
+        return None
+    values = np.empty(len(attribute.data), np.float32)
+    attribute.data.foreach_get("value", values)
+    return values
+
+
+def cameras(obj: bpy.types.Object) -> list:
+    return [child for child in obj.children if child.type == "CAMERA"]
+
+
+def camera_poses(obj: bpy.types.Object) -> np.ndarray:
+    """(C, 4, 4) OpenCV world_from_camera of the child cameras, in ``obj``'s local frame."""
+    poses = [np.array(_local_matrix(camera)) @ _BLENDER_FROM_OPENCV for camera in cameras(obj)]
+    return np.array(poses).reshape(-1, 4, 4)
+
+
+def _local_matrix(child) -> Matrix:
+    return child.matrix_parent_inverse @ child.matrix_basis
+
+
+def apply_step(obj: bpy.types.Object, step: Step) -> None:
+    """Apply ``step`` to the mesh data, the child cameras and the record on ``obj.pgt``."""
+    mesh = obj.data
+    mesh.attributes["position"].data.foreach_set("vector", apply_transform(positions(obj), step.transform).ravel())
+    mesh.update()
+    linear = step.transform[:3, :3]
+    scale = float(np.cbrt(abs(np.linalg.det(linear))))
+    u, _, vt = np.linalg.svd(linear)
+    rigid = np.eye(4)
+    rigid[:3, :3] = u @ vt  # the rotation part; cameras do not take a scale
+    for camera in cameras(obj):
+        local = np.array(_local_matrix(camera))
+        moved = rigid @ local
+        moved[:3, 3] = apply_transform(local[None, :3, 3], step.transform)[0]
+        camera.matrix_basis = camera.matrix_parent_inverse.inverted() @ Matrix(moved.tolist())
+        camera.data.display_size *= scale
+    modifier = obj.modifiers.get(POINTS_GROUP)
+    if modifier is not None:  # point radius in object units
+        identifier = modifier.node_group.interface.items_tree["Radius"].identifier
+        modifier[identifier] = modifier[identifier] * scale
+    settings = obj.pgt
+    record = np.array(settings.object_from_source).reshape(4, 4)
+    settings.object_from_source = Matrix((step.transform @ record).tolist())
+    settings.dims = step.dims
+    steps = json.loads(settings.steps_json or "[]")
+    steps.append({"step": step.name, "transform": step.transform.tolist(), "dims": list(step.dims), **step.details})
+    settings.steps_json = json.dumps(steps)
+    show_box(obj)
+
+
+def show_box(obj: bpy.types.Object) -> bpy.types.Object:
+    """The wire cube child showing the object's box (made on first use)."""
+    box = next((child for child in obj.children if child.get(BOX_TAG)), None)
+    if box is None:
+        box = bpy.data.objects.new(f"{obj.name} Box", None)
+        box[BOX_TAG] = True
+        box.empty_display_type = "CUBE"
+        box.hide_select = True
+        for collection in obj.users_collection:
+            collection.objects.link(box)
+        box.parent = obj
+    box.matrix_parent_inverse.identity()
+    box.matrix_basis = Matrix.Diagonal((*(max(d, 1e-6) / 2 for d in obj.pgt.dims), 1.0))
+    return box
+
+
+def current_dims(obj: bpy.types.Object) -> np.ndarray:
+    """(3,) float64 box of the last step, from the step record: ``pgt.dims`` is float32
+    and would make the next step differ from the headless chain in the last bit."""
+    steps = json.loads(obj.pgt.steps_json or "[]")
+    return np.array(steps[-1]["dims"]) if steps else np.array(obj.pgt.dims, np.float64)
+
+
+def status(obj: bpy.types.Object) -> dict:
+    """What is done and what is left: aligned, heading (how), size (how)."""
+    settings = obj.pgt
+    return {"aligned": settings.aligned, "heading": settings.heading_by, "size": settings.size_by}

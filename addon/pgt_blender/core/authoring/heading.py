@@ -1,0 +1,73 @@
+"""Heading (front/back) correction in the object frame.
+
+PCA leaves x pointing to either end of the object (and, for a near-square footprint,
+along either side). These functions return the (4, 4) rotation about +z that puts
+the front at +x; the automatic choices give a *score*, positive when the front is
+already at +x:
+
+* manual: :func:`quarter_turns` (flip = 2 turns, +-90 degrees = +-1 turn) and
+  :func:`front_towards` (a picked point or direction becomes the front);
+* geometric baseline: :func:`profile_front_score`, "the front end is the lower one"
+  (bonnet, cab, bucket), the rule the learned classifier has to beat;
+* learned: :mod:`.heading_classifier` (PointNet, needs torch).
+"""
+
+import numpy as np
+
+
+def quarter_turns(turns: int) -> np.ndarray:
+    """(4, 4) rotation by ``turns`` x 90 degrees about +z (counter-clockwise seen from
+    above, so one turn moves the front from +x to +y), with exact zeros and ones."""
+    cos, sin = ((1, 0), (0, 1), (-1, 0), (0, -1))[turns % 4]
+    rotation = np.eye(4)
+    rotation[:2, :2] = [[cos, -sin], [sin, cos]]
+    return rotation
+
+
+def front_towards(direction) -> np.ndarray:
+    """(4, 4) quarter-turn rotation that makes the box side facing ``direction``
+    ((3,) in the object frame, e.g. the 3D cursor location) the front (+x). The
+    direction snaps to the nearest of +x, +y, -x, -y."""
+    x, y = np.asarray(direction, np.float64)[:2]
+    if not np.isfinite([x, y]).all() or (x == 0 and y == 0):
+        raise ValueError("the front direction must have a horizontal component")
+    facing = int(np.round(np.arctan2(y, x) / (np.pi / 2))) % 4  # 0: +x, 1: +y, 2: -x, 3: -y
+    return quarter_turns(-facing)
+
+
+def profile_front_score(points: np.ndarray, end_share: float = 0.25) -> float:
+    """Baseline front/back score of object-frame ``points`` (N, 3), in [-1, 1]:
+    (top of the rear end - top of the front end) / box height, each end being the
+    ``end_share`` of the length at that end and its top the 90th height percentile.
+    Positive: the +x end is lower, so it is taken as the front."""
+    points = np.asarray(points, np.float64)
+    x, z = points[:, 0], points[:, 2]
+    low, high = x.min(), x.max()
+    cut = end_share * (high - low)
+    front, rear = z[x >= high - cut], z[x <= low + cut]
+    height = np.ptp(z)
+    if not len(front) or not len(rear) or height == 0:
+        return 0.0
+    return float((np.percentile(rear, 90) - np.percentile(front, 90)) / height)
+
+
+def transformed_dims(transform: np.ndarray, dims) -> np.ndarray:
+    """(3,) box extents after ``transform`` (4, 4), for transforms that keep the box
+    axis-aligned (quarter turns, axis scales): |M| @ dims."""
+    return np.abs(np.asarray(transform)[:3, :3]) @ np.asarray(dims, np.float64)
+
+
+def automatic_front(points: np.ndarray, dims, method: str = "classifier", checkpoint=None) -> tuple:
+    """(turns, score): 0 quarter turns when the front is already at +x, else 2 (the
+    180 degree flip), by ``method``: "baseline" (:func:`profile_front_score`, score in
+    [-1, 1], front at +x when >= 0) or "classifier" (front probability, front at +x
+    when >= 0.5; InputError when torch or the checkpoint is missing)."""
+    if method == "baseline":
+        score = profile_front_score(points)
+        return (0 if score >= 0 else 2), score
+    if method == "classifier":
+        from .heading_classifier import DEFAULT_CHECKPOINT, front_probability
+
+        probability = front_probability(points, dims, checkpoint or DEFAULT_CHECKPOINT)
+        return (0 if probability >= 0.5 else 2), probability
+    raise ValueError(f"unknown heading method '{method}' (have: baseline, classifier)")

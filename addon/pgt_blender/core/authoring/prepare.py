@@ -1,0 +1,203 @@
+"""The authoring chain, headless: reconstruction -> aligned, headed, sized object.
+
+Each step is a :class:`Step` (name, the (4, 4) transform it applies to the object's
+current frame, the box after it, details). The Blender operators and
+:class:`AuthoredObject` apply the very same steps with :func:`apply_transform`, so the
+UI and ``prepare_objects.py`` give identical points, boxes and transforms.
+"""
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..files import atomic_output
+from ..reconstruction import Reconstruction
+from . import heading, sizing
+from .alignment import align_axes, camera_up
+
+UP_CHOICES = ("auto", "cameras", "pca", "+x", "-x", "+y", "-y", "+z", "-z")
+HEADING_METHODS = ("none", "baseline", "classifier")
+SIZE_MODES = ("class", "exact", "keep")
+FRAME = ("object frame: +x forward (heading), +y left, +z up, metres, origin at the centre "
+         "of the axis-aligned box")
+
+
+@dataclass
+class Step:
+    """One authoring step: ``transform`` (4, 4) maps the frame before it to the frame
+    after it; ``dims`` (3,) is the box (length, width, height) after it."""
+
+    name: str
+    transform: np.ndarray
+    dims: np.ndarray
+    details: dict = field(default_factory=dict)
+
+
+def apply_transform(positions: np.ndarray, transform: np.ndarray) -> np.ndarray:
+    """(N, 3) float32 ``positions`` mapped by the (4, 4) ``transform``, computed in float64."""
+    points = np.asarray(positions, np.float64)
+    return (points @ transform[:3, :3].T + transform[:3, 3]).astype(np.float32)
+
+
+def up_vector(choice: str, world_from_cameras=(), source="points"):
+    """(3,) up direction in the source frame for an UP_CHOICES entry, or None for the
+    PCA minor axis. ``world_from_cameras``: (C, 4, 4) OpenCV camera poses, whose mean
+    up "auto" prefers when there are any."""
+    if choice not in UP_CHOICES:
+        raise ValueError(f"unknown up '{choice}' (have: {', '.join(UP_CHOICES)})")
+    if choice in ("auto", "cameras") and len(world_from_cameras):
+        try:
+            return camera_up(world_from_cameras)
+        except ValueError as error:
+            raise InputError(source, str(error)) from None
+    if choice == "cameras":
+        raise InputError(source, "has no cameras to take the up direction from")
+    if choice in ("auto", "pca"):
+        return None
+    axis = np.zeros(3)
+    axis["xyz".index(choice[1])] = 1.0 if choice[0] == "+" else -1.0
+    return axis
+
+
+def align_step(positions, weights=None, up=None, source="points") -> Step:
+    """PCA alignment of the current points (see :mod:`.alignment`)."""
+    found = align_axes(positions, weights, up, source)
+    return Step("align", found.transform, found.dims,
+                {"up_from": found.up_from, "yaw_from": found.yaw_from, "inliers": int(found.inliers.sum())})
+
+
+def turn_step(turns: int, dims) -> Step:
+    """Manual heading: ``turns`` quarter turns about +z (2 = flip front and back)."""
+    rotation = heading.quarter_turns(turns)
+    return Step("heading", rotation, heading.transformed_dims(rotation, dims), {"by": "manual", "turns": turns % 4})
+
+
+def front_step(direction, dims) -> Step:
+    """Manual heading: the box side facing ``direction`` (object frame) becomes the front."""
+    rotation = heading.front_towards(direction)
+    return Step("heading", rotation, heading.transformed_dims(rotation, dims), {"by": "manual", "turns": None})
+
+
+def automatic_heading_step(positions, dims, method: str, checkpoint=None) -> Step:
+    """Baseline or classifier front/back decision (see :func:`.heading.automatic_front`)."""
+    turns, score = heading.automatic_front(positions, dims, method, checkpoint)
+    step = turn_step(turns, dims)
+    step.details.update(by=method, score=float(score))
+    return step
+
+
+def size_step(dims, mode: str, dataset: str = "nuscenes", class_name: str = "", seed: int = 0,
+              uniform: bool = False, exact=None) -> Step:
+    """Scale to a sampled class size ("class"), to ``exact`` (l, w, h) metres, or not
+    at all ("keep": the source is already metric)."""
+    if mode == "keep":
+        return Step("size", np.eye(4), np.asarray(dims, np.float64), {"mode": "keep"})
+    if mode == "class":
+        target = sizing.sample_dims(dataset, class_name, seed, uniform)
+        details = {"mode": "class", "dataset": dataset, "class": class_name, "seed": seed, "uniform": uniform}
+    elif mode == "exact":
+        target = np.asarray(exact, np.float64)
+        details = {"mode": "exact", "uniform": uniform}
+    else:
+        raise ValueError(f"unknown size mode '{mode}' (have: {', '.join(SIZE_MODES)})")
+    scale, new_dims = sizing.scale_to(dims, target, uniform)
+    return Step("size", scale, new_dims, {**details, "target": target.tolist()})
+
+
+@dataclass
+class AuthoredObject:
+    """A reconstruction on its way to the object frame.
+
+    positions: (N, 3) float32, the current frame (the object frame once aligned).
+    object_from_source: (4, 4) float64, the product of every step's transform.
+    """
+
+    source: Reconstruction
+    positions: np.ndarray
+    object_from_source: np.ndarray = field(default_factory=lambda: np.eye(4))
+    dims: np.ndarray | None = None
+    steps: list = field(default_factory=list)
+
+    @classmethod
+    def from_reconstruction(cls, recon: Reconstruction) -> "AuthoredObject":
+        return cls(recon, np.asarray(recon.positions, np.float32))
+
+    def apply(self, step: Step) -> "AuthoredObject":
+        self.positions = apply_transform(self.positions, step.transform)
+        self.object_from_source = step.transform @ self.object_from_source
+        self.dims = np.asarray(step.dims, np.float64)
+        self.steps.append(step)
+        return self
+
+    def sidecar(self, class_name: str, dataset: str) -> dict:
+        """The JSON record of the object: what it is, its box, how it got there."""
+        return {
+            "class": class_name, "dataset": dataset,
+            "dims": self.dims.tolist(),
+            "transform": self.object_from_source.tolist(),
+            "transform_is": "object_from_source, row-major 4x4: source file frame and units -> object frame",
+            "frame": FRAME,
+            "source": str(self.source.source), "source_kind": self.source.kind,
+            "source_sha256": self.source.sha256, "points": int(len(self.positions)),
+            "steps": [{"step": s.name, "transform": s.transform.tolist(), "dims": s.dims.tolist(), **s.details}
+                      for s in self.steps],
+        }
+
+
+def prepare(recon: Reconstruction, class_name: str, dataset: str = "nuscenes", up: str = "auto",
+            heading_method: str = "classifier", size: str = "class", exact=None,
+            uniform: bool = False, seed: int = 0, checkpoint=None) -> AuthoredObject:
+    """Align, head and size ``recon`` in one go; the same steps as the Blender panel."""
+    if heading_method not in HEADING_METHODS:
+        raise ValueError(f"unknown heading method '{heading_method}' (have: {', '.join(HEADING_METHODS)})")
+    authored = AuthoredObject.from_reconstruction(recon)
+    weights = recon.attributes.get("opacity")
+    poses = np.array([c.world_from_camera for c in recon.cameras]).reshape(-1, 4, 4)
+    authored.apply(align_step(authored.positions, weights, up_vector(up, poses, recon.source), recon.source))
+    if heading_method != "none":
+        authored.apply(automatic_heading_step(authored.positions, authored.dims, heading_method, checkpoint))
+    try:
+        return authored.apply(size_step(authored.dims, size, dataset, class_name, seed, uniform, exact))
+    except ValueError as error:
+        raise InputError(recon.source, str(error)) from None
+
+
+def write_prepared(authored: AuthoredObject, class_name: str, dataset: str, directory) -> dict:
+    """Write ``<name>.ply`` (object-frame points, colours and per-point scalars, or the
+    mesh) and ``<name>.json`` (:meth:`AuthoredObject.sidecar`) into ``directory``; each
+    file appears complete or not at all. Returns their paths by suffix."""
+    from ..importing.ply import write_ply
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    name = authored.source.name
+    paths = {".ply": directory / f"{name}.ply", ".json": directory / f"{name}.json"}
+    recon = authored.source
+    if len(recon.faces):
+        import trimesh
+
+        data = trimesh.Trimesh(authored.positions, recon.faces, process=False).export(file_type="ply")
+        with atomic_output(paths[".ply"]) as stream:
+            stream.write(data)
+    else:
+        write_ply(paths[".ply"], _point_columns(authored))
+    text = json.dumps(authored.sidecar(class_name, dataset), indent=2)
+    with atomic_output(paths[".json"]) as stream:
+        stream.write(text.encode())
+    return paths
+
+
+def _point_columns(authored: AuthoredObject) -> dict:
+    """PLY columns: x, y, z, uchar colours and the frame-independent scalars (opacity,
+    track length, ...). Splat scales and rotations are frame-dependent and left out."""
+    columns = {axis: authored.positions[:, i] for i, axis in enumerate("xyz")}
+    recon = authored.source
+    if recon.colors is not None:
+        rgb = np.round(recon.colors[:, :3] * 255).astype(np.uint8)
+        columns.update(red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])
+    columns.update({name: values for name, values in recon.attributes.items() if values.ndim == 1})
+    return columns
+

@@ -1,0 +1,243 @@
+"""Heading, sizing and the headless authoring chain (core and prepare_objects.py)."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from pgt_blender.core.authoring import heading, sizing
+from pgt_blender.core.authoring.prepare import (AuthoredObject, apply_transform, prepare, size_step,
+                                                up_vector, write_prepared)
+from pgt_blender.core.classes import CLASS_SIZES, MINORITY_CLASSES
+from pgt_blender.core.errors import InputError
+from pgt_blender.core.importing import load_reconstruction
+from pgt_blender.core.reconstruction import Reconstruction
+from pgt_blender.core.samples import sample_vehicle
+
+from .test_scripts import run_script
+
+
+def yawed_sample(class_name, yaw_degrees, offset=(3.0, -2.0, 1.0), count=20000) -> Reconstruction:
+    """Surface points of a sample vehicle turned about z (up stays +z), as a recon."""
+    points, _ = trimesh.sample.sample_surface(sample_vehicle(class_name).trimesh(), count, seed=21)
+    c, s = np.cos(np.radians(yaw_degrees)), np.sin(np.radians(yaw_degrees))
+    rotated = points @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + offset
+    return Reconstruction(rotated.astype(np.float32), "point_ply", source=Path(f"{class_name}.ply"), sha256="0" * 64)
+
+
+# ---- heading ----------------------------------------------------------------------------
+
+def test_quarter_turns_are_exact():
+    assert np.array_equal(heading.quarter_turns(4), np.eye(4))
+    assert np.array_equal(heading.quarter_turns(1)[:3, :3] @ [1, 0, 0], [0, 1, 0])
+    assert np.array_equal(heading.quarter_turns(2) @ heading.quarter_turns(2), np.eye(4))
+    assert np.array_equal(heading.quarter_turns(-1), heading.quarter_turns(3))
+    np.testing.assert_array_equal(heading.transformed_dims(heading.quarter_turns(1), [4, 2, 1]), [2, 4, 1])
+
+
+@pytest.mark.parametrize("direction, front", [((5, 0.4, 9), (1, 0)), ((0.2, 3, 0), (0, 1)),
+                                              ((-2, 1, 0), (-1, 0)), ((1, -3, 0), (0, -1))])
+def test_front_towards_snaps_to_the_facing_side(direction, front):
+    rotation = heading.front_towards(direction)
+    np.testing.assert_array_equal(rotation[:3, :3] @ [*front, 0], [1, 0, 0])
+
+
+def test_front_towards_needs_a_horizontal_direction():
+    with pytest.raises(ValueError, match="horizontal component"):
+        heading.front_towards((0, 0, 1))
+
+
+@pytest.mark.parametrize("class_name", ["truck", "construction_vehicle"])
+def test_baseline_finds_a_low_front(class_name):
+    points, _ = trimesh.sample.sample_surface(sample_vehicle(class_name).trimesh(), 5000, seed=22)
+    score = heading.profile_front_score(points)
+    assert score > 0.05
+    assert heading.profile_front_score(points * [-1, -1, 1]) == pytest.approx(-score)
+
+
+# ---- sizing -----------------------------------------------------------------------------
+
+def test_class_size_noise_is_seeded_and_clipped():
+    mean = sizing.class_dims("nuscenes", "truck")
+    draws = np.array([sizing.sample_dims("nuscenes", "truck", seed) for seed in range(300)])
+    ratios = draws / mean
+    assert ratios.min() >= 0.9 - 1e-12 and ratios.max() <= 1.1 + 1e-12
+    assert np.isclose(ratios, 1.1).any() and np.isclose(ratios, 0.9).any()  # the clip is hit
+    assert 0.065 < np.std(ratios - 1) < 0.078  # N(0, 0.1) clipped at 1 sigma: std 0.0718
+    assert np.array_equal(sizing.sample_dims("nuscenes", "truck", 7), sizing.sample_dims("nuscenes", "truck", 7))
+    uniform = sizing.sample_dims("lyft", "bus", 7, uniform=True) / sizing.class_dims("lyft", "bus")
+    assert np.ptp(uniform) < 1e-12
+
+
+@pytest.mark.parametrize("dataset", sorted(CLASS_SIZES))
+def test_every_preset_has_positive_sizes(dataset):
+    for class_name in CLASS_SIZES[dataset]:
+        assert (sizing.class_dims(dataset, class_name) > 0).all()
+
+
+def test_unknown_dataset_or_class():
+    with pytest.raises(ValueError, match="unknown dataset 'waymo'"):
+        sizing.class_dims("waymo", "truck")
+    with pytest.raises(ValueError, match="kitti has no class 'truck' \\(have: car, pedestrian, cyclist\\)"):
+        sizing.class_dims("kitti", "truck")
+
+
+def test_scale_to_anisotropic_and_uniform():
+    scale, dims = sizing.scale_to([2.0, 1.0, 0.5], [8.0, 2.0, 2.0])
+    np.testing.assert_allclose(dims, [8.0, 2.0, 2.0])
+    np.testing.assert_allclose(np.diag(scale)[:3], [4.0, 2.0, 4.0])
+    scale, dims = sizing.scale_to([2.0, 1.0, 0.5], [8.0, 2.0, 2.0], uniform=True)
+    np.testing.assert_allclose(np.diag(scale)[:3], np.cbrt(32.0))
+    assert np.prod(dims) == pytest.approx(32.0)
+    with pytest.raises(ValueError, match="sizes must be positive"):
+        sizing.scale_to([2.0, 1.0, 0.0], [8.0, 2.0, 2.0])
+
+
+# ---- the chain --------------------------------------------------------------------------
+
+@pytest.mark.parametrize("class_name", ["truck", "construction_vehicle"])
+@pytest.mark.parametrize("yaw", [0.0, 150.0, -100.0])
+def test_prepare_recovers_pose_heading_and_size(class_name, yaw):
+    recon = yawed_sample(class_name, yaw)
+    authored = prepare(recon, class_name, up="+z", heading_method="baseline", seed=5)
+    target = sizing.sample_dims("nuscenes", class_name, 5)
+    np.testing.assert_allclose(authored.dims, target)
+    c, s = np.cos(np.radians(-yaw)), np.sin(np.radians(-yaw))
+    rotation = authored.object_from_source[:3, :3] / (target / sample_vehicle(class_name).dims)[:, None]
+    np.testing.assert_allclose(rotation, [[c, -s, 0], [s, c, 0], [0, 0, 1]], atol=0.01)  # front at +x
+    # the transform reproduces the written points; the steps multiply to it
+    np.testing.assert_array_equal(authored.positions, apply_transform(
+        apply_transform(apply_transform(recon.positions, authored.steps[0].transform),
+                        authored.steps[1].transform), authored.steps[2].transform))
+    product = authored.steps[2].transform @ authored.steps[1].transform @ authored.steps[0].transform
+    np.testing.assert_allclose(product, authored.object_from_source)
+    local = apply_transform(recon.positions, authored.object_from_source)
+    np.testing.assert_allclose((local.min(axis=0) + local.max(axis=0)) / 2, 0, atol=0.02)
+
+
+def test_prepare_size_keep_and_exact():
+    recon = yawed_sample("bus", 30.0)
+    kept = prepare(recon, "bus", up="+z", heading_method="none", size="keep")
+    np.testing.assert_allclose(kept.dims, sample_vehicle("bus").dims, atol=0.06)  # 0.25 deg of a bus
+    assert np.linalg.det(kept.object_from_source[:3, :3]) == pytest.approx(1.0)
+    exact = prepare(recon, "bus", up="+z", heading_method="none", size="exact", exact=(10.0, 2.5, 3.0))
+    np.testing.assert_allclose(exact.dims, [10.0, 2.5, 3.0])
+
+
+def test_size_of_a_flat_object_is_a_clear_error():
+    flat = Reconstruction(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32), "point_ply",
+                          source=Path("flat.ply"), sha256="")
+    with pytest.raises(InputError, match="^flat.ply: cannot scale a box of"):
+        prepare(flat, "truck", heading_method="none")
+
+
+def test_up_choices(statue):
+    poses = np.array([c.world_from_camera for c in load_reconstruction(statue).cameras])
+    assert up_vector("auto", poses) is not None and up_vector("auto", ()) is None
+    np.testing.assert_array_equal(up_vector("-y"), [0, -1, 0])
+    with pytest.raises(InputError, match="^x.ply: has no cameras"):
+        up_vector("cameras", (), "x.ply")
+    with pytest.raises(ValueError, match="unknown up"):
+        up_vector("north")
+
+
+def test_size_step_rejects_unknown_mode():
+    with pytest.raises(ValueError, match="unknown size mode"):
+        size_step([1, 1, 1], "huge")
+
+
+def test_write_prepared_round_trip(tmp_path):
+    recon = yawed_sample("truck", 60.0)
+    recon.colors = np.random.default_rng(1).random((len(recon.positions), 4)).astype(np.float32)
+    recon.attributes = {"opacity": np.linspace(0, 1, len(recon.positions), dtype=np.float32)}
+    authored = prepare(recon, "truck", up="+z", heading_method="baseline")
+    paths = write_prepared(authored, "truck", "nuscenes", tmp_path)
+    sidecar = json.loads(paths[".json"].read_text())
+    assert sidecar["class"] == "truck" and sidecar["source_sha256"] == "0" * 64
+    np.testing.assert_allclose(sidecar["dims"], authored.dims)
+    np.testing.assert_allclose(sidecar["transform"], authored.object_from_source)
+    assert [s["step"] for s in sidecar["steps"]] == ["align", "heading", "size"]
+    back = load_reconstruction(paths[".ply"])
+    np.testing.assert_array_equal(back.positions, authored.positions)
+    np.testing.assert_allclose(back.attributes["opacity"], recon.attributes["opacity"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["truck.json", "truck.ply"]
+
+
+def test_authored_object_apply_accumulates():
+    recon = yawed_sample("bicycle", 0.0, count=500)
+    authored = AuthoredObject.from_reconstruction(recon)
+    authored.dims = np.array([1.0, 2.0, 3.0])
+    from pgt_blender.core.authoring.prepare import turn_step
+
+    authored.apply(turn_step(1, authored.dims)).apply(turn_step(1, authored.dims))
+    np.testing.assert_array_equal(authored.object_from_source, heading.quarter_turns(2))
+    np.testing.assert_array_equal(authored.dims, [1.0, 2.0, 3.0])
+
+
+# ---- prepare_objects.py -----------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def sample_folder(tmp_path_factory):
+    from pgt_blender.core.samples import write_sample
+
+    folder = tmp_path_factory.mktemp("reconstructions")
+    for class_name in ("truck", "bus"):
+        paths = write_sample(folder, class_name, seed=4, points=4000)
+        paths["mesh.ply"].unlink()
+        paths["truth.json"].unlink()
+    return folder
+
+
+def test_prepare_objects_cli(sample_folder, tmp_path):
+    out = tmp_path / "out"
+    result = run_script("prepare_objects.py", "--in", sample_folder, "--class", "truck", "--out", out,
+                        "--heading", "baseline", "--seed", "3")
+    assert result.returncode == 0, result.stderr
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["bus_reconstruction.json", "bus_reconstruction.ply",
+                     "truck_reconstruction.json", "truck_reconstruction.ply"]
+    for index, stem in enumerate(("bus_reconstruction", "truck_reconstruction")):
+        sidecar = json.loads((out / f"{stem}.json").read_text())
+        assert {"class", "dims", "transform", "source_sha256"} <= set(sidecar)
+        np.testing.assert_allclose(sidecar["dims"], sizing.sample_dims("nuscenes", "truck", 3 + index))
+        recon = load_reconstruction(sample_folder / f"{stem}.ply")
+        assert sidecar["source_sha256"] == recon.sha256
+        written = load_reconstruction(out / f"{stem}.ply").positions
+        np.testing.assert_allclose(written, apply_transform(recon.positions, np.array(sidecar["transform"])),
+                                   atol=1e-5)
+
+
+def test_prepare_objects_keep_size(sample_folder, tmp_path):
+    result = run_script("prepare_objects.py", "--in", sample_folder, "--class", "bus", "--out", tmp_path,
+                        "--heading", "none", "--size", "keep", "--up", "pca")
+    assert result.returncode == 0, result.stderr
+    sidecar = json.loads((tmp_path / "bus_reconstruction.json").read_text())
+    assert sidecar["steps"][-1]["mode"] == "keep"
+    assert np.linalg.det(np.array(sidecar["transform"])[:3, :3]) == pytest.approx(1.0)
+
+
+def test_prepare_objects_bad_inputs(sample_folder, tmp_path):
+    broken = tmp_path / "in"
+    broken.mkdir()
+    (broken / "broken.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nend_header\n1\n")
+    out = tmp_path / "out"
+    result = run_script("prepare_objects.py", "--in", broken, "--class", "truck", "--out", out, "--heading", "baseline")
+    assert result.returncode == 1
+    assert f"error: {broken / 'broken.ply'}:" in result.stderr
+    assert not out.exists() or not any(out.iterdir())
+    for args, message in [(("--in", tmp_path / "missing"), "not a folder"),
+                          (("--in", tmp_path), "no reconstructions found")]:
+        result = run_script("prepare_objects.py", *args, "--class", "truck", "--out", out)
+        assert result.returncode == 1 and message in result.stderr
+    result = run_script("prepare_objects.py", "--in", sample_folder, "--class", "truck", "--out", out,
+                        "--dataset", "kitti")
+    assert result.returncode == 2 and "kitti has no class 'truck'" in result.stderr
+    result = run_script("prepare_objects.py", "--in", sample_folder, "--class", "truck", "--out", out,
+                        "--size", "4,2")
+    assert result.returncode == 2 and "three positive sizes" in result.stderr
+
+
+def test_minority_classes_have_nuscenes_presets():
+    assert set(MINORITY_CLASSES) <= set(CLASS_SIZES["nuscenes"])
