@@ -1,23 +1,51 @@
 """The main job on the built-in samples, as far as the pipeline reaches today:
-generate a synthetic reconstruction of each minority-class vehicle, import each into
-a Blender scene, save it, and print what arrived.
+generate a synthetic reconstruction of each minority-class vehicle (randomly posed,
+scaled, noisy, with floaters), import it into a Blender scene, author it (align,
+detect the front, set a nuScenes class size), save the scene and report each object
+against its ground truth.
 
     .venv/bin/python headless_scripts/demo.py [--out demo_output] [--seed 0]
     blender -b -P headless_scripts/demo.py -- [--out ...]
+
+The samples carry no cameras, so the up direction is given from their truth file, as
+a user who knows the capture's up axis (or COLMAP's cameras) would give it.
 """
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 
 import bpy  # noqa: E402
+import numpy as np  # noqa: E402
 
-from pgt_blender.blender import headless, objects  # noqa: E402
+from pgt_blender.blender import authoring, headless, objects  # noqa: E402
+from pgt_blender.core.authoring.heading import best_available_method  # noqa: E402
+from pgt_blender.core.authoring.prepare import align_step  # noqa: E402
 from pgt_blender.core.classes import MINORITY_CLASSES  # noqa: E402
 from pgt_blender.core.importing import load_reconstruction  # noqa: E402
 from pgt_blender.core.samples import write_sample  # noqa: E402
+
+
+def author(obj, truth: dict, method: str) -> dict:
+    """Align with the true up, detect the front, set the class size; compare with truth."""
+    source_from_object = np.array(truth["source_from_object"])
+    up = source_from_object[:3, 2]
+    authoring.apply_step(obj, align_step(authoring.positions(obj), None, up, obj.pgt.source_path))
+    obj.pgt.aligned = True
+    settings = bpy.context.scene.pgt_authoring
+    settings.heading_method, settings.class_name = method, truth["class"]
+    bpy.context.view_layer.objects.active = obj
+    bpy.ops.object.pgt_auto_heading()
+    bpy.ops.object.pgt_set_size()
+    rotation = np.array(obj.pgt.object_from_source)[:3, :3]
+    rotation = rotation / np.linalg.norm(rotation, axis=1, keepdims=True)  # drop the size scale
+    truth_rotation = source_from_object[:3, :3].T / np.cbrt(np.linalg.det(source_from_object[:3, :3]))
+    cosine = (np.trace(rotation @ truth_rotation.T) - 1) / 2
+    return {"error_deg": float(np.degrees(np.arccos(np.clip(cosine, -1, 1)))),
+            "heading": obj.pgt.heading_by, "dims": list(obj.pgt.dims)}
 
 
 def main(argv: list) -> int:
@@ -28,18 +56,20 @@ def main(argv: list) -> int:
     out = args.out.resolve()
     headless.ensure_registered()
     headless.start_scene()
+    method, _ = best_available_method()
     rows = []
     for class_name in MINORITY_CLASSES:
         paths = write_sample(out / "samples", class_name, seed=args.seed)
-        for role in ("reconstruction.ply", "mesh.ply"):
-            obj = objects.add_reconstruction(bpy.context.scene, load_reconstruction(paths[role]))
-            obj.pgt.class_name = class_name
-            rows.append(headless.object_summary(obj))
+        obj = objects.add_reconstruction(bpy.context.scene, load_reconstruction(paths["reconstruction.ply"]))
+        truth = json.loads(paths["truth.json"].read_text())
+        rows.append({**headless.object_summary(obj), **author(obj, truth, method)})
     blend = out / "demo.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
-    print(f"\n{'object':36} {'kind':10} {'points':>7} {'faces':>6}  attributes")
+    print(f"\nheading by: {method}; error = angle to the true object frame (180 deg: front/back wrong)")
+    print(f"{'object':34} {'points':>7} {'error deg':>9}  box [l, w, h] m")
     for row in rows:
-        print(f"{row['object']:36} {row['kind']:10} {row['points']:7d} {row['faces']:6d}  {', '.join(row['attributes'])}")
+        dims = ", ".join(f"{d:.2f}" for d in row["dims"])
+        print(f"{row['object']:34} {row['points']:7d} {row['error_deg']:9.2f}  [{dims}]")
     print(f"\nsamples: {out / 'samples'}\nscene:   {blend}")
     return 0
 

@@ -21,6 +21,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 
 from pgt_blender.cli import script_argv  # noqa: E402
+from pgt_blender.core.authoring.heading import best_available_method  # noqa: E402
 from pgt_blender.core.authoring.prepare import UP_CHOICES, prepare, write_prepared  # noqa: E402
 from pgt_blender.core.classes import CLASS_SIZES  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
@@ -60,24 +61,6 @@ def size_argument(text: str):
     return dims
 
 
-def heading_method(requested: str, checkpoint) -> str:
-    """``auto``: the classifier when torch and the checkpoint are there, else the baseline."""
-    if requested != "auto":
-        return requested
-    from pgt_blender.core.authoring.heading_classifier import DEFAULT_CHECKPOINT
-
-    try:
-        import torch  # noqa: F401
-    except ImportError:
-        print("note: torch is not installed; heading by the geometric baseline", file=sys.stderr)
-        return "baseline"
-    if not Path(checkpoint or DEFAULT_CHECKPOINT).exists():
-        print(f"note: no checkpoint at {checkpoint or DEFAULT_CHECKPOINT}; heading by the geometric baseline",
-              file=sys.stderr)
-        return "baseline"
-    return "classifier"
-
-
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="prepare_objects.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--in", dest="inputs", type=Path, required=True, help="folder of reconstructions")
@@ -104,7 +87,11 @@ def main(argv: list) -> int:
         print(f"error: {args.inputs}: no reconstructions found (supported: {', '.join(sorted(SUFFIXES))}, "
               "COLMAP model folders)", file=sys.stderr)
         return 1
-    method = heading_method(args.heading, args.checkpoint)
+    method = args.heading
+    if method == "auto":
+        method, why_not = best_available_method(args.checkpoint)
+        if why_not:
+            print(f"note: {why_not}; heading by the geometric baseline", file=sys.stderr)
     mode, exact = (args.size, None) if isinstance(args.size, str) else ("exact", args.size)
     failures = 0
     print(f"{'object':32} {'points':>8} {'up':>6} {'heading':>18}  dims [l, w, h] m")

@@ -42,7 +42,7 @@ def test_bundled_wheels_are_the_runtime_dependencies(extension_zip):
 
     names = zipfile.ZipFile(extension_zip).namelist()
     wheels = sorted(Path(n).name.split("-")[0] for n in names if n.endswith(".whl"))
-    assert wheels == ["manifold3d", "pycolmap", "trimesh"]  # numpy comes with Blender
+    assert wheels == ["manifold3d", "pycolmap", "scipy", "trimesh"]  # numpy comes with Blender
     assert "blender_manifest.toml" in names and "__init__.py" in names
     assert not any("__pycache__" in n for n in names)
 
@@ -55,7 +55,7 @@ INSTALL_SCRIPT = textwrap.dedent("""
     site = {p for p in sys.path if p.endswith("site-packages")}
     class HideVenvCopies(importlib.abc.MetaPathFinder):
         def find_spec(self, name, path=None, target=None):
-            if name.split(".")[0] not in ("pycolmap", "trimesh", "manifold3d") or path is not None:
+            if name.split(".")[0] not in ("pycolmap", "trimesh", "manifold3d", "scipy") or path is not None:
                 return None
             spec = importlib.machinery.PathFinder.find_spec(name, [p for p in sys.path if p not in site])
             if spec is None:
@@ -75,6 +75,9 @@ INSTALL_SCRIPT = textwrap.dedent("""
     import pycolmap
     assert "extensions" in pycolmap.__file__, pycolmap.__file__
     assert len(bpy.context.active_object.data.vertices) == 1816
+    assert bpy.ops.object.pgt_align() == {"FINISHED"}  # scipy's KD-tree, from the bundled wheel
+    import scipy
+    assert "extensions" in scipy.__file__, scipy.__file__
     bpy.ops.preferences.addon_disable(module=module)
     assert not hasattr(bpy.types.Object, "pgt") and not hasattr(bpy.types, "VIEW3D_PT_pgt_import")
     bpy.ops.preferences.addon_enable(module=module)

@@ -71,3 +71,19 @@ def automatic_front(points: np.ndarray, dims, method: str = "classifier", checkp
         probability = front_probability(points, dims, checkpoint or DEFAULT_CHECKPOINT)
         return (0 if probability >= 0.5 else 2), probability
     raise ValueError(f"unknown heading method '{method}' (have: baseline, classifier)")
+
+
+def best_available_method(checkpoint=None) -> tuple:
+    """("classifier", "") when torch imports and the checkpoint exists, else
+    ("baseline", why not)."""
+    from pathlib import Path
+
+    from .heading_classifier import DEFAULT_CHECKPOINT
+
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        return "baseline", "torch is not installed"
+    if not Path(checkpoint or DEFAULT_CHECKPOINT).exists():
+        return "baseline", f"no checkpoint at {checkpoint or DEFAULT_CHECKPOINT}"
+    return "classifier", ""
