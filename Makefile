@@ -28,6 +28,8 @@ extension: $(VENV)/.run-installed
 
 bench: $(VENV)/.dev-installed
 	$(VENV)/bin/python headless_scripts/bench_import.py
+	$(VENV)/bin/python headless_scripts/bench_alignment.py
+	$(VENV)/bin/python headless_scripts/bench_heading.py
 
 clean:
 	rm -rf $(VENV) dist demo_output

@@ -44,6 +44,7 @@ def test_bundled_wheels_are_the_runtime_dependencies(extension_zip):
     wheels = sorted(Path(n).name.split("-")[0] for n in names if n.endswith(".whl"))
     assert wheels == ["manifold3d", "pycolmap", "scipy", "trimesh"]  # numpy comes with Blender
     assert "blender_manifest.toml" in names and "__init__.py" in names
+    assert "models/heading_pointnet.pt" in names  # the shipped heading classifier
     assert not any("__pycache__" in n for n in names)
 
 

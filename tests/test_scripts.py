@@ -81,3 +81,10 @@ def test_bench_import_runs(tmp_path):
     rows = json.loads((tmp_path / "import.json").read_text())["rows"]
     assert [(r["kind"], r["points"]) for r in rows] == [("point_ply", 1000), ("gaussian_splat", 1000)]
     assert (tmp_path / "import.png").stat().st_size > 0
+
+
+def test_bench_alignment_quick(tmp_path):
+    result = run_script("bench_alignment.py", "--quick", "--out", tmp_path / "alignment")
+    assert result.returncode == 0, result.stderr
+    assert "| varied |" in result.stdout and (tmp_path / "alignment.png").stat().st_size > 0
+    assert json.loads((tmp_path / "alignment.json").read_text())

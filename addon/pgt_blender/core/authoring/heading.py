@@ -61,7 +61,12 @@ def automatic_front(points: np.ndarray, dims, method: str = "classifier", checkp
     """(turns, score): 0 quarter turns when the front is already at +x, else 2 (the
     180 degree flip), by ``method``: "baseline" (:func:`profile_front_score`, score in
     [-1, 1], front at +x when >= 0) or "classifier" (front probability, front at +x
-    when >= 0.5; InputError when torch or the checkpoint is missing)."""
+    when >= 0.5; InputError when torch or the checkpoint is missing). Only the points
+    inside the box (2 % margin) are looked at: floaters outside it would dominate a
+    max-pooling network and the end profiles alike."""
+    points = np.asarray(points)
+    inside = (np.abs(points) <= np.asarray(dims) / 2 * 1.02).all(axis=1)
+    points = points[inside] if inside.any() else points
     if method == "baseline":
         score = profile_front_score(points)
         return (0 if score >= 0 else 2), score

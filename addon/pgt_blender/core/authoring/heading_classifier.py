@@ -1,0 +1,332 @@
+"""Learned front/back classifier (the paper's heading classifier), needs PyTorch.
+
+The paper's main text names PointNet++; its supplement describes what is built here,
+a conventional PointNet: a shared per-point MLP 3 -> 64 -> 128, max-pooled to a
+128-dim feature, then an MLP 128 -> 64 -> 1 logit, "the front is at +x". Trained
+with binary cross-entropy on object-frame point sets whose front is known, each
+flipped 180 degrees about z with p = 0.5 (x, y -> -x, -y, label flips) and never
+otherwise rotated: a rotation-sensitive network is what tells front from back.
+
+Input normalisation: object-frame points (metres; +x forward, +y left, +z up, origin
+at the box centre) are divided by half the box dims, so the box is [-1, 1]^3, and
+resampled to the checkpoint's fixed point count by a seeded generator.
+
+Training sets (:class:`PointSet`): surface samples of meshes (the built-in sample
+vehicles, Chrono meshes, any closed or open mesh with its front at +x) and objects
+of an mmdetection3d / OpenPCDet ground-truth database. Augmentations besides the
+flip, none of them a rotation: point count (log-uniform, so densities from a far
+LiDAR object to a dense reconstruction), Gaussian jitter and anisotropic scale.
+
+torch is imported inside the functions that need it, so the rest of the core works
+without it; without it they raise :class:`InputError` with a one-line reason.
+"""
+
+import hashlib
+import io
+import pickle
+import platform
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..files import atomic_output
+
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[2] / "models" / "heading_pointnet.pt"
+TORCH_REQUIREMENT = "torch==2.13.0"
+FORMAT = "pgt_blender.heading_pointnet/1"
+ARCHITECTURE = "PointNet: shared MLP 3-64-128 (ReLU), max-pool -> 128-dim feature, MLP 128-64-1 -> logit"
+# Chrono meshes without a front (a tyre): left out of mesh folders.
+NO_FRONT = ("sedan_tire.obj",)
+# Surface points drawn once per mesh; training draws its point sets from this pool.
+POOL_POINTS = 16384
+
+
+@dataclass(frozen=True)
+class PointSet:
+    """Object-frame points of one object with its front at +x.
+
+    points: (N, 3) float64 metres, origin at the box centre; dims: (3,) box (length,
+    width, height) metres; source: where it came from, with a checksum (the
+    checkpoint's config records each source and how many sets it gave)."""
+
+    name: str
+    points: np.ndarray
+    dims: np.ndarray
+    source: str
+
+
+@dataclass
+class HeadingClassifier:
+    """A trained model (torch ``nn.Module``, eval mode) and its training config (dict)."""
+
+    model: object
+    config: dict
+
+
+def require_torch(path):
+    """The torch module; InputError(path) with a one-line reason when this Python cannot
+    import it (``path``: the checkpoint or output the caller was about to use)."""
+    try:
+        import torch
+    except ImportError:
+        raise InputError(path, f"the heading classifier needs PyTorch ({TORCH_REQUIREMENT}), "
+                               "which this Python cannot import") from None
+    return torch
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def point_set_from_mesh(mesh, name: str, source: str, seed: int = 0) -> PointSet:
+    """``POOL_POINTS`` area-weighted surface points of a trimesh ``mesh`` whose front is
+    at +x (+z up, metres), centred on its bounds' centre."""
+    import trimesh
+
+    low, high = mesh.bounds
+    surface, _ = trimesh.sample.sample_surface(mesh, POOL_POINTS, seed=seed)
+    return PointSet(name, surface - (low + high) / 2, high - low, source)
+
+
+def sample_point_sets(classes=None) -> list:
+    """Point sets of the built-in sample vehicles (default: the minority classes)."""
+    from ..classes import MINORITY_CLASSES
+    from ..samples import sample_vehicle
+
+    sets = []
+    for class_name in classes or MINORITY_CLASSES:
+        vehicle = sample_vehicle(class_name)
+        digest = _sha256(vehicle.vertices.tobytes() + vehicle.faces.tobytes())
+        sets.append(point_set_from_mesh(vehicle.trimesh(), class_name,
+                                        f"sample:{class_name} sha256:{digest}"))
+    return sets
+
+
+def mesh_folder_point_sets(directory) -> list:
+    """Point sets of every ``*.obj`` under ``directory`` (sorted, except ``NO_FRONT``),
+    each in metres with X forward, Y left, Z up, e.g. the Chrono vehicle meshes."""
+    import trimesh
+
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise InputError(directory, "no such mesh folder")
+    paths = sorted(p for p in directory.rglob("*.obj") if p.name not in NO_FRONT)
+    if not paths:
+        raise InputError(directory, "holds no .obj meshes")
+    sets = []
+    for path in paths:
+        try:
+            mesh = trimesh.load(path, force="mesh")
+        except Exception as error:  # trimesh raises many types for a broken file
+            raise InputError(path, f"cannot read the mesh ({error})") from None
+        if len(mesh.faces) == 0:
+            raise InputError(path, "the mesh has no faces")
+        sets.append(point_set_from_mesh(mesh, path.stem, f"mesh:{path.name} sha256:{_sha256(path.read_bytes())}"))
+    return sets
+
+
+def read_gt_database(path, convention: str, min_points: int = 5) -> list:
+    """The objects of an mmdetection3d or OpenPCDet ground-truth database as point sets.
+
+    ``path`` is a ``*_dbinfos_*.pkl``: {class: [info, ...]}, each info with ``path``
+    (a float32 .bin of the object's points, relative to the pickle's folder),
+    ``box3d_lidar`` [x, y, z, dx, dy, dz, heading, ...] and ``num_points_in_gt``.
+    Both tools store points translated by the box (never rotated): OpenPCDet by the box
+    centre, mmdetection3d (``convention="mmdet3d"``) by its bottom centre. Points are
+    rotated by -heading about z (so the heading is +x) and shifted to the box centre.
+    Objects with fewer than ``min_points`` points are skipped. A pickle can run code
+    while loading: read only databases you trust.
+    """
+    if convention not in ("mmdet3d", "openpcdet"):
+        raise ValueError(f"unknown ground-truth database convention '{convention}' (mmdet3d, openpcdet)")
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+        infos = pickle.loads(data)
+    except OSError as error:
+        raise InputError(path, f"cannot read the ground-truth database ({error.strerror})") from None
+    except Exception as error:  # unpickling raises many types
+        raise InputError(path, f"not a ground-truth database pickle ({type(error).__name__}: {error})") from None
+    if not isinstance(infos, dict) or not all(isinstance(v, list) for v in infos.values()):
+        raise InputError(path, "not a ground-truth database pickle (expected {class name: [info, ...]})")
+    source = f"gt_database:{path.name} ({convention}) sha256:{_sha256(data)}"
+    sets = []
+    for class_name, class_infos in sorted(infos.items()):
+        for info in class_infos:
+            try:
+                box = np.asarray(info["box3d_lidar"], np.float64)[:7]
+                count = int(info["num_points_in_gt"])
+                relative = info["path"]
+            except (KeyError, TypeError, ValueError) as error:
+                raise InputError(path, f"a {class_name} info lacks box3d_lidar, num_points_in_gt or path "
+                                       f"({error})") from None
+            if box.shape != (7,):
+                raise InputError(path, f"a {class_name} box3d_lidar has {box.size} values, expected 7 or more")
+            if count < max(min_points, 1):
+                continue
+            sets.append(_gt_object(path.parent / relative, box, count, convention, f"{class_name}:{relative}", source))
+    return sets
+
+
+def _gt_object(path: Path, box: np.ndarray, count: int, convention: str, name: str, source: str) -> PointSet:
+    try:
+        values = np.fromfile(path, np.float32)
+    except OSError as error:
+        raise InputError(path, f"cannot read the object's points ({error.strerror})") from None
+    if not (box[3:6] > 0).all():
+        raise InputError(path, f"its box has non-positive dims {box[3:6].tolist()}")
+    if len(values) < 3 * count or len(values) % count:
+        raise InputError(path, f"{len(values)} floats do not split into the {count} points its info declares")
+    points = values.reshape(count, -1)[:, :3].astype(np.float64)  # x, y, z, then intensity etc.
+    if convention == "mmdet3d":
+        points[:, 2] -= box[5] / 2  # bottom centre -> centre
+    cos, sin = np.cos(box[6]), np.sin(box[6])
+    points[:, :2] = points[:, :2] @ np.array([[cos, -sin], [sin, cos]])  # rows rotated by -heading
+    return PointSet(name, points, box[3:6].copy(), source)
+
+
+def normalise(points: np.ndarray, dims) -> np.ndarray:
+    """Object-frame ``points`` (..., N, 3) metres divided by half the box ``dims`` (3,),
+    so the box is [-1, 1]^3; float32 for the network."""
+    return (np.asarray(points) / (np.asarray(dims, np.float64) / 2)).astype(np.float32)
+
+
+def resample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """``count`` rows of ``points`` (N, 3): a random subset when N >= count, else all N
+    padded by random repeats (repeats change no max-pooled feature)."""
+    n = len(points)
+    if n >= count:
+        return points[rng.choice(n, count, replace=False)]
+    return np.concatenate([points, points[rng.integers(n, size=count - n)]])
+
+
+def _network(torch):
+    nn = torch.nn
+    return nn.Sequential(
+        nn.Conv1d(3, 64, 1), nn.ReLU(), nn.Conv1d(64, 128, 1), nn.ReLU(),  # shared per-point MLP
+        nn.AdaptiveMaxPool1d(1), nn.Flatten(),  # (B, 128) feature
+        nn.Linear(128, 64), nn.ReLU(), nn.Linear(64, 1))
+
+
+def _training_batch(sets: list, config: dict, rng: np.random.Generator):
+    """(B, points, 3) float32 normalised clouds and (B,) float32 labels (1: front at +x)."""
+    low, high = np.log(config["count_range"])
+    clouds, labels = [], []
+    for index in rng.integers(len(sets), size=config["batch"]):
+        item = sets[index]
+        count = min(int(np.exp(rng.uniform(low, high))), len(item.points))
+        points = item.points[rng.choice(len(item.points), count, replace=False)]
+        points = resample(points, config["points"], rng)
+        sigma = rng.uniform(0, config["noise_max"]) * np.linalg.norm(item.dims)
+        points = points + rng.normal(scale=sigma, size=points.shape)
+        points = points * rng.uniform(1 - config["scale_jitter"], 1 + config["scale_jitter"], 3)
+        front = rng.random() >= config["flip_p"]
+        clouds.append(normalise(points if front else points * (-1, -1, 1), item.dims))
+        labels.append(float(front))
+    return np.stack(clouds), np.array(labels, np.float32)
+
+
+def train(sets: list, seed: int = 0, steps: int = 3000, points: int = 512, batch: int = 32,
+          lr: float = 3e-3, threads: int = 1, progress=None) -> HeadingClassifier:
+    """Train a classifier on ``sets`` (list of :class:`PointSet`, fronts at +x), each
+    batch item a uniformly chosen set. Deterministic: same sets, seed and ``threads``
+    (torch's CPU thread count, restored afterwards) give the same weights. Adam with a
+    cosine-decayed ``lr``; ``progress(step, loss)`` is called after every step."""
+    torch = require_torch("torch")
+    if not sets or steps < 1:
+        raise ValueError(f"training needs point sets and at least one step ({len(sets)} sets, {steps} steps)")
+    sources = {}
+    for item in sets:
+        sources[item.source] = sources.get(item.source, 0) + 1
+    config = {
+        "format": FORMAT, "architecture": ARCHITECTURE, "seed": seed, "steps": steps,
+        "threads": threads, "points": points, "batch": batch, "lr": lr, "loss": "binary cross-entropy",
+        "flip_p": 0.5, "rotation_augmentation": False, "count_range": [32, 4096],
+        "noise_max": 0.03, "scale_jitter": 0.1, "normalisation": "points / (dims / 2)",
+        "sources": [{"source": s, "point_sets": n} for s, n in sorted(sources.items())],
+        "versions": {"torch": str(torch.__version__), "numpy": np.__version__, "python": platform.python_version()},
+    }
+    rng = np.random.default_rng(seed)
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        with torch.random.fork_rng(devices=[]):  # leave the caller's torch RNG alone
+            torch.manual_seed(seed)
+            model = _network(torch)
+            optimiser = torch.optim.Adam(model.parameters(), lr=lr)
+            schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, steps)
+            for step in range(steps):
+                clouds, labels = _training_batch(sets, config, rng)
+                logits = model(torch.from_numpy(clouds).transpose(1, 2))[:, 0]
+                loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, torch.from_numpy(labels))
+                optimiser.zero_grad()
+                loss.backward()
+                optimiser.step()
+                schedule.step()
+                if progress:
+                    progress(step, float(loss.detach()))
+    finally:
+        torch.set_num_threads(previous_threads)
+    config["final_loss"] = float(loss.detach())
+    return HeadingClassifier(model.eval(), config)
+
+
+def save_checkpoint(path, classifier: HeadingClassifier) -> None:
+    """Write ``{"format", "state_dict", "config"}`` with ``torch.save`` atomically. The
+    archive is built in memory first: torch names its inner folder after the file it
+    writes, which would put the temporary file's name into the bytes."""
+    torch = require_torch(path)
+    buffer = io.BytesIO()
+    torch.save({"format": FORMAT, "state_dict": classifier.model.state_dict(), "config": classifier.config}, buffer)
+    with atomic_output(path) as stream:
+        stream.write(buffer.getvalue())
+
+
+def load_checkpoint(path=DEFAULT_CHECKPOINT) -> HeadingClassifier:
+    """The classifier saved at ``path``; InputError when torch is missing or the file
+    is missing or not such a checkpoint. Loads tensors and plain data only."""
+    path = Path(path)
+    torch = require_torch(path)
+    if not path.is_file():
+        raise InputError(path, "no heading-classifier checkpoint here "
+                               "(train one with headless_scripts/train_heading.py)")
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+        if saved.get("format") != FORMAT:
+            raise ValueError(f"format {saved.get('format')!r}, expected {FORMAT!r}")
+        model = _network(torch)
+        model.load_state_dict(saved["state_dict"])
+    except Exception as error:  # torch raises many types for a damaged archive
+        reason = str(error).split("\n")[0][:200]  # torch's messages run to paragraphs
+        raise InputError(path, f"not a readable heading-classifier checkpoint "
+                               f"({type(error).__name__}: {reason})") from None
+    return HeadingClassifier(model.eval(), saved["config"])
+
+
+def front_probability(points, dims, checkpoint=DEFAULT_CHECKPOINT, resamplings: int = 4, seed: int = 0) -> float:
+    """Probability that the front of object-frame ``points`` (N, 3) metres, in a box of
+    ``dims`` (3,) metres, is at +x. ``checkpoint``: a path or a :class:`HeadingClassifier`.
+
+    Deterministic: the mean over ``resamplings`` seeded resamplings of half the logit
+    difference of the cloud and its 180-degree flip, so flip antisymmetry holds by
+    construction: front_probability(flipped) == 1 - front_probability(points).
+    """
+    classifier = checkpoint if isinstance(checkpoint, HeadingClassifier) else load_checkpoint(checkpoint)
+    import torch  # importable: the classifier exists
+
+    points = np.asarray(points, np.float64)
+    dims = np.asarray(dims, np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0 or not np.isfinite(points).all():
+        raise ValueError(f"points must be a non-empty finite (N, 3) array, not shape {points.shape}")
+    if dims.shape != (3,) or not (dims > 0).all():
+        raise ValueError(f"dims must be three positive extents, not {dims}")
+    rng = np.random.default_rng(seed)
+    clouds = normalise(np.stack([resample(points, classifier.config["points"], rng)
+                                 for _ in range(resamplings)]), dims)
+    with torch.no_grad():  # one batch: the resamplings, then their flips
+        both = torch.from_numpy(np.concatenate([clouds, clouds * np.float32((-1, -1, 1))]))
+        logits = classifier.model(both.transpose(1, 2)).double().numpy()[:, 0]
+    score = np.mean(logits[:resamplings] - logits[resamplings:]) / 2
+    return float(1 / (1 + np.exp(-score)))

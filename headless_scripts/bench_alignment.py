@@ -1,0 +1,214 @@
+"""PCA axis alignment (core.authoring.alignment.align_axes): rotation error, box error
+and time per call on the built-in sample vehicles and the Chrono vehicle meshes,
+sweeping point count, noise and outlier share one at a time around a default setting.
+
+    .venv/bin/python headless_scripts/bench_alignment.py [--quick] [--trials 5] [--chrono DIR] [--out bench/alignment]
+
+Each trial samples the mesh surface (trimesh, seed k), adds Gaussian noise (sigma =
+noise x box diagonal), replaces an outlier share of the points by floaters uniform in a
+box 1.5x the object's, then applies a random rotation and translation (numpy stream
+default_rng([k, 1]), independent of the sampling's default_rng(k)) and casts to float32.
+The error is the angle between the found and the true rotation up to the documented
+symmetry: the 180 degree heading turn with the up prior (up = the true up); without a
+prior (PCA minor axis as up) also the up sign. Prints Markdown tables (medians and 95th
+percentiles over all objects and trials) and writes <out>.json and <out>.png.
+"""
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "addon"))
+
+import numpy as np  # noqa: E402
+import scipy  # noqa: E402
+import trimesh  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from pgt_blender.cli import script_argv  # noqa: E402
+from pgt_blender.core.authoring.alignment import align_axes  # noqa: E402
+from pgt_blender.core.authoring.heading_classifier import NO_FRONT  # noqa: E402
+from pgt_blender.core.classes import MINORITY_CLASSES  # noqa: E402
+from pgt_blender.core.samples import random_rotation, sample_vehicle  # noqa: E402
+
+CHRONO = ROOT.parent / "shared" / "data" / "chrono_vehicles"
+DEFAULT = {"points": 20000, "noise": 0.005, "outliers": 0.05}
+SWEEPS = {"points": (1000, 3000, 10000, 30000, 100000),
+          "noise": (0.0, 0.0025, 0.005, 0.01, 0.02),
+          "outliers": (0.0, 0.02, 0.05, 0.1, 0.2)}
+TRANSLATION_M = 100.0  # sigma of the random translation per axis
+# Rotations the error ignores (row signs of object_from_source): heading turn; + up sign.
+WITH_PRIOR = np.array([np.eye(3), np.diag([-1.0, -1, 1])])
+NO_PRIOR = np.concatenate([WITH_PRIOR, [np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1])]])
+
+
+def load_objects(chrono: Path) -> list:
+    """(name, mesh) in the object frame (X forward, Y left, Z up, box centre at 0)."""
+    objects = [(name, sample_vehicle(name).trimesh()) for name in MINORITY_CLASSES]
+    if not chrono.is_dir():
+        print(f"note: no Chrono meshes at {chrono}; built-in samples only\n")
+        return objects
+    for path in sorted(p for p in chrono.rglob("*.obj") if p.name not in NO_FRONT):
+        mesh = trimesh.load(path, force="mesh")
+        mesh.apply_translation(-mesh.bounds.mean(axis=0))
+        objects.append((path.stem, mesh))
+    return objects
+
+
+def observe(mesh, points: int, noise: float, outliers: float, seed: int) -> tuple:
+    """(float32 (N, 3) source-frame cloud, (3, 3) source_from_object rotation)."""
+    rng = np.random.default_rng([seed, 1])
+    rotation, translation = random_rotation(rng), rng.normal(scale=TRANSLATION_M, size=3)
+    surface, _ = trimesh.sample.sample_surface(mesh, points, seed=seed)
+    cloud = surface + rng.normal(scale=noise * np.linalg.norm(mesh.extents), size=surface.shape)
+    floaters = rng.random(points) < outliers
+    cloud[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * mesh.extents
+    return (cloud @ rotation.T + translation).astype(np.float32), rotation
+
+
+def error_deg(found: np.ndarray, rotation: np.ndarray, symmetries: np.ndarray) -> float:
+    """Angle of found object_from_source @ true source_from_object, least over ``symmetries``."""
+    return float(np.degrees(Rotation.from_matrix(symmetries @ found @ rotation).magnitude().min()))
+
+
+def run_setting(objects: list, points: int, noise: float, outliers: float, trials: int) -> list:
+    """One record per object and trial."""
+    records = []
+    for index, (name, mesh) in enumerate(objects):
+        for trial in range(trials):
+            cloud, rotation = observe(mesh, points, noise, outliers, seed=1000 * index + trial)
+            start = time.perf_counter()
+            prior = align_axes(cloud, up=rotation[:, 2])
+            seconds = time.perf_counter() - start
+            free = align_axes(cloud)
+            records.append({
+                "object": name, "trial": trial, "seconds": seconds,
+                "error_deg": error_deg(prior.transform[:3, :3], rotation, WITH_PRIOR),
+                "dims_error": float(np.max(np.abs(prior.dims - mesh.extents) / mesh.extents)),
+                "no_prior_error_deg": error_deg(free.transform[:3, :3], rotation, NO_PRIOR),
+                "no_prior_up_from": free.up_from})
+    return records
+
+
+def summary(records: list) -> dict:
+    """Medians and 95th percentiles over ``records``."""
+    columns = {key: np.array([r[key] for r in records]) for key in
+               ("error_deg", "dims_error", "no_prior_error_deg", "seconds")}
+    stats = {f"{key}_{name}": float(np.percentile(values, q)) for key, values in columns.items()
+             for name, q in (("median", 50), ("p95", 95))}
+    return stats | {"trials": len(records)}
+
+
+def main(argv: list) -> int:
+    parser = argparse.ArgumentParser(prog="bench_alignment.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--trials", type=int, default=5, help="trials per object and setting")
+    parser.add_argument("--quick", action="store_true", help="1 trial, points up to 3e4 (~30 s)")
+    parser.add_argument("--chrono", type=Path, default=CHRONO, help="folder of .obj meshes, X forward, Z up")
+    parser.add_argument("--out", type=Path, default=Path("bench/alignment"))
+    args = parser.parse_args(argv)
+    trials = 1 if args.quick else args.trials
+    sweeps = SWEEPS | ({"points": SWEEPS["points"][:-1]} if args.quick else {})
+    objects = load_objects(args.chrono)
+    settings = {}  # (points, noise, outliers) -> records, each setting run once
+    rows = []
+    for varied, values in sweeps.items():
+        for value in values:
+            key = tuple((DEFAULT | {varied: value}).values())
+            if key not in settings:
+                settings[key] = run_setting(objects, *key, trials)
+            rows.append({"varied": varied, **dict(zip(DEFAULT, key)), **summary(settings[key])})
+    default = settings[tuple(DEFAULT.values())]  # on every sweep
+    per_object = [per_object_row(name, mesh, [r for r in default if r["object"] == name])
+                  for name, mesh in objects]
+
+    machine = {"cpu": cpu_name(), "cores": os.cpu_count(), "python": platform.python_version(),
+               "numpy": np.__version__, "scipy": scipy.__version__, "trimesh": trimesh.__version__}
+    inputs = {name: [round(float(e), 3) for e in mesh.extents] for name, mesh in objects}
+    config = {"default": DEFAULT, "sweeps": sweeps, "trials_per_object": trials,
+              "translation_sigma_m": TRANSLATION_M, "seeds": "sample_surface seed=1000*object+trial, "
+              "noise/floaters/pose default_rng([that seed, 1])", "statistic": "median and p95 over objects x trials",
+              "timed": "align_axes with the up prior, time.perf_counter"}
+    print(f"machine: {machine}\n\ninputs (box l x w x h m): {inputs}\n\nsettings: {config}\n")
+    print_tables(rows, per_object)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".json").write_text(json.dumps(
+        {"machine": machine, "inputs": inputs, "settings": config, "rows": rows, "per_object": per_object},
+        indent=2))
+    plot(rows, args.out.with_suffix(".png"))
+    print(f"\nwrote {args.out.with_suffix('.json')} and {args.out.with_suffix('.png')}")
+    return 0
+
+
+def per_object_row(name: str, mesh, records: list) -> dict:
+    free = np.array([r["no_prior_error_deg"] for r in records])
+    length, width, height = mesh.extents
+    return {"object": name, "dims_m": [float(length), float(width), float(height)],
+            "height_over_width": float(height / width),
+            "error_deg_median": float(np.median([r["error_deg"] for r in records])),
+            "no_prior_error_deg_median": float(np.median(free)),
+            "no_prior_error_deg_max": float(free.max()),
+            "no_prior_within_10deg": f"{int((free < 10).sum())}/{len(free)}",
+            "no_prior_up_from": sorted({r["no_prior_up_from"] for r in records})}
+
+
+def print_tables(rows: list, per_object: list) -> None:
+    print("| varied | points | noise % | outliers % | error ° median | error ° p95 | box error % median "
+          "| box error % p95 | no prior: error ° median | no prior: error ° p95 | ms per call |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['varied']} | {r['points']:,} | {100 * r['noise']:g} | {100 * r['outliers']:g} | "
+              f"{r['error_deg_median']:.2f} | {r['error_deg_p95']:.2f} | {100 * r['dims_error_median']:.1f} | "
+              f"{100 * r['dims_error_p95']:.1f} | {r['no_prior_error_deg_median']:.2f} | "
+              f"{r['no_prior_error_deg_p95']:.2f} | {1000 * r['seconds_median']:.1f} |")
+    print("\nper object at the default setting:\n")
+    print("| object | box l x w x h m | h / w | error ° median | no prior: error ° median "
+          "| no prior: error ° max | no prior: within 10° | no prior: up from |")
+    print("|---|---|---:|---:|---:|---:|---:|---|")
+    for r in per_object:
+        print(f"| {r['object']} | {' x '.join(f'{d:.2f}' for d in r['dims_m'])} | {r['height_over_width']:.2f} | "
+              f"{r['error_deg_median']:.2f} | {r['no_prior_error_deg_median']:.2f} | "
+              f"{r['no_prior_error_deg_max']:.2f} | {r['no_prior_within_10deg']} | "
+              f"{', '.join(r['no_prior_up_from'])} |")
+
+
+def cpu_name() -> str:
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.exists():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
+def plot(rows: list, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = {"points": "points", "noise": "noise (% of box diagonal)", "outliers": "outliers (%)"}
+    figure, axes = plt.subplots(1, 3, figsize=(13, 4), sharey=True)
+    for axis, (varied, label) in zip(axes, labels.items()):
+        mine = [r for r in rows if r["varied"] == varied]
+        x = [r[varied] * (1 if varied == "points" else 100) for r in mine]
+        for prefix, name, color in (("", "up prior", "C0"), ("no_prior_", "no prior", "C3")):
+            axis.plot(x, [r[f"{prefix}error_deg_median"] for r in mine], "o-", color=color, label=f"{name} median")
+            axis.plot(x, [r[f"{prefix}error_deg_p95"] for r in mine], "x--", color=color, label=f"{name} p95")
+        axis.set_xscale("log" if varied == "points" else "linear")
+        axis.set_yscale("log")
+        axis.set_xlabel(label)
+        axis.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("rotation error (degrees)")
+    axes[0].legend()
+    figure.suptitle("pgt_blender PCA alignment error (medians and p95 over objects x trials)")
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+
+
+if __name__ == "__main__":
+    sys.exit(main(script_argv()))

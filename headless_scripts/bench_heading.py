@@ -1,0 +1,171 @@
+"""Held-out front/back accuracy of the geometric baseline (profile_front_score > 0) and
+the learned classifier (front_probability > 0.5), leave-one-mesh-out over the built-in
+sample vehicles and the Chrono vehicle meshes, at several point densities and noise levels.
+
+    .venv/bin/python headless_scripts/bench_heading.py [--quick] [--steps N] [--samplings N] [--threads 2]
+        [--chrono DIR] [--out bench/heading]
+
+For each held-out mesh a classifier is trained on all the other meshes (same settings
+as train_heading.py but --steps, default 1000; --quick: 150), then both methods judge
+--samplings seeded samplings of the held-out mesh per (points, noise) cell, half of
+them turned 180 degrees (the truth turns with them). Samplings are random subsets of
+the mesh's area-weighted surface sample plus Gaussian noise (sigma = noise x box
+diagonal). Prints Markdown tables (per cell, mean over held-out meshes; per mesh) and
+writes <out>.json and <out>.png.
+"""
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "addon"))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+import trimesh  # noqa: E402
+
+from pgt_blender.blender import headless  # noqa: E402
+from pgt_blender.core.authoring import heading_classifier as hc  # noqa: E402
+from pgt_blender.core.authoring.heading import profile_front_score  # noqa: E402
+from pgt_blender.core.errors import InputError  # noqa: E402
+
+CHRONO = ROOT.parent / "shared" / "data" / "chrono_vehicles"
+DENSITIES = (64, 256, 1024, 4096)
+NOISE_LEVELS = (0.0, 0.01, 0.03)
+METHODS = ("baseline", "classifier")
+
+
+def judge(held_out, classifier, points: int, noise: float, samplings: int, seed: int) -> tuple:
+    """(baseline right, classifier right) counts over ``samplings`` samplings of
+    ``held_out`` (a PointSet), the odd ones turned 180 degrees about z."""
+    rng = np.random.default_rng(seed)
+    sigma = noise * np.linalg.norm(held_out.dims)
+    baseline = learned = 0
+    for index in range(samplings):
+        cloud = held_out.points[rng.choice(len(held_out.points), points, replace=False)]
+        cloud = cloud + rng.normal(scale=sigma, size=cloud.shape)
+        front_at_x = index % 2 == 0
+        if not front_at_x:
+            cloud = cloud * (-1, -1, 1)
+        baseline += (profile_front_score(cloud) > 0) == front_at_x
+        learned += (hc.front_probability(cloud, held_out.dims, classifier) > 0.5) == front_at_x
+    return baseline, learned
+
+
+def mean(rows: list, key: str, **match) -> float:
+    """Mean of ``key`` over the rows whose fields equal ``match``."""
+    return float(np.mean([r[key] for r in rows if all(r[k] == v for k, v in match.items())]))
+
+
+def main(argv: list) -> int:
+    parser = argparse.ArgumentParser(prog="bench_heading.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true",
+                        help="150 training steps, 8 samplings per cell (about a minute)")
+    parser.add_argument("--steps", type=int, help="training steps per held-out mesh (default 1000, --quick 150)")
+    parser.add_argument("--samplings", type=int,
+                        help="samplings per (mesh, points, noise) cell (default 40, --quick 8)")
+    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    parser.add_argument("--chrono", type=Path, default=CHRONO, help="folder of .obj meshes, front at +x")
+    parser.add_argument("--out", type=Path, default=Path("bench/heading"))
+    args = parser.parse_args(argv)
+    steps = args.steps or (150 if args.quick else 1000)
+    samplings = args.samplings or (8 if args.quick else 40)
+    torch.set_num_threads(args.threads)
+    meshes = hc.sample_point_sets()
+    if args.chrono.is_dir():
+        try:
+            meshes += hc.mesh_folder_point_sets(args.chrono)
+        except InputError as error:
+            print(f"error: {error}", file=sys.stderr)
+            return 1
+    else:
+        print(f"note: no Chrono meshes at {args.chrono}; leave-one-out over the built-in samples only")
+    start = time.perf_counter()
+    rows = []  # one per (held-out mesh, points, noise)
+    for held, held_out in enumerate(meshes):
+        others = meshes[:held] + meshes[held + 1:]
+        classifier = hc.train(others, seed=0, steps=steps, threads=args.threads)
+        for points in DENSITIES:
+            for noise in NOISE_LEVELS:
+                seed = held * 1_000_000 + points * 100 + int(noise * 1000)
+                baseline, learned = judge(held_out, classifier, points, noise, samplings, seed)
+                rows.append({"mesh": held_out.name, "points": points, "noise": noise,
+                             "baseline": baseline / samplings, "classifier": learned / samplings})
+        print(f"held out {held_out.name}: baseline {mean(rows, 'baseline', mesh=held_out.name):.3f}, "
+              f"classifier {mean(rows, 'classifier', mesh=held_out.name):.3f} "
+              f"({time.perf_counter() - start:.0f} s so far)", flush=True)
+    seconds = time.perf_counter() - start
+    cells = [{"points": p, "noise": n, **{k: mean(rows, k, points=p, noise=n) for k in METHODS}}
+             for p in DENSITIES for n in NOISE_LEVELS]
+    per_mesh = [{"mesh": m.name, "source": m.source.split(" sha256:")[0],
+                 **{k: mean(rows, k, mesh=m.name) for k in METHODS}} for m in meshes]
+    machine = {"cpu": cpu_name(), "cores": os.cpu_count(), "torch_threads": args.threads,
+               "python": platform.python_version(), "torch": str(torch.__version__), "numpy": np.__version__,
+               "trimesh": trimesh.__version__}
+    settings = {"held_out_meshes": len(meshes), "training_steps": steps,
+                "training": "train_heading.py defaults but steps and threads, seed 0",
+                "samplings_per_cell": samplings, "flipped_share": 0.5, "densities": DENSITIES,
+                "noise_levels_of_diagonal": NOISE_LEVELS, "classifier_resamplings": 4, "seconds": round(seconds, 1)}
+    inputs = [m.source for m in meshes]
+    print(f"\nmachine: {machine}\nsettings: {settings}\ninputs: {', '.join(s.split(' sha256:')[0] for s in inputs)}\n")
+    print(f"Accuracy, mean over {len(meshes)} held-out meshes ({samplings} samplings each, half turned 180 degrees):\n")
+    print("| points | noise (of box diagonal) | baseline | classifier |")
+    print("|---:|---:|---:|---:|")
+    for c in cells:
+        print(f"| {c['points']} | {c['noise']:.0%} | {c['baseline']:.3f} | {c['classifier']:.3f} |")
+    print(f"| all | all | {mean(cells, 'baseline'):.3f} | {mean(cells, 'classifier'):.3f} |")
+    print("\nPer held-out mesh, mean over all cells:\n")
+    print("| held-out mesh | source | baseline | classifier |")
+    print("|---|---|---:|---:|")
+    for m in per_mesh:
+        print(f"| {m['mesh']} | {m['source']} | {m['baseline']:.3f} | {m['classifier']:.3f} |")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".json").write_text(json.dumps(
+        {"machine": machine, "settings": settings, "inputs": inputs, "cells": cells, "per_mesh": per_mesh,
+         "rows": rows}, indent=2))
+    plot(cells, args.out.with_suffix(".png"), len(meshes))
+    print(f"\nwrote {args.out.with_suffix('.json')} and {args.out.with_suffix('.png')} in {seconds:.0f} s")
+    return 0
+
+
+def cpu_name() -> str:
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.exists():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
+def plot(cells: list, path: Path, meshes: int) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(6, 4))
+    for index, noise in enumerate(NOISE_LEVELS):
+        mine = [c for c in cells if c["noise"] == noise]
+        color = f"C{index}"
+        axis.semilogx([c["points"] for c in mine], [c["classifier"] for c in mine], "o-", color=color,
+                      label=f"classifier, noise {noise:.0%}")
+        axis.semilogx([c["points"] for c in mine], [c["baseline"] for c in mine], "x--", color=color,
+                      label=f"baseline, noise {noise:.0%}")
+    axis.axhline(0.5, color="grey", lw=0.8)
+    axis.set_xlabel("points per object")
+    axis.set_ylabel("front/back accuracy")
+    axis.set_ylim(0, 1.02)
+    axis.set_title(f"heading, leave-one-mesh-out over {meshes} meshes")
+    axis.grid(True, which="both", alpha=0.3)
+    axis.legend(fontsize=7)
+    figure.tight_layout()
+    figure.savefig(path, dpi=100)
+
+
+if __name__ == "__main__":
+    sys.exit(main(headless.script_argv()))
