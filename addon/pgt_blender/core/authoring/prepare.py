@@ -157,9 +157,9 @@ def prepare(recon: Reconstruction, class_name: str, dataset: str = "nuscenes", u
     weights = recon.attributes.get("opacity")
     poses = np.array([c.world_from_camera for c in recon.cameras]).reshape(-1, 4, 4)
     authored.apply(align_step(authored.positions, weights, up_vector(up, poses, recon.source), recon.source))
-    if heading_method != "none":
-        authored.apply(automatic_heading_step(authored.positions, authored.dims, heading_method, checkpoint))
-    try:
+    try:  # a flat or empty box cannot be headed by the classifier or scaled
+        if heading_method != "none":
+            authored.apply(automatic_heading_step(authored.positions, authored.dims, heading_method, checkpoint))
         return authored.apply(size_step(authored.dims, size, dataset, class_name, seed, uniform, exact))
     except ValueError as error:
         raise InputError(recon.source, str(error)) from None
