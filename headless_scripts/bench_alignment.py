@@ -15,9 +15,6 @@ percentiles over all objects and trials) and writes <out>.json and <out>.png.
 """
 
 import argparse
-import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -30,7 +27,7 @@ import scipy  # noqa: E402
 import trimesh  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from pgt_blender.cli import script_argv  # noqa: E402
+from pgt_blender import cli  # noqa: E402
 from pgt_blender.core.authoring.alignment import align_axes  # noqa: E402
 from pgt_blender.core.authoring.heading_classifier import NO_FRONT  # noqa: E402
 from pgt_blender.core.classes import MINORITY_CLASSES  # noqa: E402
@@ -126,8 +123,7 @@ def main(argv: list) -> int:
     per_object = [per_object_row(name, mesh, [r for r in default if r["object"] == name])
                   for name, mesh in objects]
 
-    machine = {"cpu": cpu_name(), "cores": os.cpu_count(), "python": platform.python_version(),
-               "numpy": np.__version__, "scipy": scipy.__version__, "trimesh": trimesh.__version__}
+    machine = cli.machine(numpy=np.__version__, scipy=scipy.__version__, trimesh=trimesh.__version__)
     inputs = {name: [round(float(e), 3) for e in mesh.extents] for name, mesh in objects}
     config = {"default": DEFAULT, "sweeps": sweeps, "trials_per_object": trials,
               "translation_sigma_m": TRANSLATION_M, "seeds": "sample_surface seed=1000*object+trial, "
@@ -135,12 +131,8 @@ def main(argv: list) -> int:
               "timed": "align_axes with the up prior, time.perf_counter"}
     print(f"machine: {machine}\n\ninputs (box l x w x h m): {inputs}\n\nsettings: {config}\n")
     print_tables(rows, per_object)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps(
-        {"machine": machine, "inputs": inputs, "settings": config, "rows": rows, "per_object": per_object},
-        indent=2))
-    plot(rows, args.out.with_suffix(".png"))
-    print(f"\nwrote {args.out.with_suffix('.json')} and {args.out.with_suffix('.png')}")
+    cli.write_results(args.out, {"machine": machine, "inputs": inputs, "settings": config, "rows": rows,
+                                 "per_object": per_object}, lambda plt: plot(plt, rows))
     return 0
 
 
@@ -176,21 +168,7 @@ def print_tables(rows: list, per_object: list) -> None:
               f"{', '.join(r['no_prior_up_from'])} |")
 
 
-def cpu_name() -> str:
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.exists():
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine()
-
-
-def plot(rows: list, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def plot(plt, rows: list):
     labels = {"points": "points", "noise": "noise (% of box diagonal)", "outliers": "outliers (%)"}
     figure, axes = plt.subplots(1, 3, figsize=(13, 4), sharey=True)
     for axis, (varied, label) in zip(axes, labels.items()):
@@ -206,9 +184,8 @@ def plot(rows: list, path: Path) -> None:
     axes[0].set_ylabel("rotation error (degrees)")
     axes[0].legend()
     figure.suptitle("pgt_blender PCA alignment error (medians and p95 over objects x trials)")
-    figure.tight_layout()
-    figure.savefig(path, dpi=100)
+    return figure
 
 
 if __name__ == "__main__":
-    sys.exit(main(script_argv()))
+    sys.exit(main(cli.script_argv()))

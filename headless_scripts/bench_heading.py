@@ -15,9 +15,6 @@ writes <out>.json and <out>.png.
 """
 
 import argparse
-import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -29,7 +26,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
 
-from pgt_blender.blender import headless  # noqa: E402
+from pgt_blender import cli  # noqa: E402
 from pgt_blender.core.authoring import heading_classifier as hc  # noqa: E402
 from pgt_blender.core.authoring.heading import profile_front_score  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
@@ -104,9 +101,8 @@ def main(argv: list) -> int:
              for p in DENSITIES for n in NOISE_LEVELS]
     per_mesh = [{"mesh": m.name, "source": m.source.split(" sha256:")[0],
                  **{k: mean(rows, k, mesh=m.name) for k in METHODS}} for m in meshes]
-    machine = {"cpu": cpu_name(), "cores": os.cpu_count(), "torch_threads": args.threads,
-               "python": platform.python_version(), "torch": str(torch.__version__), "numpy": np.__version__,
-               "trimesh": trimesh.__version__}
+    machine = cli.machine(torch_threads=args.threads, torch=str(torch.__version__), numpy=np.__version__,
+                          trimesh=trimesh.__version__)
     settings = {"held_out_meshes": len(meshes), "training_steps": steps,
                 "training": "train_heading.py defaults but steps and threads, seed 0",
                 "samplings_per_cell": samplings, "flipped_share": 0.5, "densities": DENSITIES,
@@ -124,30 +120,13 @@ def main(argv: list) -> int:
     print("|---|---|---:|---:|")
     for m in per_mesh:
         print(f"| {m['mesh']} | {m['source']} | {m['baseline']:.3f} | {m['classifier']:.3f} |")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps(
-        {"machine": machine, "settings": settings, "inputs": inputs, "cells": cells, "per_mesh": per_mesh,
-         "rows": rows}, indent=2))
-    plot(cells, args.out.with_suffix(".png"), len(meshes))
-    print(f"\nwrote {args.out.with_suffix('.json')} and {args.out.with_suffix('.png')} in {seconds:.0f} s")
+    cli.write_results(args.out, {"machine": machine, "settings": settings, "inputs": inputs, "cells": cells,
+                                 "per_mesh": per_mesh, "rows": rows}, lambda plt: plot(plt, cells, len(meshes)))
+    print(f"in {seconds:.0f} s")
     return 0
 
 
-def cpu_name() -> str:
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.exists():
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine()
-
-
-def plot(cells: list, path: Path, meshes: int) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def plot(plt, cells: list, meshes: int):
     figure, axis = plt.subplots(figsize=(6, 4))
     for index, noise in enumerate(NOISE_LEVELS):
         mine = [c for c in cells if c["noise"] == noise]
@@ -163,9 +142,8 @@ def plot(cells: list, path: Path, meshes: int) -> None:
     axis.set_title(f"heading, leave-one-mesh-out over {meshes} meshes")
     axis.grid(True, which="both", alpha=0.3)
     axis.legend(fontsize=7)
-    figure.tight_layout()
-    figure.savefig(path, dpi=100)
+    return figure
 
 
 if __name__ == "__main__":
-    sys.exit(main(headless.script_argv()))
+    sys.exit(main(cli.script_argv()))

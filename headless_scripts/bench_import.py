@@ -8,9 +8,6 @@ Prints a Markdown table of medians and writes <out>.json and <out>.png.
 """
 
 import argparse
-import json
-import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -22,6 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
 
+from pgt_blender import cli  # noqa: E402
 from pgt_blender.blender import headless, objects  # noqa: E402
 from pgt_blender.core.importing import load_reconstruction  # noqa: E402
 from pgt_blender.core.importing.ply import write_ply  # noqa: E402
@@ -77,37 +75,19 @@ def main(argv: list) -> int:
                              "read_s": read, "build_s": build, "total_s": read + build,
                              "points_per_s": count / (read + build)})
                 path.unlink()
-    machine = {"cpu": cpu_name(), "cores": os.cpu_count(),
-               "python": platform.python_version(), "blender": bpy.app.version_string,
-               "numpy": np.__version__, "repeats": args.repeats, "statistic": "median"}
+    machine = cli.machine(blender=bpy.app.version_string, numpy=np.__version__, repeats=args.repeats,
+                          statistic="median")
     print(f"machine: {machine}\n")
     print("| input | points | file MB | read s | Blender build s | total s | points/s |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['kind']} | {r['points']:,} | {r['file_mb']:.1f} | {r['read_s']:.4f} | "
               f"{r['build_s']:.4f} | {r['total_s']:.4f} | {r['points_per_s']:,.0f} |")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps({"machine": machine, "rows": rows}, indent=2))
-    plot(rows, args.out.with_suffix(".png"))
-    print(f"\nwrote {args.out.with_suffix('.json')} and {args.out.with_suffix('.png')}")
+    cli.write_results(args.out, {"machine": machine, "rows": rows}, lambda plt: plot(plt, rows))
     return 0
 
 
-def cpu_name() -> str:
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.exists():
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine()
-
-
-def plot(rows: list, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def plot(plt, rows: list):
     figure, axis = plt.subplots(figsize=(6, 4))
     for kind in dict.fromkeys(r["kind"] for r in rows):
         mine = [r for r in rows if r["kind"] == kind]
@@ -118,8 +98,7 @@ def plot(rows: list, path: Path) -> None:
     axis.set_title("pgt_blender import time")
     axis.grid(True, which="both", alpha=0.3)
     axis.legend()
-    figure.tight_layout()
-    figure.savefig(path, dpi=100)
+    return figure
 
 
 if __name__ == "__main__":

@@ -18,6 +18,11 @@ from .objects import _BLENDER_FROM_OPENCV, POINTS_GROUP
 BOX_TAG = "pgt_box"
 
 
+def is_reconstruction(obj) -> bool:
+    """Whether ``obj`` is a mesh that pgt_blender imported (the authoring steps' input)."""
+    return obj is not None and obj.type == "MESH" and obj.pgt.source_kind != "none"
+
+
 def positions(obj: bpy.types.Object) -> np.ndarray:
     """(N, 3) float32 vertex positions of ``obj``'s mesh (its local frame)."""
     values = np.empty(len(obj.data.vertices) * 3, np.float32)

@@ -124,7 +124,7 @@ class _AuthoringStep:
     @classmethod
     def poll(cls, context):
         obj = context.active_object
-        if obj is None or obj.type != "MESH" or obj.pgt.source_kind == "none":
+        if not authoring.is_reconstruction(obj):
             cls.poll_message_set("Select an imported reconstruction")
             return False
         if cls.needs_alignment and not obj.pgt.aligned:

@@ -10,12 +10,17 @@ def short_label(operator) -> str:
     return operator.bl_label.replace("Import ", "")
 
 
-class VIEW3D_PT_pgt_import(bpy.types.Panel):
-    bl_label = "Import"
-    bl_idname = "VIEW3D_PT_pgt_import"
+class _PGTPanel:
+    """A section of the PGT tab in the 3D viewport's sidebar."""
+
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "PGT"
+
+
+class VIEW3D_PT_pgt_import(_PGTPanel, bpy.types.Panel):
+    bl_label = "Import"
+    bl_idname = "VIEW3D_PT_pgt_import"
 
     def draw(self, context):
         layout = self.layout
@@ -42,7 +47,7 @@ class VIEW3D_PT_pgt_import(bpy.types.Panel):
 def reconstruction(context):
     """The active object when it is an imported reconstruction, else None."""
     obj = context.active_object
-    return obj if obj is not None and obj.type == "MESH" and obj.pgt.source_kind != "none" else None
+    return obj if authoring.is_reconstruction(obj) else None
 
 
 def status_text(obj) -> str:
@@ -54,11 +59,7 @@ def status_text(obj) -> str:
     return " | ".join(parts)
 
 
-class _AuthoringPanel:
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "PGT"
-
+class _AuthoringPanel(_PGTPanel):
     @classmethod
     def poll(cls, context):
         return reconstruction(context) is not None
@@ -113,19 +114,16 @@ class VIEW3D_PT_pgt_size(_AuthoringPanel, bpy.types.Panel):
         layout.operator("object.pgt_set_size", icon="FULLSCREEN_ENTER")
 
 
-class VIEW3D_PT_pgt_objects(bpy.types.Panel):
+class VIEW3D_PT_pgt_objects(_PGTPanel, bpy.types.Panel):
     """Every reconstruction in the scene with what is left to do."""
 
     bl_label = "Objects"
     bl_idname = "VIEW3D_PT_pgt_objects"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "PGT"
 
     def draw(self, context):
         column = self.layout.column(align=True)
         for obj in context.scene.objects:
-            if obj.type == "MESH" and obj.pgt.source_kind != "none":
+            if authoring.is_reconstruction(obj):
                 row = column.row()
                 row.label(text=obj.name, icon="CHECKMARK" if all(authoring.status(obj).values()) else "DOT")
                 row.label(text=status_text(obj))
