@@ -34,7 +34,6 @@ def author(obj, truth: dict, method: str) -> dict:
     source_from_object = np.array(truth["source_from_object"])
     up = source_from_object[:3, 2]
     authoring.apply_step(obj, align_step(authoring.positions(obj), None, up, obj.pgt.source_path))
-    obj.pgt.aligned = True
     settings = bpy.context.scene.pgt_authoring
     settings.heading_method, settings.class_name = method, truth["class"]
     bpy.context.view_layer.objects.active = obj
@@ -45,7 +44,7 @@ def author(obj, truth: dict, method: str) -> dict:
     truth_rotation = source_from_object[:3, :3].T / np.cbrt(np.linalg.det(source_from_object[:3, :3]))
     cosine = (np.trace(rotation @ truth_rotation.T) - 1) / 2
     return {"error_deg": float(np.degrees(np.arccos(np.clip(cosine, -1, 1)))),
-            "heading": obj.pgt.heading_by, "dims": list(obj.pgt.dims)}
+            "heading": authoring.status(obj)["heading"], "dims": list(obj.pgt.dims)}
 
 
 def main(argv: list) -> int:

@@ -1,6 +1,7 @@
 """The Align, Heading and Size operators in real headless Blender, against the core."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,19 +15,17 @@ from .conftest import datablock_counts
 
 bpy = pytest.importorskip("bpy")
 
+from pgt_blender.blender import authoring, objects  # noqa: E402  (needs bpy)
+
 
 def imported(scene, path):
-    from pgt_blender.blender import objects
-
     obj = objects.add_reconstruction(scene, load_reconstruction(path))
     bpy.context.view_layer.objects.active = obj
     return obj
 
 
 def vertices(obj):
-    from pgt_blender.blender.authoring import positions
-
-    return positions(obj)
+    return authoring.positions(obj)
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +52,6 @@ def test_ui_and_headless_give_identical_objects(scene, truck_file):
 
 
 def test_status_and_box_follow_the_steps(scene, truck_file):
-    from pgt_blender.blender import authoring
     from pgt_blender.blender.ui import status_text
 
     obj = imported(scene, truck_file)
@@ -146,7 +144,7 @@ def test_bad_align_settings_change_nothing(scene, truck_file, setting, value, me
     with pytest.raises(RuntimeError, match=f"{truck_file}: {message}"):
         bpy.ops.object.pgt_align()
     np.testing.assert_array_equal(vertices(obj), before)
-    assert datablock_counts(bpy) == counts and not obj.pgt.aligned
+    assert datablock_counts(bpy) == counts and not authoring.status(obj)["aligned"]
 
 
 def test_empty_reconstruction_is_refused(scene):
@@ -168,13 +166,11 @@ def test_missing_checkpoint_is_reported(scene, truck_file, tmp_path):
     with pytest.raises(RuntimeError, match="nowhere.pt: "):
         bpy.ops.object.pgt_auto_heading()
     np.testing.assert_array_equal(vertices(obj), before)
-    assert obj.pgt.heading_by == ""
+    assert authoring.status(obj)["heading"] == ""
 
 
 def test_flat_object_cannot_take_a_class_size(scene):
-    from pgt_blender.blender import objects
     from pgt_blender.core.reconstruction import Reconstruction
-    from pathlib import Path
 
     flat = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)
     obj = objects.add_reconstruction(scene, Reconstruction(flat, "point_ply", Path("flat.ply"), ""))
@@ -182,4 +178,4 @@ def test_flat_object_cannot_take_a_class_size(scene):
     bpy.ops.object.pgt_align()
     with pytest.raises(RuntimeError, match="cannot scale a box"):
         bpy.ops.object.pgt_set_size()
-    assert obj.pgt.size_by == ""
+    assert authoring.status(obj)["size"] == ""

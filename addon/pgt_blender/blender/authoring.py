@@ -75,12 +75,14 @@ def apply_step(obj: bpy.types.Object, step: Step) -> None:
         identifier = modifier.node_group.interface.items_tree["Radius"].identifier
         modifier[identifier] = modifier[identifier] * scale
     settings = obj.pgt
-    record = np.array(settings.object_from_source).reshape(4, 4)
-    settings.object_from_source = Matrix((step.transform @ record).tolist())
+    before = np.array(settings.object_from_source).reshape(4, 4)
+    settings.object_from_source = Matrix((step.transform @ before).tolist())
     settings.dims = step.dims
-    steps = json.loads(settings.steps_json or "[]")
-    steps.append({"step": step.name, "transform": step.transform.tolist(), "dims": list(step.dims), **step.details})
-    settings.steps_json = json.dumps(steps)
+    if step.name == "size":
+        settings.dataset, settings.class_name = step.details["dataset"], step.details["class"]
+    record = steps(obj)
+    record.append({"step": step.name, "transform": step.transform.tolist(), "dims": list(step.dims), **step.details})
+    settings.steps_json = json.dumps(record)
     show_box(obj)
 
 
@@ -103,11 +105,25 @@ def show_box(obj: bpy.types.Object) -> bpy.types.Object:
 def current_dims(obj: bpy.types.Object) -> np.ndarray:
     """(3,) float64 box of the last step, from the step record: ``pgt.dims`` is float32
     and would make the next step differ from the headless chain in the last bit."""
-    steps = json.loads(obj.pgt.steps_json or "[]")
-    return np.array(steps[-1]["dims"]) if steps else np.array(obj.pgt.dims, np.float64)
+    record = steps(obj)
+    return np.array(record[-1]["dims"]) if record else np.array(obj.pgt.dims, np.float64)
+
+
+def steps(obj: bpy.types.Object) -> list:
+    """The authoring steps applied to ``obj``, oldest first (``pgt.steps_json``)."""
+    return json.loads(obj.pgt.steps_json or "[]")
 
 
 def status(obj: bpy.types.Object) -> dict:
-    """What is done and what is left: aligned, heading (how), size (how)."""
-    settings = obj.pgt
-    return {"aligned": settings.aligned, "heading": settings.heading_by, "size": settings.size_by}
+    """What is done and what is left, read off the step record: aligned; the heading's
+    method since the last alignment (a new PCA may turn the front away); the last
+    size mode."""
+    done = {"aligned": False, "heading": "", "size": ""}
+    for step in steps(obj):
+        if step["step"] == "align":
+            done.update(aligned=True, heading="")
+        elif step["step"] == "heading":
+            done["heading"] = step["by"]
+        else:
+            done["size"] = step["mode"]
+    return done

@@ -127,7 +127,7 @@ class _AuthoringStep:
         if not authoring.is_reconstruction(obj):
             cls.poll_message_set("Select an imported reconstruction")
             return False
-        if cls.needs_alignment and not obj.pgt.aligned:
+        if cls.needs_alignment and not authoring.status(obj)["aligned"]:
             cls.poll_message_set("Align the axes first")
             return False
         return True
@@ -141,13 +141,9 @@ class _AuthoringStep:
             self.report({"ERROR"}, message)
             return {"CANCELLED"}
         authoring.apply_step(obj, step)
-        self.record(obj.pgt, step, context.scene.pgt_authoring)
         self.report({"INFO"}, f"{obj.name}: {self.bl_label.lower()}, box "
                               + " x ".join(f"{d:.3g}" for d in obj.pgt.dims))
         return {"FINISHED"}
-
-    def record(self, record, step, settings):
-        record.heading_by = step.details["by"]
 
 
 class OBJECT_OT_pgt_align(_AuthoringStep, bpy.types.Operator):
@@ -162,10 +158,6 @@ class OBJECT_OT_pgt_align(_AuthoringStep, bpy.types.Operator):
             raise InputError(obj.pgt.source_path or obj.name, "has no points to align")
         up = prepare.up_vector(settings.up, authoring.camera_poses(obj), obj.pgt.source_path)
         return prepare.align_step(authoring.positions(obj), authoring.weights(obj), up, obj.pgt.source_path)
-
-    def record(self, record, step, settings):
-        record.aligned = True
-        record.heading_by = ""  # PCA may have turned the front away again
 
 
 class OBJECT_OT_pgt_turn(_AuthoringStep, bpy.types.Operator):
@@ -213,10 +205,6 @@ class OBJECT_OT_pgt_set_size(_AuthoringStep, bpy.types.Operator):
     def step(self, context, obj, settings):
         return prepare.size_step(authoring.current_dims(obj), settings.size_mode, settings.dataset, settings.class_name,
                                  settings.seed, settings.uniform, tuple(settings.exact_dims))
-
-    def record(self, record, step, settings):
-        record.size_by = step.details["mode"]
-        record.dataset, record.class_name = settings.dataset, settings.class_name
 
 
 AUTHORING = (OBJECT_OT_pgt_align, OBJECT_OT_pgt_turn, OBJECT_OT_pgt_front_from_cursor,

@@ -47,10 +47,8 @@ class PGT_PG_object(bpy.types.PropertyGroup):
                                             subtype="MATRIX", default=_IDENTITY)
     dims: FloatVectorProperty(name="Box", size=3, subtype="XYZ", unit="LENGTH",
                               description="Box length, width, height in the object frame")
-    aligned: BoolProperty(name="Aligned", description="PCA axes applied")
-    heading_by: StringProperty(name="Heading", description="How the front was set: manual, baseline, classifier")
-    size_by: StringProperty(name="Size", description="How the size was set: class, exact, keep")
-    steps_json: StringProperty(name="Steps", description="JSON list of the authoring steps applied")
+    steps_json: StringProperty(name="Steps", description="JSON list of the authoring steps applied; "
+                                                         "what is done and left is read off it")
 
 
 class PGT_PG_authoring(bpy.types.PropertyGroup):

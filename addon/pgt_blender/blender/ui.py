@@ -75,7 +75,7 @@ class VIEW3D_PT_pgt_align(_AuthoringPanel, bpy.types.Panel):
         layout.label(text=status_text(obj), icon="CHECKMARK" if all(authoring.status(obj).values()) else "INFO")
         layout.prop(context.scene.pgt_authoring, "up")
         layout.operator("object.pgt_align", icon="ORIENTATION_GIMBAL")
-        if obj.pgt.aligned:
+        if authoring.status(obj)["aligned"]:
             layout.label(text="Box " + " x ".join(f"{d:.3g}" for d in obj.pgt.dims))
 
 

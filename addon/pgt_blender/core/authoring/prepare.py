@@ -93,14 +93,15 @@ def size_step(dims, mode: str, dataset: str = "nuscenes", class_name: str = "", 
               uniform: bool = False, exact=None) -> Step:
     """Scale to a sampled class size ("class"), to ``exact`` (l, w, h) metres, or not
     at all ("keep": the source is already metric)."""
+    details = {"mode": mode, "dataset": dataset, "class": class_name}
     if mode == "keep":
-        return Step("size", np.eye(4), np.asarray(dims, np.float64), {"mode": "keep"})
+        return Step("size", np.eye(4), np.asarray(dims, np.float64), details)
     if mode == "class":
         target = sizing.sample_dims(dataset, class_name, seed, uniform)
-        details = {"mode": "class", "dataset": dataset, "class": class_name, "seed": seed, "uniform": uniform}
+        details.update(seed=seed, uniform=uniform)
     elif mode == "exact":
         target = np.asarray(exact, np.float64)
-        details = {"mode": "exact", "uniform": uniform}
+        details.update(uniform=uniform)
     else:
         raise ValueError(f"unknown size mode '{mode}' (have: {', '.join(SIZE_MODES)})")
     scale, new_dims = sizing.scale_to(dims, target, uniform)
