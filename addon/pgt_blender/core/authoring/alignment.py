@@ -85,7 +85,7 @@ def checked_points(positions, weights=None, source="points") -> tuple:
 def density_inliers(points: np.ndarray, neighbours: int = NEIGHBOURS, threshold: float = 3.0) -> np.ndarray:
     """(N,) bool: False for floaters, points whose mean distance to their
     ``neighbours`` nearest distinct neighbours exceeds the median by ``threshold``
-    robust standard deviations (1.4826 MAD) *and* by twice the median, so the rim of
+    robust standard deviations (1.4826 MAD) *and* is over twice the median, so the rim of
     an evenly sampled surface (up to ~2x the median spacing at a corner) stays.
     Duplicates count once. Clouds too small to judge keep every point."""
     from scipy.spatial import cKDTree
@@ -118,7 +118,8 @@ def align_axes(positions, weights=None, up=None, source="points") -> Alignment:
     up:      optional (3,) up direction in the source frame; its sign is kept.
     """
     points, weights = checked_points(positions, weights, source)
-    centred = points - np.median(points, axis=0)
+    median = np.median(points, axis=0)
+    centred = points - median
     inliers = weights > 0  # zero-weight points (transparent splats) take no part
     inliers[inliers] = density_inliers(centred[inliers])
     kept, kept_weights = centred[inliers], weights[inliers]
@@ -138,7 +139,7 @@ def align_axes(positions, weights=None, up=None, source="points") -> Alignment:
     transform = np.eye(4)
     transform[:3, :3] = rotation
     # source point p -> rotation @ (p - median - mean) - centre
-    transform[:3, 3] = -rotation @ (np.median(points, axis=0) + mean) - centre
+    transform[:3, 3] = -rotation @ (median + mean) - centre
     return Alignment(transform, high - low, inliers, up_from, yaw_from)
 
 

@@ -12,6 +12,8 @@ already at +x:
 * learned: :mod:`.heading_classifier` (PointNet, needs torch).
 """
 
+from pathlib import Path
+
 import numpy as np
 
 
@@ -81,8 +83,6 @@ def automatic_front(points: np.ndarray, dims, method: str = "classifier", checkp
 def best_available_method(checkpoint=None) -> tuple:
     """("classifier", "") when torch imports and the checkpoint exists, else
     ("baseline", why not)."""
-    from pathlib import Path
-
     from .heading_classifier import DEFAULT_CHECKPOINT
 
     try:
