@@ -1,0 +1,96 @@
+"""The scan's output: one row per LiDAR return, the same for every scan mode.
+
+Columns (sensor frame, see sensors.py):
+
+| column    | type    | unit    | meaning                                                     |
+|-----------|---------|---------|-------------------------------------------------------------|
+| x, y, z   | float64 | m       | the return, sensor frame (float32 in written files)         |
+| intensity | float32 | dataset | nuScenes/Lyft 0..255 (whole numbers), KITTI 0..1             |
+| ring      | int16   | -       | beam index, 0 = lowest elevation                            |
+| column    | int32   | -       | azimuth step within the revolution, 0 = first fired         |
+| azimuth   | float32 | rad     | the cell's centre azimuth (phi'), from +x counter-clockwise |
+| time      | float32 | s       | firing time after the start of its sweep                    |
+| range     | float64 | m       | distance from the sensor origin                             |
+| face      | int32   | -       | the mesh face (or surfel / input point) that returned it    |
+| time_lag  | float32 | s       | age of its sweep: 0 for the current one (nuScenes time_lag) |
+| sweep     | int16   | -       | 0 = current sweep, k = k sweeps earlier                     |
+"""
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..files import atomic_output
+from .sensors import BIN_COLUMNS
+
+RETURN_DTYPE = np.dtype([
+    ("x", "f8"), ("y", "f8"), ("z", "f8"), ("intensity", "f4"), ("ring", "i2"), ("column", "i4"),
+    ("azimuth", "f4"), ("time", "f4"), ("range", "f8"), ("face", "i4"), ("time_lag", "f4"), ("sweep", "i2"),
+])
+BOX_FIELDS = ("x", "y", "z", "dx", "dy", "dz", "heading", "vx", "vy")
+OUTPUT_SUFFIXES = (".bin", ".ply", ".npy")
+
+
+@dataclass
+class Scan:
+    """Returns of one object scan plus what it cost.
+
+    returns: (N,) RETURN_DTYPE rows sorted by (sweep, ring, column).
+    box:     (9,) float64 x, y, z (box centre), dx, dy, dz (length along the heading,
+             width, height), heading (rad, from +x counter-clockwise), vx, vy (m/s),
+             sensor frame, for the current sweep (OpenPCDet's box3d_lidar layout).
+    rays:    rays cast (ray-cast modes) or points projected (range view).
+    seconds: wall time of the scan.
+    """
+
+    returns: np.ndarray
+    box: np.ndarray
+    rays: int
+    seconds: float
+    dataset: str = "nuscenes"
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def hits(self) -> int:
+        return len(self.returns)
+
+    @property
+    def efficiency(self) -> float:
+        """Hits per ray cast: how much of the work returned a point."""
+        return self.hits / self.rays if self.rays else 0.0
+
+    @property
+    def xyz(self) -> np.ndarray:
+        return np.column_stack([self.returns["x"], self.returns["y"], self.returns["z"]])
+
+    def stats(self) -> dict:
+        return {"points": self.hits, "rays": self.rays, "efficiency": round(self.efficiency, 4),
+                "ms": round(self.seconds * 1e3, 3)}
+
+    def dataset_array(self) -> np.ndarray:
+        """(N, C) float32 in the dataset's point-file columns (sensors.BIN_COLUMNS)."""
+        return np.column_stack([self.returns[name] for name in BIN_COLUMNS[self.dataset]]).astype(np.float32)
+
+
+def empty_returns(count: int = 0) -> np.ndarray:
+    return np.zeros(count, RETURN_DTYPE)
+
+
+def write_scan(scan: Scan, path) -> None:
+    """Write ``scan`` by suffix: .bin = float32 dataset columns (KITTI x y z intensity;
+    nuScenes/Lyft x y z intensity time_lag), .ply = every column, .npy = the structured
+    rows. Written atomically: a failure leaves no partial file."""
+    from ..importing.ply import write_ply
+
+    path = Path(path)
+    if path.suffix == ".ply":
+        write_ply(path, {name: scan.returns[name] for name in RETURN_DTYPE.names})
+        return
+    if path.suffix not in OUTPUT_SUFFIXES:
+        raise ValueError(f"{path}: output must end in {', '.join(OUTPUT_SUFFIXES)}")
+    with atomic_output(path) as stream:
+        if path.suffix == ".bin":
+            scan.dataset_array().tofile(stream)
+        else:
+            np.save(stream, scan.returns)

@@ -1,0 +1,238 @@
+"""Rotating LiDARs as data: beam table, column timing, range limits, mounting.
+
+Sensor frame: origin at the optical centre, +z up, right-handed; azimuth is measured
+from +x counter-clockwise about +z, elevation from the xy plane upwards. It is the
+dataset's own LiDAR frame (KITTI: x forward, y left; nuScenes: x right, y forward).
+The ground is the plane z = -mounting_height.
+
+A ray is one (beam, column) cell. Beam ``b`` (its *ring*, 0 = lowest) points at
+``elevations_deg[b]``; column ``c`` of ``columns`` per revolution fires at
+``time = (c + firing_us[b] * 1e-6 * columns * rate_hz) / (columns * rate_hz)`` seconds
+after the sweep starts, towards azimuth
+``start_azimuth_deg + direction * 360 * (c + 0.5) / columns + azimuth_offsets_deg[b]``
+(the cell's centre: the paper's phi', theta').
+"""
+
+import tomllib
+from dataclasses import dataclass, field, fields, replace
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from ..classes import DATASETS
+from ..errors import InputError
+
+# Point formats of the datasets: intensity scale and .bin columns (REFERENCE.md 1-2).
+INTENSITY_MAX = {"nuscenes": 255.0, "kitti": 1.0, "lyft": 255.0}
+BIN_COLUMNS = {
+    "nuscenes": ("x", "y", "z", "intensity", "time_lag"),
+    "kitti": ("x", "y", "z", "intensity"),
+    "lyft": ("x", "y", "z", "intensity", "time_lag"),
+}
+
+
+@dataclass(frozen=True, eq=False)
+class Sensor:
+    """One rotating LiDAR. Angles in degrees, distances in metres, times in seconds
+    unless the name says otherwise. Tables are per beam, sorted by elevation."""
+
+    name: str
+    elevations_deg: tuple
+    columns: int
+    rate_hz: float
+    min_range: float
+    max_range: float
+    mounting_height: float
+    range_noise_sigma: float = 0.0
+    azimuth_offsets_deg: tuple = ()
+    firing_us: tuple = ()
+    start_azimuth_deg: float = -180.0
+    direction: int = -1  # -1 clockwise seen from above, as Velodyne and Hesai spin
+    dataset: str = "nuscenes"
+    note: str = field(default="", compare=False)
+
+    def __post_init__(self):
+        beams = len(self.elevations_deg)
+        if not self.azimuth_offsets_deg:
+            object.__setattr__(self, "azimuth_offsets_deg", (0.0,) * beams)
+        if not self.firing_us:
+            object.__setattr__(self, "firing_us", (0.0,) * beams)
+        for name in ("elevations_deg", "azimuth_offsets_deg", "firing_us"):
+            object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
+        validate(self)
+
+    @property
+    def beams(self) -> int:
+        return len(self.elevations_deg)
+
+    @property
+    def azimuth_step_deg(self) -> float:
+        return 360.0 / self.columns
+
+    @property
+    def sweep_seconds(self) -> float:
+        return 1.0 / self.rate_hz
+
+    @property
+    def intensity_max(self) -> float:
+        return INTENSITY_MAX[self.dataset]
+
+    @cached_property
+    def cell_azimuths(self) -> np.ndarray:
+        """(beams, columns) float64 radians in (-pi, pi]: each cell's centre azimuth."""
+        column = self.start_azimuth_deg + self.direction * self.azimuth_step_deg * (np.arange(self.columns) + 0.5)
+        degrees = column[None, :] + np.asarray(self.azimuth_offsets_deg)[:, None]
+        return np.radians(180.0 - np.mod(180.0 - degrees, 360.0))
+
+    @cached_property
+    def directions(self) -> np.ndarray:
+        """(beams * columns, 3) float64 unit ray directions, cell ``b * columns + c``.
+        Computed once and indexed, so a subset of rays is bit-identical to the same
+        rays of a full revolution."""
+        elevation = np.radians(np.asarray(self.elevations_deg))[:, None]
+        azimuth = self.cell_azimuths
+        table = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                          np.broadcast_to(np.sin(elevation), azimuth.shape)], axis=-1)
+        table.setflags(write=False)
+        return table.reshape(-1, 3)
+
+    def cell_times(self, rings: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        """Seconds after the sweep's start at which cells (rings, columns) fire."""
+        column_seconds = self.sweep_seconds / self.columns
+        return columns * column_seconds + np.asarray(self.firing_us)[rings] * 1e-6
+
+    def with_columns(self, columns: int) -> "Sensor":
+        """The same sensor at another azimuth resolution (the paper's 1080 vs 3600)."""
+        return replace(self, columns=int(columns), name=f"{self.name}@{columns}")
+
+
+def validate(sensor: Sensor) -> None:
+    """Raise ValueError naming the first field that is not a usable sensor."""
+    elevations = np.asarray(sensor.elevations_deg, np.float64)
+    problems = []
+    if elevations.size == 0:
+        problems.append("elevations_deg is empty")
+    elif not np.isfinite(elevations).all() or np.abs(elevations).max() >= 90:
+        problems.append("elevations_deg must be finite and strictly between -90 and 90")
+    elif (np.diff(elevations) <= 0).any():
+        problems.append("elevations_deg must be strictly increasing (ring 0 = lowest beam)")
+    for name in ("azimuth_offsets_deg", "firing_us"):
+        values = np.asarray(getattr(sensor, name), np.float64)
+        if len(values) != len(elevations):
+            problems.append(f"{name} has {len(values)} entries for {len(elevations)} beams")
+        elif not np.isfinite(values).all():
+            problems.append(f"{name} must be finite")
+    if len(sensor.azimuth_offsets_deg) == len(elevations) and elevations.size and \
+            np.abs(sensor.azimuth_offsets_deg).max() >= 180:
+        problems.append("azimuth_offsets_deg must lie strictly between -180 and 180")
+    if not (isinstance(sensor.columns, int | np.integer) and sensor.columns > 0):
+        problems.append(f"columns must be a positive integer, got {sensor.columns!r}")
+    for name in ("rate_hz", "max_range"):
+        if not getattr(sensor, name) > 0:
+            problems.append(f"{name} must be positive, got {getattr(sensor, name)!r}")
+    if not 0 <= sensor.min_range < sensor.max_range:
+        problems.append("min_range must be >= 0 and below max_range")
+    if not sensor.mounting_height >= 0 or not sensor.range_noise_sigma >= 0:
+        problems.append("mounting_height and range_noise_sigma must be >= 0")
+    if sensor.direction not in (-1, 1):
+        problems.append("direction must be -1 (clockwise) or 1 (counter-clockwise)")
+    if sensor.dataset not in DATASETS:
+        problems.append(f"dataset must be one of {', '.join(DATASETS)}, got {sensor.dataset!r}")
+    column_us = 1e6 / (sensor.rate_hz * sensor.columns) if not problems else 0.0
+    if not problems and (np.min(sensor.firing_us) < 0 or np.max(sensor.firing_us) >= column_us):
+        problems.append(f"firing_us must lie in [0, {column_us:.3f}) (one column's time)")
+    if problems:
+        raise ValueError(f"sensor {sensor.name!r}: " + "; ".join(problems))
+
+
+def _hdl32e() -> Sensor:
+    elevations = (np.arange(32) - 23) * 4.0 / 3.0  # -30.67 .. +10.67, 0 at ring 23
+    # Laser ids alternate between the lower and upper half, 1.152 us apart (HDL-32E manual).
+    firing = np.where(np.arange(32) < 16, 2 * np.arange(32), 2 * (np.arange(32) - 16) + 1) * 1.152
+    return Sensor("nuscenes", tuple(np.round(elevations, 2)), columns=1080, rate_hz=20.0,
+                  min_range=1.0, max_range=70.0, mounting_height=1.84, range_noise_sigma=0.02,
+                  firing_us=tuple(firing), dataset="nuscenes",
+                  note="Velodyne HDL-32E as on nuScenes LIDAR_TOP: 32 beams -30.67..+10.67 deg "
+                       "every 4/3 deg, 20 Hz, 1080 columns (0.333 deg)")
+
+
+def _hdl64e() -> Sensor:
+    # The HDL-64E S2 nominal layout: upper block +2..-8.33 every 1/3 deg, lower block
+    # -8.83..-24.33 every 1/2 deg. KITTI publishes no per-laser calibration; its real
+    # scans spread over about +2..-24.8 deg because each laser also sits off-centre.
+    lower = -24.33 + 0.5 * np.arange(32)
+    upper = -8.33 + np.arange(32) / 3.0
+    elevations = np.round(np.concatenate([lower, upper]), 2)
+    # Both blocks fire together, one laser each per 1/32 of a column.
+    firing = np.tile(np.arange(32), 2) * (1e6 / (10.0 * 2083) / 32)
+    return Sensor("kitti", tuple(elevations), columns=2083, rate_hz=10.0, min_range=2.0,
+                  max_range=120.0, mounting_height=1.73, range_noise_sigma=0.02,
+                  firing_us=tuple(firing), dataset="kitti",
+                  note="Velodyne HDL-64E S2 as on KITTI: nominal 64-beam table +2..-24.33 deg, "
+                       "10 Hz, 2083 columns (0.173 deg, 1.33 M points/s)")
+
+
+def _pandar40p() -> Sensor:
+    elevations = np.concatenate([[-25, -19], np.arange(-14, -6), -6 + np.arange(25) / 3.0,
+                                 [3, 5, 8, 11, 15]])
+    return Sensor("lyft", tuple(np.round(elevations, 2)), columns=1800, rate_hz=10.0,
+                  min_range=0.3, max_range=200.0, mounting_height=1.8, range_noise_sigma=0.02,
+                  dataset="lyft",
+                  note="40-beam roof LiDAR modelled on the Hesai Pandar40P table (-25..+15 deg, "
+                       "1/3 deg between -6 and +2), 10 Hz, 0.2 deg; Lyft's cars carry 40- or "
+                       "64-beam roof units and do not publish the table, so check per log")
+
+
+def _vlp16() -> Sensor:
+    elevations = -15.0 + 2.0 * np.arange(16)
+    laser_of_ring = np.argsort([-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13, -1, 15])
+    return Sensor("vlp16", tuple(elevations), columns=1800, rate_hz=10.0, min_range=0.5,
+                  max_range=100.0, mounting_height=1.8, range_noise_sigma=0.03,
+                  firing_us=tuple(laser_of_ring * 2.304), dataset="kitti",
+                  note="Velodyne VLP-16 (Puck): 16 beams -15..+15 every 2 deg, 10 Hz, 0.2 deg")
+
+
+PRESETS = {sensor.name: sensor for sensor in (_hdl32e(), _hdl64e(), _pandar40p(), _vlp16())}
+
+_TOML_KEYS = {f.name for f in fields(Sensor)} - {"note"}
+
+
+def load_sensor_toml(path) -> Sensor:
+    """A custom sensor from TOML: the Sensor fields as top-level keys, or ``base`` =
+    a preset name and only the keys that differ, e.g. the paper's ablation::
+
+        base = "nuscenes"
+        columns = 3600
+    """
+    path = Path(path)
+    try:
+        table = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
+        raise InputError(path, f"not a readable TOML file: {error}") from None
+    unknown = sorted(set(table) - _TOML_KEYS - {"base"})
+    if unknown:
+        raise InputError(path, f"unknown sensor keys {', '.join(unknown)}; known: {', '.join(sorted(_TOML_KEYS))}")
+    base = table.pop("base", None)
+    if base is not None and base not in PRESETS:
+        raise InputError(path, f"base {base!r} is not a preset ({', '.join(PRESETS)})")
+    table.setdefault("name", path.stem)
+    try:
+        if base is None:
+            missing = sorted({"elevations_deg", "columns", "rate_hz", "min_range", "max_range",
+                              "mounting_height"} - set(table))
+            if missing:
+                raise ValueError(f"missing keys {', '.join(missing)}")
+            return Sensor(**table)
+        return replace(PRESETS[base], **table)
+    except (TypeError, ValueError) as error:
+        raise InputError(path, str(error)) from None
+
+
+def sensor_from_name(name: str) -> Sensor:
+    """A preset by name, or a custom sensor from a .toml path."""
+    if name in PRESETS:
+        return PRESETS[name]
+    if name.endswith(".toml"):
+        return load_sensor_toml(name)
+    raise InputError(name, f"not a sensor preset ({', '.join(PRESETS)}) or a .toml file")

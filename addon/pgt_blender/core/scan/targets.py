@@ -1,0 +1,193 @@
+"""What a scan hits: one object's surface in its object frame, with its BVH built once.
+
+Object frame: +x forward, +y left, +z up, metres (what authoring writes). Meshes are
+used as they are (open, non-manifold and self-intersecting meshes are fine: a ray
+takes the nearest triangle). Point clouds and Gaussian splats become *surfels*: one
+flat hexagon per point with the area of its disk, so a reconstruction is scanned
+without meshing.
+"""
+
+import importlib
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InputError
+
+SURFEL_SIDES = 6
+# A hexagon with the disk's area: circumradius = r * sqrt(2 pi / (3 sqrt 3)).
+_HEXAGON_FOR_DISK = np.sqrt(2 * np.pi / (3 * np.sqrt(3)))
+SPLAT_SIGMAS = 2.0  # a splat's disk reaches 2 sigma along its two larger axes
+DEFAULT_REFLECTIVITY = 0.5
+
+
+def bvhtree_class():
+    """``mathutils.bvhtree.BVHTree``. Blender has mathutils built in; the PyPI ``bpy``
+    wheel registers it only once bpy has loaded, so outside Blender load that first.
+    Nothing here touches bpy's data API."""
+    try:
+        from mathutils.bvhtree import BVHTree
+    except ModuleNotFoundError:
+        importlib.import_module("bpy")
+        from mathutils.bvhtree import BVHTree
+    return BVHTree
+
+
+@dataclass
+class ScanTarget:
+    """One object ready to be scanned from any pose.
+
+    bvh:          mathutils BVHTree over the polygons (float32 inside).
+    bounds:       (2, 3) float64 [min, max] corners of the polygons, object frame, m.
+    planes:       (P, 4) float64 per polygon: unit normal n and offset n . v, so a hit's
+                  range is refined in float64 on its polygon's plane.
+    reflectivity: (P,) float32 in [0, 1] per polygon, for the physical intensity.
+    source_index: (P,) int32: the mesh face (or point) each polygon came from; the
+                  scan's ``face`` column.
+    kind:         "mesh" or "surfels".
+    """
+
+    bvh: object
+    bounds: np.ndarray
+    planes: np.ndarray
+    reflectivity: np.ndarray
+    source_index: np.ndarray
+    kind: str
+    name: str = "object"
+
+    @property
+    def size(self) -> np.ndarray:
+        return self.bounds[1] - self.bounds[0]
+
+
+def reflectivity_from_srgb(colors: np.ndarray) -> np.ndarray:
+    """(N,) float32 reflectivity in [0, 1]: the relative luminance of (N, 3 or 4) sRGB
+    colours in [0, 1] after linearisation. Visible albedo stands in for the near-infrared
+    reflectance a LiDAR sees; the learned intensity estimator corrects it."""
+    srgb = np.clip(np.asarray(colors, np.float64)[:, :3], 0.0, 1.0)
+    linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+    return (linear @ np.array([0.2126, 0.7152, 0.0722])).astype(np.float32)
+
+
+def _planes(normals: np.ndarray, points: np.ndarray) -> np.ndarray:
+    normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    return np.column_stack([normals, np.einsum("ij,ij->i", normals, points)])
+
+
+def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
+                face_reflectivity: np.ndarray | None = None) -> ScanTarget:
+    """A BVH over triangles. vertices (V, 3) object frame m; faces (F, 3) int.
+    Faces of zero area (or with a repeated vertex) are dropped with a warning; an empty
+    mesh or non-finite vertices are an InputError naming ``name``."""
+    vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(faces) == 0 or len(vertices) == 0:
+        raise InputError(name, "mesh has no faces to scan")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(name, f"face indices out of range for {len(vertices)} vertices")
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise InputError(name, f"{int(bad.sum())} vertices are NaN or infinite")
+    corners = vertices[faces]
+    doubled_area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    extent = np.ptp(corners.reshape(-1, 3), axis=0).max()
+    keep = doubled_area > 1e-12 * extent**2
+    if not keep.any():
+        raise InputError(name, "every face has zero area")
+    if not keep.all():
+        warnings.warn(f"{name}: dropped {int((~keep).sum())} zero-area faces of {len(faces)}", stacklevel=2)
+    kept = np.flatnonzero(keep)
+    used = faces[kept]
+    corners = corners[kept]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    reflectivity = (np.full(len(faces), DEFAULT_REFLECTIVITY, np.float32) if face_reflectivity is None
+                    else np.clip(np.asarray(face_reflectivity, np.float32).reshape(-1), 0, 1))
+    bvh = bvhtree_class().FromPolygons(vertices.tolist(), used.tolist(), all_triangles=True, epsilon=0.0)
+    bounds = np.stack([vertices[used].reshape(-1, 3).min(0), vertices[used].reshape(-1, 3).max(0)])
+    return ScanTarget(bvh, bounds, _planes(normals, corners[:, 0]), reflectivity[kept],
+                      kept.astype(np.int32), "mesh", name)
+
+
+def local_frames(positions: np.ndarray, neighbours: int = 8):
+    """Per point: (N, 3) normal (local PCA's smallest axis), (N, 3, 2) the two tangent
+    axes, and (N,) spacing = mean distance to the ``neighbours`` nearest points (m)."""
+    from scipy.spatial import cKDTree
+
+    k = min(neighbours, len(positions) - 1)
+    if k < 3:
+        raise ValueError(f"{len(positions)} points are too few for local surface frames")
+    distances, index = cKDTree(positions).query(positions, k=k + 1)
+    around = positions[index[:, 1:]] - positions[:, None, :]
+    around -= around.mean(axis=1, keepdims=True)
+    _, axes = np.linalg.eigh(np.einsum("nki,nkj->nij", around, around))
+    return axes[:, :, 0], axes[:, :, 1:], distances[:, 1:].mean(axis=1)
+
+
+def _quaternion_matrices(wxyz: np.ndarray) -> np.ndarray:
+    w, x, y, z = (wxyz / np.linalg.norm(wxyz, axis=1, keepdims=True)).T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], axis=1)
+
+
+def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarray | None = None,
+                  radius_scale: float = 1.0, neighbours: int = 8,
+                  scales: np.ndarray | None = None, rotations: np.ndarray | None = None) -> ScanTarget:
+    """Oriented surfels for a point cloud, object frame (m).
+
+    Point clouds: normal from local PCA over ``neighbours`` points, radius =
+    ``radius_scale`` x the mean distance to them. Gaussian splats (``scales`` (N, 3) m,
+    ``rotations`` (N, 4) w x y z): an ellipse along the two larger axes with semi-axes
+    ``SPLAT_SIGMAS`` x scale (x ``radius_scale``), normal along the smallest.
+    """
+    positions = np.asarray(positions, np.float64).reshape(-1, 3)
+    if len(positions) == 0:
+        raise InputError(name, "point cloud is empty")
+    bad = ~np.isfinite(positions).all(axis=1)
+    if bad.any():
+        raise InputError(name, f"{int(bad.sum())} points are NaN or infinite")
+    if not radius_scale > 0:
+        raise InputError(name, f"surfel radius scale must be positive, got {radius_scale}")
+    if scales is not None and rotations is not None:
+        axes = _quaternion_matrices(np.asarray(rotations, np.float64))
+        scales = np.asarray(scales, np.float64)
+        order = np.argsort(scales, axis=1)[:, ::-1]  # largest first
+        tangents = np.take_along_axis(axes, order[:, None, :2], axis=2)
+        semi_axes = SPLAT_SIGMAS * radius_scale * np.take_along_axis(scales, order[:, :2], axis=1)
+    else:
+        try:
+            _, tangents, spacing = local_frames(positions, neighbours)
+        except ValueError as error:
+            raise InputError(name, str(error)) from None
+        semi_axes = np.repeat((radius_scale * spacing)[:, None], 2, axis=1)
+    angles = 2 * np.pi * np.arange(SURFEL_SIDES) / SURFEL_SIDES
+    unit = np.stack([np.cos(angles), np.sin(angles)], axis=1) * _HEXAGON_FOR_DISK  # (S, 2)
+    # corner (n, s) = centre + sum_k unit[s, k] * semi_axes[n, k] * tangents[n, :, k]
+    corners = positions[:, None, :] + np.einsum("sk,nk,nik->nsi", unit, semi_axes, tangents)
+    polygons = np.arange(len(positions) * SURFEL_SIDES).reshape(-1, SURFEL_SIDES)
+    bvh = bvhtree_class().FromPolygons(corners.reshape(-1, 3).tolist(), polygons.tolist(),
+                                       all_triangles=False, epsilon=0.0)
+    reflectivity = (np.full(len(positions), DEFAULT_REFLECTIVITY, np.float32) if colors is None
+                    else reflectivity_from_srgb(colors))
+    flat = corners.reshape(-1, 3)
+    normals = np.cross(tangents[:, :, 0], tangents[:, :, 1])
+    return ScanTarget(bvh, np.stack([flat.min(0), flat.max(0)]), _planes(normals, positions), reflectivity,
+                      np.arange(len(positions), dtype=np.int32), "surfels", name)
+
+
+def target_from_reconstruction(reconstruction, radius_scale: float = 1.0) -> ScanTarget:
+    """A mesh target when the reconstruction has faces, else surfels (splat-shaped when
+    it carries ``scale`` and ``rotation``). Positions must already be in the object frame."""
+    name = str(reconstruction.source)
+    colors = reconstruction.colors
+    if len(reconstruction.faces):
+        face_reflectivity = None
+        if colors is not None:
+            face_reflectivity = reflectivity_from_srgb(colors)[reconstruction.faces].mean(axis=1)
+        return mesh_target(reconstruction.positions, reconstruction.faces, name, face_reflectivity)
+    attributes = reconstruction.attributes
+    return surfel_target(reconstruction.positions, name, colors, radius_scale,
+                         scales=attributes.get("scale"), rotations=attributes.get("rotation"))
