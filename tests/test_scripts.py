@@ -47,7 +47,8 @@ def test_import_bad_input_exits_non_zero_and_writes_nothing(tmp_path):
     assert not blend.exists() and "{" not in result.stdout
 
 
-@pytest.mark.parametrize("script", ["import_reconstruction.py", "demo.py", "bench_import.py", "build_extension.py"])
+@pytest.mark.parametrize("script", ["import_reconstruction.py", "demo.py", "bench_import.py", "build_extension.py",
+                                    "scan_object.py", "bench_scan.py"])
 def test_help(script):
     result = run_script(script, "--help")
     assert result.returncode == 0 and result.stdout.startswith("usage:")
@@ -88,3 +89,70 @@ def test_bench_alignment_quick(tmp_path):
     assert result.returncode == 0, result.stderr
     assert "| varied |" in result.stdout and (tmp_path / "alignment.png").stat().st_size > 0
     assert json.loads((tmp_path / "alignment.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def truck_sample(tmp_path_factory):
+    from pgt_blender.core.samples import write_sample
+
+    return write_sample(tmp_path_factory.mktemp("samples"), "truck", points=6000)
+
+
+def test_scan_object_bin_equals_the_core_scan(chrono_meshes, tmp_path):
+    import numpy as np
+
+    from pgt_blender.core.importing import load_reconstruction
+    from pgt_blender.core.scan.sensors import PRESETS
+    from pgt_blender.core.scan.sweeps import Motion, scan_sweeps
+    from pgt_blender.core.scan.targets import target_from_reconstruction
+
+    truck = next(p for p in chrono_meshes if p.name == "truck_chassis.obj")
+    out = tmp_path / "truck.bin"
+    result = run_script("scan_object.py", "--object", truck, "--sensor", "nuscenes", "--x", 14, "--y", -3,
+                        "--heading", 20, "--sweeps", 10, "--speed", 6, "--out", out)
+    assert result.returncode == 0, result.stderr
+    assert "points from" in result.stdout and f"wrote {out}" in result.stdout
+    target = target_from_reconstruction(load_reconstruction(truck))
+    expected = scan_sweeps(target, PRESETS["nuscenes"], 14.0, -3.0,
+                           np.radians(20.0), Motion(6.0), 10)
+    assert out.read_bytes() == expected.dataset_array().tobytes()
+
+
+@pytest.mark.parametrize("surface, suffix", [("auto", ".ply"), ("range-view", ".npy")])
+def test_scan_object_point_clouds(truck_sample, tmp_path, surface, suffix):
+    import numpy as np
+
+    out = tmp_path / f"scan{suffix}"
+    result = run_script("scan_object.py", "--object", truck_sample["reconstruction.ply"], "--sensor", "kitti",
+                        "--x", 0.5, "--y", 0, "--surface", surface, "--out", out)
+    assert result.returncode == 0, result.stderr
+    assert out.stat().st_size > 0 and int(result.stdout.split(": ", 1)[1].split()[0]) > 0
+    if suffix == ".npy":
+        assert np.load(out)["intensity"].max() <= 1.0  # KITTI intensities
+
+
+@pytest.mark.parametrize("args, problem", [
+    (["--object", "missing.obj"], "missing.obj"),
+    (["--sensor", "BAD_TOML"], "not a readable TOML file"),
+    (["--surface", "mesh", "--object", "POINTS"], "has no faces to scan as a mesh"),
+    (["--sensor", "velodyne128"], "not a sensor preset"),
+])
+def test_scan_object_bad_input_exits_non_zero_and_writes_nothing(truck_sample, tmp_path, args, problem):
+    bad_toml = tmp_path / "broken.toml"
+    bad_toml.write_text("columns = \n")
+    replacements = {"BAD_TOML": bad_toml, "POINTS": truck_sample["reconstruction.ply"]}
+    args = [replacements.get(a, a) for a in args]
+    if "--object" not in args:
+        args += ["--object", truck_sample["mesh.ply"]]
+    out = tmp_path / "scan.bin"
+    result = run_script("scan_object.py", *args, "--x", 10, "--y", 0, "--out", out, cwd=tmp_path)
+    assert result.returncode == 1
+    errors = result.stderr.strip().splitlines()
+    assert len(errors) == 1 and errors[0].startswith("error: ") and problem in errors[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.toml"]
+
+
+def test_scan_object_usage_errors_exit_2(truck_sample, tmp_path):
+    result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"], "--x", 1, "--y", 1,
+                        "--out", tmp_path / "scan.txt")
+    assert result.returncode == 2 and "--out must end in" in result.stderr

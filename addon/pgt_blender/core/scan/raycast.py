@@ -154,7 +154,9 @@ def cast_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray
              else np.arange(sensor.beams * sensor.columns))
     origin, directions = _to_object(sensor_from_object, sensor.directions[cells])
     if options.window:
-        inside = _meets_box(origin, directions, _padded(target.bounds), sensor.min_range, sensor.max_range)
+        # From range 0, not min_range: a hit inside the blind zone still takes its random
+        # draws, as in a full revolution, so both give the same bytes with noise on.
+        inside = _meets_box(origin, directions, _padded(target.bounds), 0.0, sensor.max_range)
         cells, directions = cells[inside], directions[inside]
     results = list(map(target.bvh.ray_cast, repeat(Vector(origin), len(cells)), directions.tolist(),
                        repeat(sensor.max_range, len(cells))))
