@@ -71,9 +71,12 @@ def test_demo(tmp_path):
     assert (tmp_path / "demo" / "demo.blend").exists()
     assert len(list((tmp_path / "demo" / "samples").glob("*_reconstruction.ply"))) == 6
     assert str(tmp_path / "demo" / "demo.blend") in result.stdout
-    rows = [line.split() for line in result.stdout.splitlines() if line.endswith("]") and "_reconstruction" in line]
+    table = [line for line in result.stdout.splitlines() if "_reconstruction " in line and "[" in line]
+    rows = [line.split() for line in table]
     errors = [float(row[2]) for row in rows]
     assert len(rows) == 6 and all(min(e, abs(180 - e)) < 1.0 for e in errors)  # aligned, up to the front
+    scanned = [int(line.split("]")[1].split()[0]) for line in table]
+    assert len(scanned) == 6 and min(scanned) > 100  # every object scanned at 15 m
 
 
 def test_bench_import_runs(tmp_path):

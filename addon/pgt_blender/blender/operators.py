@@ -1,5 +1,7 @@
 """Operators: each reads with the core, then builds Blender data with ``objects``."""
 
+import warnings
+
 import bpy
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
@@ -8,7 +10,7 @@ from ..core.authoring import prepare
 from ..core.classes import MINORITY_CLASSES
 from ..core.errors import InputError
 from ..core.importing import load_reconstruction
-from . import authoring, objects
+from . import authoring, objects, scanning
 
 
 def _select_only(context, obj):
@@ -207,8 +209,42 @@ class OBJECT_OT_pgt_set_size(_AuthoringStep, bpy.types.Operator):
                                  settings.seed, settings.uniform, tuple(settings.exact_dims))
 
 
+class OBJECT_OT_pgt_scan(bpy.types.Operator):
+    """Scan the active mesh or point cloud with the chosen LiDAR, placed on the ground"""
+
+    bl_idname = "object.pgt_scan"
+    bl_label = "Scan"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.active_object
+        if obj is None or obj.type != "MESH":
+            cls.poll_message_set("Select a mesh or point-cloud object")
+            return False
+        return True
+
+    def execute(self, context):
+        obj, settings = context.active_object, context.scene.pgt_scan
+        if obj.mode == "EDIT":
+            obj.update_from_editmode()
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                result, sensor, sensor_from_object = scanning.scan(obj, settings)
+        except ValueError as error:  # InputError, or the custom sensor's missing file
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        for warning in caught:
+            self.report({"WARNING"}, str(warning.message))
+        scanning.show_scan(context.scene, obj, result, sensor, sensor_from_object, settings)
+        settings.stats = scanning.stats_text(result)
+        self.report({"INFO"}, f"{obj.name}: {settings.stats}")
+        return {"FINISHED"}
+
+
 AUTHORING = (OBJECT_OT_pgt_align, OBJECT_OT_pgt_turn, OBJECT_OT_pgt_front_from_cursor,
              OBJECT_OT_pgt_auto_heading, OBJECT_OT_pgt_set_size)
 IMPORTERS = (IMPORT_SCENE_OT_pgt_colmap, IMPORT_SCENE_OT_pgt_gaussian_splat,
              IMPORT_SCENE_OT_pgt_point_cloud, IMPORT_SCENE_OT_pgt_mesh)
-classes = IMPORTERS + (OBJECT_OT_pgt_add_sample,) + AUTHORING
+classes = IMPORTERS + (OBJECT_OT_pgt_add_sample,) + AUTHORING + (OBJECT_OT_pgt_scan,)

@@ -1,13 +1,16 @@
-"""Data pgt_blender stores on Blender objects (``Object.pgt``) and the authoring
-settings of the scene (``Scene.pgt_authoring``)."""
+"""Data pgt_blender stores on Blender objects (``Object.pgt``), the authoring settings
+(``Scene.pgt_authoring``) and the scan settings (``Scene.pgt_scan``) of the scene."""
+
+import math
 
 import bpy
-from bpy.props import (BoolProperty, EnumProperty, FloatVectorProperty, IntProperty, PointerProperty,
-                       StringProperty)
+from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty,
+                       PointerProperty, StringProperty)
 
 from ..core.authoring.prepare import UP_CHOICES
 from ..core.classes import CLASS_SIZES
 from ..core.reconstruction import SOURCE_KINDS
+from ..core.scan.sensors import PRESETS
 
 _KIND_LABELS = {
     "colmap": "COLMAP model", "gaussian_splat": "Gaussian splats",
@@ -17,6 +20,7 @@ _IDENTITY = ((1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1))
 _UP_LABELS = {"auto": ("Auto", "Cameras' mean up when the object has cameras, else the PCA minor axis"),
               "cameras": ("Cameras", "Mean up vector of the reconstruction's cameras"),
               "pca": ("PCA", "Minor principal axis: right for objects lower than they are wide")}
+_SENSOR_LABELS = {"nuscenes": "nuScenes", "kitti": "KITTI", "lyft": "Lyft", "vlp16": "VLP-16"}
 # Enum items must outlive the callback that returns them (Blender keeps raw pointers).
 _CLASS_ITEMS = {dataset: [(name, name.replace("_", " ").title(), f"{dataset} {name}: mean size "
                            + " x ".join(f"{v:.2f}" for v in dims) + " m") for name, dims in sizes.items()]
@@ -76,14 +80,38 @@ class PGT_PG_authoring(bpy.types.PropertyGroup):
                                     subtype="XYZ", unit="LENGTH")
 
 
-classes = (PGT_PG_object, PGT_PG_authoring)
+class PGT_PG_scan(bpy.types.PropertyGroup):
+    """Settings of the Scan section (``Scene.pgt_scan``) and the last scan's statistics.
+    Azimuth and heading are stored in radians (shown in degrees, as Blender angles are)."""
+
+    sensor: EnumProperty(name="Sensor", default="nuscenes", items=[
+        (name, _SENSOR_LABELS.get(name, name), sensor.note) for name, sensor in PRESETS.items()]
+        + [("CUSTOM", "Custom", "A sensor TOML file: Sensor fields, or base = a preset and what differs")])
+    sensor_file: StringProperty(name="Sensor file", subtype="FILE_PATH", description="Custom sensor .toml")
+    distance: FloatProperty(name="Distance", default=15.0, min=0.0, soft_max=100.0, unit="LENGTH",
+                            description="Ground distance from the sensor to the object's origin")
+    azimuth: FloatProperty(name="Azimuth", default=0.0, subtype="ANGLE",
+                           description="Direction of the object seen from the sensor, from +x counter-clockwise")
+    heading: FloatProperty(name="Heading", default=math.radians(90.0), subtype="ANGLE",
+                           description="Direction the object's front (+x) faces in the sensor frame")
+    colour_by: EnumProperty(name="Colour", default="INTENSITY", items=[
+        ("INTENSITY", "Intensity", "Colour the returns by intensity"),
+        ("RING", "Ring", "Colour the returns by beam")])
+    surfel_scale: FloatProperty(name="Surfel scale", default=1.0, min=0.01, soft_max=5.0,
+                                description="Point clouds: surfel radius in units of the point spacing")
+    stats: StringProperty(name="Statistics", description="Points, rays and time of the last scan")
+
+
+classes = (PGT_PG_object, PGT_PG_authoring, PGT_PG_scan)
 
 
 def register():
     bpy.types.Object.pgt = PointerProperty(type=PGT_PG_object)
     bpy.types.Scene.pgt_authoring = PointerProperty(type=PGT_PG_authoring)
+    bpy.types.Scene.pgt_scan = PointerProperty(type=PGT_PG_scan)
 
 
 def unregister():
+    del bpy.types.Scene.pgt_scan
     del bpy.types.Scene.pgt_authoring
     del bpy.types.Object.pgt

@@ -114,6 +114,27 @@ class VIEW3D_PT_pgt_size(_AuthoringPanel, bpy.types.Panel):
         layout.operator("object.pgt_set_size", icon="FULLSCREEN_ENTER")
 
 
+class VIEW3D_PT_pgt_scan(_PGTPanel, bpy.types.Panel):
+    bl_label = "Scan"
+    bl_idname = "VIEW3D_PT_pgt_scan"
+
+    def draw(self, context):
+        layout, settings = self.layout, context.scene.pgt_scan
+        layout.prop(settings, "sensor")
+        if settings.sensor == "CUSTOM":
+            layout.prop(settings, "sensor_file")
+        column = layout.column(align=True)
+        for name in ("distance", "azimuth", "heading"):
+            column.prop(settings, name)
+        layout.prop(settings, "colour_by", expand=True)
+        obj = context.active_object
+        if obj is not None and obj.type == "MESH" and not obj.data.polygons:
+            layout.prop(settings, "surfel_scale")
+        layout.operator("object.pgt_scan", icon="LIGHT_SPOT")
+        if settings.stats:
+            layout.label(text=settings.stats, icon="INFO")
+
+
 class VIEW3D_PT_pgt_objects(_PGTPanel, bpy.types.Panel):
     """Every reconstruction in the scene with what is left to do."""
 
@@ -135,7 +156,7 @@ def menu_import(self, context):
 
 
 classes = (VIEW3D_PT_pgt_import, VIEW3D_PT_pgt_align, VIEW3D_PT_pgt_heading, VIEW3D_PT_pgt_size,
-           VIEW3D_PT_pgt_objects)
+           VIEW3D_PT_pgt_scan, VIEW3D_PT_pgt_objects)
 
 
 def register():

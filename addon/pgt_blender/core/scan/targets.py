@@ -61,13 +61,18 @@ class ScanTarget:
         return self.bounds[1] - self.bounds[0]
 
 
-def reflectivity_from_srgb(colors: np.ndarray) -> np.ndarray:
-    """(N,) float32 reflectivity in [0, 1]: the relative luminance of (N, 3 or 4) sRGB
-    colours in [0, 1] after linearisation. Visible albedo stands in for the near-infrared
-    reflectance a LiDAR sees; the learned intensity estimator corrects it."""
-    srgb = np.clip(np.asarray(colors, np.float64)[:, :3], 0.0, 1.0)
-    linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+def reflectivity_from_linear(rgb: np.ndarray) -> np.ndarray:
+    """(N,) float32 reflectivity in [0, 1]: the relative luminance of (N, 3 or 4)
+    linear RGB (Blender's material colours). Visible albedo stands in for the
+    near-infrared reflectance a LiDAR sees; the learned intensity estimator corrects it."""
+    linear = np.clip(np.asarray(rgb, np.float64)[:, :3], 0.0, 1.0)
     return (linear @ np.array([0.2126, 0.7152, 0.0722])).astype(np.float32)
+
+
+def reflectivity_from_srgb(colors: np.ndarray) -> np.ndarray:
+    """As reflectivity_from_linear, for (N, 3 or 4) sRGB colours in [0, 1] (files, colour attributes)."""
+    srgb = np.clip(np.asarray(colors, np.float64)[:, :3], 0.0, 1.0)
+    return reflectivity_from_linear(np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4))
 
 
 def _planes(normals: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -101,8 +106,11 @@ def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
     used = faces[kept]
     corners = corners[kept]
     normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    reflectivity = (np.full(len(faces), DEFAULT_REFLECTIVITY, np.float32) if face_reflectivity is None
-                    else np.clip(np.asarray(face_reflectivity, np.float32).reshape(-1), 0, 1))
+    reflectivity = np.full(len(faces), DEFAULT_REFLECTIVITY, np.float32)
+    if face_reflectivity is not None:
+        reflectivity = np.clip(np.asarray(face_reflectivity, np.float32).reshape(-1), 0, 1)
+        if len(reflectivity) != len(faces):
+            raise InputError(name, f"{len(reflectivity)} face reflectivities for {len(faces)} faces")
     bvh = bvhtree_class().FromPolygons(vertices.tolist(), used.tolist(), all_triangles=True, epsilon=0.0)
     bounds = np.stack([vertices[used].reshape(-1, 3).min(0), vertices[used].reshape(-1, 3).max(0)])
     return ScanTarget(bvh, bounds, _planes(normals, corners[:, 0]), reflectivity[kept],

@@ -1,0 +1,290 @@
+"""The Scan section: one simulated LiDAR sweep of a Blender object, shown in the scene.
+
+Frames: an object's mesh data (its local coordinates) is the core's object frame
+(+x forward, +y left, +z up, m, what authoring writes). The core places the object in
+the sensor frame (sensor at the origin, ground at z = -mounting_height) by
+``sensor_from_object``. The results are made in the sensor frame and put where the
+object stands: ``matrix_world = object.matrix_world @ inverse(sensor_from_object)``.
+
+Geometry is read and results are written in bulk (``foreach_get`` / ``foreach_set``).
+Each object's ScanTarget (its BVH) is built once and cached under the object's name
+with a fingerprint of everything that went into it, so scans from other poses reuse
+it and an edited mesh, colour or material rebuilds it.
+"""
+
+import hashlib
+import math
+from dataclasses import replace
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+from ..core.scan.raycast import ScanOptions, cast_rays, placement
+from ..core.scan.returns import Scan
+from ..core.scan.sensors import PRESETS, Sensor, load_sensor_toml
+from ..core.scan.targets import (DEFAULT_REFLECTIVITY, ScanTarget, mesh_target, reflectivity_from_linear,
+                                 reflectivity_from_srgb, surfel_target)
+from .objects import _add_attribute, _show_as_points, remove_datablocks
+
+CUSTOM = "CUSTOM"
+SCAN_COLLECTION = "PGT Scan"
+SOURCE_TAG = "pgt_scan_of"  # on every result object: the name of the object scanned
+POINT_RADIUS = 0.03  # m: a visible dot per return at street distances
+GROUND_MARGIN = 10.0  # m beyond the object's distance on each side
+CACHE_SIZE = 4  # objects whose BVH stays in memory
+# Colormap stops (scene-linear RGB), low to high: dark blue, azure, green, yellow, red.
+_RAMP = np.array([[0.004, 0.004, 0.17], [0.0, 0.26, 1.0], [0.01, 0.6, 0.03], [1.0, 0.69, 0.0], [0.79, 0.01, 0.005]])
+
+_cache: dict = {}  # object name -> (fingerprint, ScanTarget)
+
+
+def sensor_of(settings) -> Sensor:
+    """The preset chosen in ``settings`` (``Scene.pgt_scan``), or the custom sensor read
+    from its ``sensor_file`` (InputError when that is not a usable sensor TOML)."""
+    if settings.sensor != CUSTOM:
+        return PRESETS[settings.sensor]
+    if not settings.sensor_file:
+        raise ValueError("Custom sensor: no .toml file chosen")
+    return load_sensor_toml(bpy.path.abspath(settings.sensor_file))
+
+
+def scan(obj: bpy.types.Object, settings) -> tuple[Scan, Sensor, np.ndarray]:
+    """One sweep of ``obj`` standing ``settings.distance`` m from the sensor towards
+    ``settings.azimuth`` (rad, from +x counter-clockwise), turned to ``settings.heading``
+    (rad). Returns the scan (sensor frame), the sensor and the (4, 4) float64
+    sensor_from_object. Bad input raises ValueError (mostly InputError) before any
+    Blender data is made."""
+    sensor = sensor_of(settings)
+    target = scan_target(obj, settings.surfel_scale)
+    x, y = settings.distance * math.cos(settings.azimuth), settings.distance * math.sin(settings.azimuth)
+    sensor_from_object = placement(target.bounds, sensor, x, y, settings.heading)
+    return cast_rays(target, sensor, sensor_from_object, ScanOptions()), sensor, sensor_from_object
+
+
+def scan_target(obj: bpy.types.Object, radius_scale: float = 1.0) -> ScanTarget:
+    """The (cached) ScanTarget of ``obj``'s mesh data, object frame, m. With faces: its
+    triangles, ``source_index`` = the Blender polygon index of each. Without: surfels of
+    ``radius_scale`` x the point spacing, ``source_index`` = the vertex index."""
+    inputs, build = _target_inputs(obj, radius_scale)
+    fingerprint = _fingerprint(inputs)
+    cached = _cache.pop(obj.name, None)
+    if cached is None or cached[0] != fingerprint:
+        cached = (fingerprint, build())
+    _cache[obj.name] = cached  # re-inserted: the dict's order is least recently used first
+    while len(_cache) > CACHE_SIZE:
+        del _cache[next(iter(_cache))]
+    return cached[1]
+
+
+def _target_inputs(obj: bpy.types.Object, radius_scale: float):
+    """Everything the target is made of (the cache's fingerprint covers it all) and the
+    function that builds the target from it."""
+    mesh = obj.data
+    vertices = _vertices(mesh)
+    if not len(mesh.polygons):
+        colors = _point_colors(mesh)
+        return ("surfels", vertices, colors, radius_scale), \
+            lambda: surfel_target(vertices, obj.name, colors, radius_scale)
+    triangles, polygon_index = _triangles(mesh)
+    reflectivity = _face_reflectivity(obj, triangles)
+
+    def build():
+        target = mesh_target(vertices, triangles, obj.name, reflectivity)
+        return replace(target, source_index=polygon_index[target.source_index])
+
+    return ("mesh", vertices, triangles, polygon_index, reflectivity), build
+
+
+def _fingerprint(inputs: tuple) -> bytes:
+    digest = hashlib.blake2b(digest_size=16)
+    for part in inputs:
+        if isinstance(part, np.ndarray):
+            digest.update(f"{part.dtype}{part.shape}".encode())
+            digest.update(np.ascontiguousarray(part).data)
+        else:
+            digest.update(repr(part).encode())
+    return digest.digest()
+
+
+def _read(collection, field: str, count: int, dtype) -> np.ndarray:
+    values = np.empty(count, dtype)
+    collection.foreach_get(field, values)
+    return values
+
+
+def _vertices(mesh: bpy.types.Mesh) -> np.ndarray:
+    """(V, 3) float32 vertex positions, object frame (an empty mesh has no "position"
+    attribute, so read ``vertices``)."""
+    return _read(mesh.vertices, "co", len(mesh.vertices) * 3, np.float32).reshape(-1, 3)
+
+
+def _triangles(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 3) int32 vertex indices of the mesh's triangulation and (T,) int32 polygon
+    each triangle belongs to."""
+    mesh.calc_loop_triangles()
+    count = len(mesh.loop_triangles)
+    triangles = _read(mesh.loop_triangles, "vertices", count * 3, np.int32).reshape(-1, 3)
+    return triangles, _read(mesh.loop_triangles, "polygon_index", count, np.int32)
+
+
+def _srgb(attribute) -> np.ndarray:
+    """(N, 4) float32 sRGB 0..1 of a colour attribute (byte or float, any domain)."""
+    return _read(attribute.data, "color_srgb", len(attribute.data) * 4, np.float32).reshape(-1, 4)
+
+
+def _color_attribute(mesh: bpy.types.Mesh):
+    colors = mesh.color_attributes
+    return colors.active_color or next(iter(colors), None)
+
+
+def _point_colors(mesh: bpy.types.Mesh):
+    """(N, 4) sRGB per vertex from the colour attribute when it is per point, else None."""
+    attribute = _color_attribute(mesh)
+    return _srgb(attribute) if attribute is not None and attribute.domain == "POINT" else None
+
+
+def _face_reflectivity(obj: bpy.types.Object, triangles: np.ndarray):
+    """(T,) reflectivity per triangle: the mean over its corners of the colour
+    attribute, else its material's base colour, else None (the core's default)."""
+    mesh = obj.data
+    attribute = _color_attribute(mesh)
+    if attribute is not None:
+        corners = (triangles if attribute.domain == "POINT"
+                   else _read(mesh.loop_triangles, "loops", triangles.size, np.int32).reshape(-1, 3))
+        return reflectivity_from_srgb(_srgb(attribute))[corners].mean(axis=1)
+    per_slot = _material_reflectivity(obj)
+    if per_slot is None:
+        return None
+    material_index = _read(mesh.loop_triangles, "material_index", len(triangles), np.int32)
+    return per_slot[np.clip(material_index, 0, len(per_slot) - 1)]
+
+
+def _material_reflectivity(obj: bpy.types.Object):
+    """(S,) float32 reflectivity per material slot (the core's default for an empty
+    slot), or None when no slot holds a material."""
+    materials = [slot.material for slot in obj.material_slots]
+    used = [index for index, material in enumerate(materials) if material]
+    if not used:
+        return None
+    reflectivity = np.full(len(materials), DEFAULT_REFLECTIVITY, np.float32)
+    linear = np.array([_base_color(materials[index]) for index in used], np.float64)
+    reflectivity[used] = reflectivity_from_linear(linear)
+    return reflectivity
+
+
+def _base_color(material: bpy.types.Material) -> tuple:
+    """Linear RGB: the first Principled BSDF's Base Color, else the viewport colour."""
+    if material.use_nodes and material.node_tree:
+        for node in material.node_tree.nodes:
+            if node.type == "BSDF_PRINCIPLED":
+                return tuple(node.inputs["Base Color"].default_value)[:3]
+    return tuple(material.diffuse_color)[:3]
+
+
+def ramp(values: np.ndarray) -> np.ndarray:
+    """(N, 4) float32 linear RGBA of (N,) values in [0, 1] through the colormap _RAMP."""
+    stops = np.linspace(0.0, 1.0, len(_RAMP))
+    rgb = [np.interp(values, stops, _RAMP[:, channel]) for channel in range(3)]
+    return np.column_stack([*rgb, np.ones(len(values))]).astype(np.float32)
+
+
+def return_colors(returns: np.ndarray, sensor: Sensor, colour_by: str) -> np.ndarray:
+    """(N, 4) linear RGBA per return: intensity over the dataset's maximum, or ring over
+    the beam count, through the colormap."""
+    if colour_by == "RING":
+        values = returns["ring"] / max(sensor.beams - 1, 1)
+    else:
+        values = returns["intensity"] / sensor.intensity_max
+    return ramp(np.clip(values, 0.0, 1.0))
+
+
+def stats_text(result: Scan) -> str:
+    """The panel's statistics line: returns, rays cast, hit rate, core time."""
+    return (f"{result.hits} points · {result.rays} rays · {100 * result.efficiency:.0f}% hit · "
+            f"{result.seconds * 1e3:.1f} ms")
+
+
+def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, sensor: Sensor,
+              sensor_from_object: np.ndarray, settings) -> bpy.types.Object:
+    """Replace ``source``'s previous results in the "PGT Scan" collection by the returns
+    ("<name> Scan", a point per return with every column as an attribute), the sensor
+    origin ("PGT Sensor") and the ground ("PGT Ground"), all placed where ``source``
+    stands. Returns the points object."""
+    remove_results(source.name)
+    world = source.matrix_world @ Matrix(np.linalg.inv(sensor_from_object).tolist())
+    made = []
+    try:
+        points = _points_object(f"{source.name} Scan", result.returns,
+                                return_colors(result.returns, sensor, settings.colour_by), made)
+        origin = bpy.data.objects.new("PGT Sensor", None)
+        made.append(origin)
+        origin.empty_display_type = "PLAIN_AXES"
+        ground = _ground_object(sensor.mounting_height, settings.distance + GROUND_MARGIN, made)
+        collection = _collection(scene)
+    except BaseException:
+        remove_datablocks(made)
+        raise
+    for obj in (points, origin, ground):
+        obj[SOURCE_TAG] = source.name
+        obj.matrix_world = world
+        collection.objects.link(obj)
+    return points
+
+
+def remove_results(source_name: str) -> None:
+    """Remove the result objects of ``source_name``'s last scan and their own meshes."""
+    old = [obj for obj in bpy.data.objects if obj.get(SOURCE_TAG) == source_name]
+    meshes = [obj.data for obj in old if obj.type == "MESH" and obj.data.users == 1]
+    remove_datablocks(old + meshes)
+
+
+def _collection(scene: bpy.types.Scene) -> bpy.types.Collection:
+    collection = bpy.data.collections.get(SCAN_COLLECTION) or bpy.data.collections.new(SCAN_COLLECTION)
+    if collection not in scene.collection.children_recursive:
+        scene.collection.children.link(collection)
+    return collection
+
+
+def _points_object(name: str, returns: np.ndarray, rgba: np.ndarray, made: list) -> bpy.types.Object:
+    """A vertex-only mesh object: positions = the returns' x, y, z (sensor frame, stored
+    float32), every other column a point attribute (float32 or int32), and the (N, 4)
+    linear ``rgba`` as the active colour attribute "color"."""
+    mesh = bpy.data.meshes.new(name)
+    made.append(mesh)
+    mesh.vertices.add(len(returns))
+    xyz = np.column_stack([returns["x"], returns["y"], returns["z"]]).astype(np.float32)
+    mesh.attributes["position"].data.foreach_set("vector", xyz.ravel())
+    for column in returns.dtype.names:
+        if column not in ("x", "y", "z"):
+            values = returns[column]
+            _add_attribute(mesh, column, values.astype(np.float32 if values.dtype.kind == "f" else np.int32))
+    colors = mesh.color_attributes.new("color", "FLOAT_COLOR", "POINT")
+    colors.data.foreach_set("color", rgba.ravel())
+    mesh.color_attributes.active_color = colors
+    mesh.color_attributes.default_color_name = colors.name
+    mesh.update()
+    obj = bpy.data.objects.new(name, mesh)
+    made.append(obj)
+    _show_as_points(obj, POINT_RADIUS, made)
+    return obj
+
+
+def _ground_object(mounting_height: float, half_side: float, made: list) -> bpy.types.Object:
+    """A square of side 2 ``half_side`` m centred under the sensor at z = -mounting_height
+    (sensor frame)."""
+    mesh = bpy.data.meshes.new("PGT Ground")
+    made.append(mesh)
+    corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half_side
+    mesh.vertices.add(4)
+    mesh.attributes["position"].data.foreach_set(
+        "vector", np.column_stack([corners, np.full(4, -mounting_height)]).astype(np.float32).ravel())
+    mesh.loops.add(4)
+    mesh.polygons.add(1)
+    mesh.loops.foreach_set("vertex_index", np.arange(4, dtype=np.int32))
+    mesh.polygons.foreach_set("loop_start", np.zeros(1, np.int32))
+    mesh.update(calc_edges=True)
+    ground = bpy.data.objects.new("PGT Ground", mesh)
+    made.append(ground)
+    return ground
+

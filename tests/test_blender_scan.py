@@ -1,0 +1,392 @@
+"""The Scan section in real headless Blender, against the core scan on the same geometry."""
+
+import math
+import re
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from pgt_blender.core.reconstruction import Reconstruction
+from pgt_blender.core.scan.raycast import scan_object
+from pgt_blender.core.scan.returns import RETURN_DTYPE
+from pgt_blender.core.scan.sensors import PRESETS
+from pgt_blender.core.scan.targets import mesh_target, reflectivity_from_srgb, surfel_target
+
+from .conftest import datablock_counts
+
+bpy = pytest.importorskip("bpy")
+
+from pgt_blender.blender import objects, scanning  # noqa: E402  (needs bpy)
+from pgt_blender.blender.authoring import positions  # noqa: E402
+
+BOX_HALF = np.array([2.0, 1.0, 0.75])
+
+
+def box_geometry():
+    """A 4 x 2 x 1.5 m box centred on the origin: (8, 3) vertices, (12, 3) triangles."""
+    import trimesh
+
+    box = trimesh.creation.box(2 * BOX_HALF)
+    return box.vertices, box.faces
+
+
+def mesh_object(scene, name, vertices, faces=()):
+    """A new active mesh object with float32 ``vertices`` and (F, k) polygon ``faces``."""
+    mesh = bpy.data.meshes.new(name)
+    mesh.vertices.add(len(vertices))
+    mesh.vertices.foreach_set("co", np.asarray(vertices, np.float32).ravel())
+    faces = np.asarray(faces, np.int32)
+    if faces.size:
+        mesh.loops.add(faces.size)
+        mesh.polygons.add(len(faces))
+        mesh.loops.foreach_set("vertex_index", faces.ravel())
+        mesh.polygons.foreach_set("loop_start", np.arange(0, faces.size, faces.shape[1], dtype=np.int32))
+    mesh.update(calc_edges=bool(faces.size))
+    obj = bpy.data.objects.new(name, mesh)
+    scene.collection.objects.link(obj)
+    bpy.context.view_layer.objects.active = obj
+    return obj
+
+
+def core_scan(target, settings):
+    """The headless scan with the pose the operator derives from ``settings``."""
+    x, y = settings.distance * math.cos(settings.azimuth), settings.distance * math.sin(settings.azimuth)
+    return scan_object(target, PRESETS[settings.sensor], x, y, settings.heading)
+
+
+def result_objects(source_name):
+    return {obj.name: obj for obj in bpy.data.objects if obj.get(scanning.SOURCE_TAG) == source_name}
+
+
+def scan_columns(obj):
+    """Every return column as stored on the scan object (float32 / int32)."""
+    mesh = obj.data
+    xyz = positions(obj)
+    columns = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}
+    for name in RETURN_DTYPE.names[3:]:
+        attribute = mesh.attributes[name]
+        values = np.empty(len(attribute.data), np.float32 if attribute.data_type == "FLOAT" else np.int32)
+        attribute.data.foreach_get("value", values)
+        columns[name] = values
+    return columns
+
+
+def assert_same_rows(obj, returns):
+    """The scan object holds exactly ``returns``, each column cast to its stored type."""
+    stored = scan_columns(obj)
+    assert len(stored["x"]) == len(returns)
+    for name in RETURN_DTYPE.names:
+        expected = returns[name].astype(np.float32 if returns[name].dtype.kind == "f" else np.int32)
+        np.testing.assert_array_equal(stored[name], expected, err_msg=name)
+
+
+def colour_values(attribute, field="color_srgb"):
+    values = np.empty(len(attribute.data) * 4, np.float32)
+    attribute.data.foreach_get(field, values)
+    return values.reshape(-1, 4)
+
+
+def test_box_scan_matches_the_core(scene):
+    vertices, faces = box_geometry()
+    obj = mesh_object(scene, "Box", vertices, faces)
+    settings = scene.pgt_scan
+    settings.azimuth = math.radians(30)
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    expected = core_scan(mesh_target(np.float32(vertices), faces, "Box"), settings)
+    assert expected.hits > 100
+    assert_same_rows(bpy.data.objects["Box Scan"], expected.returns)
+    azimuths = np.degrees(np.arctan2(expected.returns["y"], expected.returns["x"]))
+    assert azimuths.mean() == pytest.approx(30, abs=3)  # the object stands where the azimuth says
+    assert re.fullmatch(rf"{expected.hits} points · {expected.rays} rays · \d+% hit · [\d.]+ ms", settings.stats)
+    assert obj.name in scene.objects and bpy.context.view_layer.objects.active == obj
+
+
+def test_chrono_truck_scan_matches_the_core(scene, chrono_meshes):
+    import trimesh
+
+    path = next(p for p in chrono_meshes if p.stem == "truck_chassis")
+    truck = trimesh.load(path, force="mesh", process=False)
+    mesh_object(scene, "Truck", truck.vertices, truck.faces)
+    settings = scene.pgt_scan
+    settings.distance, settings.heading = 20.0, math.radians(-60)
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    expected = core_scan(mesh_target(np.float32(truck.vertices), truck.faces, "Truck"), settings)
+    assert expected.hits > 500
+    assert_same_rows(bpy.data.objects["Truck Scan"], expected.returns)
+
+
+def test_face_column_is_the_blender_polygon(scene):
+    """Quads are triangulated for the BVH; each return names the quad it hit."""
+    bpy.ops.mesh.primitive_cube_add(size=2.0)
+    cube = bpy.context.active_object
+    mesh = cube.data
+    mesh.calc_loop_triangles()
+    count = len(mesh.loop_triangles)
+    triangles, polygon = np.empty(count * 3, np.int32), np.empty(count, np.int32)
+    mesh.loop_triangles.foreach_get("vertices", triangles)
+    mesh.loop_triangles.foreach_get("polygon_index", polygon)
+    settings = scene.pgt_scan
+    settings.distance, settings.heading = 6.0, math.radians(20)
+    bpy.ops.object.pgt_scan()
+    expected = core_scan(mesh_target(positions(cube), triangles.reshape(-1, 3), cube.name), settings).returns
+    expected["face"] = polygon[expected["face"]]
+    assert_same_rows(bpy.data.objects["Cube Scan"], expected)
+    assert len(np.unique(expected["face"])) >= 2 and expected["face"].max() < len(mesh.polygons)
+
+
+def test_results_stand_where_the_object_stands(scene):
+    """Scan points, sensor and ground are placed through the object's own matrix: in
+    its local frame the points lie on its surface, the sensor is ``distance`` away and
+    the ground touches its lowest point."""
+    from mathutils import Euler, Matrix
+
+    obj = mesh_object(scene, "Box", *box_geometry())
+    obj.matrix_world = Matrix.Translation((3.0, 4.0, 0.5)) @ Euler((0.0, 0.0, 0.4)).to_matrix().to_4x4()
+    settings = scene.pgt_scan
+    settings.sensor, settings.distance = "kitti", 12.0
+    bpy.ops.object.pgt_scan()
+    results = result_objects("Box")
+    assert set(results) == {"Box Scan", "PGT Sensor", "PGT Ground"}
+    assert all(r.users_collection[0].name == scanning.SCAN_COLLECTION for r in results.values())
+    assert bpy.data.collections[scanning.SCAN_COLLECTION] in scene.collection.children_recursive
+    local_from_world = np.array(obj.matrix_world.inverted())
+
+    def local(result, points):
+        world = np.array(result.matrix_world) @ np.column_stack([points, np.ones(len(points))]).T
+        return (local_from_world @ world)[:3].T
+
+    on_box = local(results["Box Scan"], positions(results["Box Scan"])) / BOX_HALF
+    np.testing.assert_allclose(np.abs(on_box).max(axis=1), 1.0, atol=1e-4)
+    sensor = local(results["PGT Sensor"], np.zeros((1, 3)))[0]
+    assert math.hypot(sensor[0], sensor[1]) == pytest.approx(12.0, abs=1e-4)
+    assert sensor[2] == pytest.approx(PRESETS["kitti"].mounting_height - BOX_HALF[2], abs=1e-4)
+    assert results["PGT Sensor"].empty_display_type == "PLAIN_AXES"
+    ground = local(results["PGT Ground"], positions(results["PGT Ground"]))
+    np.testing.assert_allclose(ground[:, 2], -BOX_HALF[2], atol=1e-4)
+    assert np.ptp(ground[:, 0]) == pytest.approx(2 * 12.0 + 20.0, abs=1e-3)
+    assert len(results["PGT Ground"].data.polygons) == 1
+
+
+def test_scan_object_attributes_and_colours(scene):
+    mesh_object(scene, "Box", *box_geometry())
+    settings = scene.pgt_scan
+    bpy.ops.object.pgt_scan()
+    scan = bpy.data.objects["Box Scan"]
+    assert scan.type == "MESH" and not scan.data.polygons
+    names = {a.name: (a.data_type, a.domain) for a in scan.data.attributes}
+    for column in RETURN_DTYPE.names[3:]:
+        assert names[column] == ("FLOAT" if RETURN_DTYPE[column].kind == "f" else "INT", "POINT")
+    colors = scan.data.color_attributes.active_color
+    assert (colors.name, colors.data_type, colors.domain) == ("color", "FLOAT_COLOR", "POINT")
+    assert scan.data.color_attributes.default_color_name == "color"
+    assert scan.modifiers[objects.POINTS_GROUP].node_group.name == objects.POINTS_GROUP
+    columns = scan_columns(scan)
+    sensor = PRESETS[settings.sensor]
+    by_intensity = colour_values(colors, "color")
+    np.testing.assert_array_equal(by_intensity, scanning.ramp(columns["intensity"] / sensor.intensity_max))
+
+    settings.colour_by = "RING"
+    bpy.ops.object.pgt_scan()
+    colors = bpy.data.objects["Box Scan"].data.color_attributes.active_color
+    by_ring = colour_values(colors, "color")
+    np.testing.assert_array_equal(by_ring, scanning.ramp(columns["ring"] / (sensor.beams - 1)))
+    assert not np.allclose(by_ring, by_intensity)
+
+
+def test_second_scan_replaces_the_first(scene):
+    mesh_object(scene, "Box", *box_geometry())
+    mesh_object(scene, "Other", *box_geometry())
+    bpy.ops.object.pgt_scan()
+    bpy.context.view_layer.objects.active = bpy.data.objects["Box"]
+    bpy.ops.object.pgt_scan()
+    counts = datablock_counts(bpy) | {"collections": len(bpy.data.collections)}
+    scene.pgt_scan.distance = 25.0
+    bpy.ops.object.pgt_scan()
+    assert datablock_counts(bpy) | {"collections": len(bpy.data.collections)} == counts
+    # Sensor and ground of the second object scanned take Blender's ".001" names.
+    assert sorted(result_objects("Box")) == ["Box Scan", "PGT Ground.001", "PGT Sensor.001"]
+    assert sorted(result_objects("Other")) == ["Other Scan", "PGT Ground", "PGT Sensor"]
+    ground = positions(bpy.data.objects["PGT Ground.001"])
+    assert np.ptp(ground[:, 0]) == pytest.approx(2 * 25.0 + 20.0)
+
+
+def test_point_cloud_scans_as_surfels(scene):
+    rng = np.random.default_rng(0)
+    count = 4000
+    points = rng.uniform(-BOX_HALF, BOX_HALF, (count, 3))
+    axis = rng.integers(0, 3, count)
+    points[np.arange(count), axis] = np.where(rng.random(count) < 0.5, -1.0, 1.0) * BOX_HALF[axis]
+    colors = np.column_stack([rng.random((count, 3)), np.ones(count)]).astype(np.float32)
+    cloud = objects.add_reconstruction(scene, Reconstruction(points.astype(np.float32), "point_ply",
+                                                             Path("cloud.ply"), "", colors=colors))
+    bpy.context.view_layer.objects.active = cloud
+    settings = scene.pgt_scan
+    settings.surfel_scale = 0.8
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    stored_colors = colour_values(cloud.data.color_attributes.active_color)
+    target = surfel_target(positions(cloud), cloud.name, stored_colors, settings.surfel_scale)
+    expected = core_scan(target, settings)
+    assert expected.hits > 100
+    assert_same_rows(bpy.data.objects[f"{cloud.name} Scan"], expected.returns)
+    assert scanning.scan_target(cloud, settings.surfel_scale).kind == "surfels"
+
+
+@pytest.mark.parametrize("use_nodes", [False, True])
+def test_material_colour_gives_the_reflectivity(scene, use_nodes):
+    """No colour attribute: a face's reflectivity is its material's base colour (the
+    Principled BSDF's, else the viewport colour)."""
+    vertices, faces = box_geometry()
+    obj = mesh_object(scene, "Box", vertices, faces)
+    material = bpy.data.materials.new("white")
+    material.diffuse_color = (0.9, 0.9, 0.9, 1.0)  # scene-linear
+    if use_nodes:
+        material.diffuse_color = (0.1, 0.1, 0.1, 1.0)  # ignored: the node tree decides
+        material.use_nodes = True
+        material.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (0.9, 0.9, 0.9, 1.0)
+    obj.data.materials.append(material)
+    settings = scene.pgt_scan
+    settings.sensor = "kitti"  # float intensities: no rounding to hide a difference
+    bpy.ops.object.pgt_scan()
+    albedo = reflectivity_from_srgb(np.array([[1.055 * 0.9 ** (1 / 2.4) - 0.055] * 3]))
+    expected = core_scan(mesh_target(np.float32(vertices), faces, "Box", np.repeat(albedo, len(faces))), settings)
+    stored = scan_columns(bpy.data.objects["Box Scan"])
+    np.testing.assert_allclose(stored["intensity"], expected.returns["intensity"], rtol=1e-5)
+    grey = core_scan(mesh_target(np.float32(vertices), faces, "Box"), settings).returns["intensity"]
+    assert stored["intensity"].mean() > 1.5 * grey.mean()
+
+
+def test_bvh_is_built_once_per_object_and_rebuilt_after_an_edit(scene, monkeypatch):
+    built = []
+
+    def counting(*args, **kwargs):
+        built.append(args[2])
+        return mesh_target(*args, **kwargs)
+
+    monkeypatch.setattr(scanning, "mesh_target", counting)
+    obj = mesh_object(scene, "Box", *box_geometry())
+    bpy.ops.object.pgt_scan()
+    first = scanning.scan_target(obj)
+    scene.pgt_scan.heading = math.radians(10)
+    bpy.ops.object.pgt_scan()
+    assert built == ["Box"] and scanning.scan_target(obj) is first
+    top = int(np.argmax(positions(obj)[:, 2]))
+    obj.data.vertices[top].co.z += 0.5
+    bpy.ops.object.pgt_scan()
+    assert built == ["Box", "Box"]
+    assert scanning.scan_target(obj) is not first
+    assert scanning.scan_target(obj).bounds[1, 2] == pytest.approx(1.25)
+
+
+def _missing_toml(scene, tmp_path):
+    scene.pgt_scan.sensor, scene.pgt_scan.sensor_file = "CUSTOM", str(tmp_path / "nowhere.toml")
+    return "nowhere.toml: not a readable TOML file"
+
+
+def _bad_toml(scene, tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text('base = "nuscenes"\ncolumns = -5\n')
+    scene.pgt_scan.sensor, scene.pgt_scan.sensor_file = "CUSTOM", str(path)
+    return f"{path}: sensor 'bad': columns must be a positive integer"
+
+
+def _no_toml(scene, tmp_path):
+    scene.pgt_scan.sensor = "CUSTOM"
+    return "Custom sensor: no .toml file chosen"
+
+
+def _empty_mesh(scene, tmp_path):
+    mesh_object(scene, "Empty", np.zeros((0, 3)))
+    return "Empty: point cloud is empty"
+
+
+def _flat_faces(scene, tmp_path):
+    mesh_object(scene, "Flat", [[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2]])
+    return "Flat: every face has zero area"
+
+
+@pytest.mark.parametrize("setup", [_missing_toml, _bad_toml, _no_toml, _empty_mesh, _flat_faces])
+def test_bad_input_is_reported_and_changes_nothing(scene, tmp_path, setup):
+    from pgt_blender.blender.operators import OBJECT_OT_pgt_scan
+
+    mesh_object(scene, "Box", *box_geometry())
+    bpy.ops.object.pgt_scan()  # earlier results must survive a failed scan
+    before = {name: obj.as_pointer() for name, obj in result_objects("Box").items()}
+    message = setup(scene, tmp_path)
+    counts = datablock_counts(bpy) | {"collections": len(bpy.data.collections),
+                                      "materials": len(bpy.data.materials)}
+    stats = scene.pgt_scan.stats
+    with pytest.raises(RuntimeError, match=re.escape(message)):
+        bpy.ops.object.pgt_scan()
+    reports = []
+    self = SimpleNamespace(report=lambda kind, text: reports.append((kind, text)))
+    assert OBJECT_OT_pgt_scan.execute(self, bpy.context) == {"CANCELLED"}
+    assert reports == [({"ERROR"}, reports[0][1])] and message in reports[0][1]
+    assert datablock_counts(bpy) | {"collections": len(bpy.data.collections),
+                                    "materials": len(bpy.data.materials)} == counts
+    assert {name: obj.as_pointer() for name, obj in result_objects("Box").items()} == before
+    assert scene.pgt_scan.stats == stats
+
+
+def test_zero_area_faces_are_a_warning(scene, capfd):
+    vertices, faces = box_geometry()
+    vertices = np.vstack([vertices, [[0, 0, 5], [1, 0, 5], [2, 0, 5]]])
+    mesh_object(scene, "Box", vertices, np.vstack([faces, [[8, 9, 10]]]))
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    assert "Warning: Box: dropped 1 zero-area faces of 13" in capfd.readouterr().out
+    assert len(result_objects("Box")) == 3
+
+
+def test_scan_needs_a_mesh(scene):
+    bpy.ops.object.empty_add()
+    with pytest.raises(RuntimeError, match="Select a mesh or point-cloud object"):
+        bpy.ops.object.pgt_scan()
+
+
+def test_scan_is_undoable_and_registered():
+    from pgt_blender.blender.operators import OBJECT_OT_pgt_scan, classes
+    from pgt_blender.blender.properties import PGT_PG_scan
+    from pgt_blender.blender.properties import classes as property_classes
+    from pgt_blender.blender.ui import VIEW3D_PT_pgt_scan
+    from pgt_blender.blender.ui import classes as panel_classes
+
+    assert {"REGISTER", "UNDO"} <= OBJECT_OT_pgt_scan.bl_options
+    assert OBJECT_OT_pgt_scan in classes and PGT_PG_scan in property_classes
+    assert VIEW3D_PT_pgt_scan in panel_classes
+
+
+class _Layout:
+    """Stands in for UILayout: records what a panel draws, checking property names."""
+
+    def __init__(self, drawn):
+        self.drawn = drawn
+
+    def prop(self, data, name, **options):
+        assert name in data.bl_rna.properties, name
+        self.drawn.append(name)
+
+    def operator(self, idname, **options):
+        self.drawn.append(idname)
+
+    def label(self, text="", **options):
+        self.drawn.append(text)
+
+    def column(self, **options):
+        return self
+
+
+@pytest.mark.parametrize("sensor", ["nuscenes", "CUSTOM"])
+def test_panel_draws_the_settings_button_and_stats(scene, sensor):
+    from pgt_blender.blender.ui import VIEW3D_PT_pgt_scan
+
+    mesh_object(scene, "Box", *box_geometry())
+    scene.pgt_scan.sensor = sensor
+    if sensor == "nuscenes":
+        bpy.ops.object.pgt_scan()
+    drawn = []
+    VIEW3D_PT_pgt_scan.draw(SimpleNamespace(layout=_Layout(drawn)), bpy.context)
+    assert drawn[:1] == ["sensor"] and "object.pgt_scan" in drawn
+    assert {"distance", "azimuth", "heading", "colour_by"} <= set(drawn)
+    assert ("sensor_file" in drawn) == (sensor == "CUSTOM")
+    assert (scene.pgt_scan.stats in drawn) == bool(scene.pgt_scan.stats)
