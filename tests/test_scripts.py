@@ -94,6 +94,16 @@ def test_bench_alignment_quick(tmp_path):
     assert json.loads((tmp_path / "alignment.json").read_text())
 
 
+def test_bench_scan_quick(tmp_path):
+    result = run_script("bench_scan.py", "--quick", "--out", tmp_path / "scan")
+    assert result.returncode == 0, result.stderr
+    results = json.loads((tmp_path / "scan.json").read_text())
+    assert results["machine"]["bpy"] and (tmp_path / "scan.png").stat().st_size > 0
+    assert "| bvh windowed |" in (tmp_path / "scan.md").read_text()
+    windowed = [row for row in results["rows"] if row["method"] == "bvh windowed"]
+    assert windowed and all(row["false"] == row["missed"] == 0 and row["error_max_m"] < 1e-6 for row in windowed)
+
+
 @pytest.fixture(scope="module")
 def truck_sample(tmp_path_factory):
     from pgt_blender.core.samples import write_sample

@@ -14,9 +14,10 @@ angular window, then only those whose ray meets its bounding box (exact float64 
 test). A full revolution casts every cell; both return the same rows, bit for bit.
 """
 
+import math
 import time
 from dataclasses import dataclass
-from itertools import repeat
+from itertools import chain, repeat
 
 import numpy as np
 
@@ -70,6 +71,11 @@ def placed_box(bounds: np.ndarray, sensor_from_object: np.ndarray, velocity=(0.0
     return np.array([*centre, *(bounds[1] - bounds[0]), heading, *velocity])
 
 
+_MISS = (-1, 0.0)
+_CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+_AXES = np.arange(3)
+
+
 def _padded(bounds: np.ndarray) -> np.ndarray:
     # The BVH stores float32 corners: pad the float64 box so no hit falls outside it.
     pad = 1e-4 + 1e-5 * np.abs(bounds).max()
@@ -84,51 +90,69 @@ def candidate_cells(sensor: Sensor, bounds: np.ndarray, sensor_from_object: np.n
     footprint distance, so overhead and close objects keep all the beams they need."""
     rotation, translation = sensor_from_object[:3, :3], sensor_from_object[:3, 3]
     box = _padded(bounds)
-    corners = np.array([[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-    placed = corners @ rotation.T + translation
-    upright = np.allclose(rotation[2], [0, 0, 1], atol=1e-12)
+    placed = box[_CORNERS, _AXES] @ rotation.T + translation  # (8, 3) corners, sensor frame
     sensor_in_object = rotation.T @ -translation
-    nearest = np.clip(sensor_in_object[:2], box[0, :2], box[1, :2])
-    r_min = np.linalg.norm(nearest - sensor_in_object[:2]) if upright else 0.0
-    r_max = np.linalg.norm(placed[:, :2], axis=1).max()
-    z_low, z_high = placed[:, 2].min(), placed[:, 2].max()
-    elevation_high = np.arctan2(z_high, r_min if z_high > 0 else r_max)
-    elevation_low = np.arctan2(z_low, r_max if z_low > 0 else r_min)
-    elevations = np.radians(sensor.elevations_deg)
-    rings = np.flatnonzero((elevations >= elevation_low - 1e-9) & (elevations <= elevation_high + 1e-9))
+    r_min = 0.0
+    if abs(rotation[2, 2] - 1.0) < 1e-12:  # upright: the footprint is the box's xy rectangle
+        r_min = math.hypot(*(min(max(sensor_in_object[axis], box[0, axis]), box[1, axis]) - sensor_in_object[axis]
+                             for axis in (0, 1)))
+    distances = np.hypot(placed[:, 0], placed[:, 1])
+    r_max, z_low, z_high = distances.max(), placed[:, 2].min(), placed[:, 2].max()
+    elevation_high = math.degrees(math.atan2(z_high, r_min if z_high > 0 else r_max))
+    elevation_low = math.degrees(math.atan2(z_low, r_max if z_low > 0 else r_min))
+    rings = np.arange(np.searchsorted(sensor.elevations_deg, elevation_low - 1e-7),
+                      np.searchsorted(sensor.elevations_deg, elevation_high + 1e-7, side="right"))
     if r_min == 0.0:
         columns = np.arange(sensor.columns)
     else:
-        centre = np.arctan2(*placed[:, :2].mean(axis=0)[::-1])
-        offsets = np.angle(np.exp(1j * (np.arctan2(placed[:, 1], placed[:, 0]) - centre)))
-        ends = np.degrees(centre + np.array([offsets.min(), offsets.max()]))
-        beam_offsets = np.array([min(sensor.azimuth_offsets_deg), max(sensor.azimuth_offsets_deg)])
-        steps = sensor.direction * (ends[:, None] - beam_offsets[None, :] - sensor.start_azimuth_deg) \
-            / sensor.azimuth_step_deg - 0.5
-        first, last = int(np.floor(steps.min())) - 1, int(np.ceil(steps.max())) + 1
+        azimuths = np.degrees(np.arctan2(placed[:, 1], placed[:, 0]))
+        centre = math.degrees(math.atan2(placed[:, 1].mean(), placed[:, 0].mean()))
+        offsets = np.mod(azimuths - centre + 180.0, 360.0) - 180.0  # the footprint spans < 180 deg
+        steps = [sensor.direction * (centre + end - beam - sensor.start_azimuth_deg) / sensor.azimuth_step_deg - 0.5
+                 for end in (offsets.min(), offsets.max())
+                 for beam in (min(sensor.azimuth_offsets_deg), max(sensor.azimuth_offsets_deg))]
+        first, last = math.floor(min(steps)) - 1, math.ceil(max(steps)) + 1
         columns = np.arange(first, min(last, first + sensor.columns - 1) + 1) % sensor.columns
     return np.sort((rings[:, None] * sensor.columns + columns[None, :]).ravel())
 
 
-def _to_object(sensor_from_object: np.ndarray, directions: np.ndarray):
-    """The sensor origin and ray directions in the object frame, elementwise (no BLAS),
-    so each ray's bits do not depend on how many rays are transformed together."""
+def _in_object_frame(sensor_from_object: np.ndarray, components) -> tuple:
+    """The sensor origin (3,) and the x, y, z components of ray directions in the object
+    frame, elementwise (no BLAS), so a ray's bits do not depend on its batch."""
     rotation, translation = sensor_from_object[:3, :3], sensor_from_object[:3, 3]
-    origin = -(rotation.T @ translation)
-    local = [directions[:, 0] * rotation[0, i] + directions[:, 1] * rotation[1, i] + directions[:, 2] * rotation[2, i]
-             for i in range(3)]
-    return origin, np.column_stack(local)
+    x, y, z = components
+    return -(rotation.T @ translation), tuple(x * rotation[0, i] + y * rotation[1, i] + z * rotation[2, i]
+                                              for i in range(3))
 
 
-def _meets_box(origin: np.ndarray, directions: np.ndarray, box: np.ndarray, near: float, far: float) -> np.ndarray:
-    """Slab test: (M,) bool, rays from ``origin`` meeting ``box`` between ``near`` and ``far``."""
+def _meets_box(origin: np.ndarray, components, box: np.ndarray, far: float) -> np.ndarray:
+    """Slab test: (M,) bool, rays from ``origin`` with direction ``components`` meeting
+    ``box`` between range 0 and ``far``."""
+    enter, leave = np.zeros(len(components[0])), np.full(len(components[0]), far)
     with np.errstate(divide="ignore", invalid="ignore"):
-        t0 = (box[0] - origin) / directions
-        t1 = (box[1] - origin) / directions
-    # fmin/fmax skip the NaN of a ray lying in a slab plane: kept, as a superset must.
-    enter = np.fmax.reduce(np.fmin(t0, t1), axis=1)
-    leave = np.fmin.reduce(np.fmax(t0, t1), axis=1)
-    return ~(leave < np.maximum(enter, near)) & ~(enter > far)
+        for axis, direction in enumerate(components):
+            t0, t1 = (box[0, axis] - origin[axis]) / direction, (box[1, axis] - origin[axis]) / direction
+            # fmin/fmax skip the NaN of a ray lying in a slab plane: kept, as a superset must.
+            enter = np.fmax(enter, np.fmin(t0, t1))
+            leave = np.fmin(leave, np.fmax(t0, t1))
+    return enter <= leave
+
+
+def rays_to_cast(sensor: Sensor, cast_bounds: np.ndarray, sensor_from_object: np.ndarray, window: bool = True):
+    """The cells a scan casts, (M,) sorted, with the sensor origin (3,) and their unit
+    directions (M, 3) in the object frame, float64. ``window``: only cells inside the
+    angular window whose rays meet the padded ``cast_bounds`` from range 0 (not
+    min_range: a hit in the blind zone still takes its random draws, as in a full
+    revolution, so both give the same bytes with noise on); else every cell."""
+    if window:
+        cells = candidate_cells(sensor, cast_bounds, sensor_from_object)
+        origin, local = _in_object_frame(sensor_from_object, [axis[cells] for axis in sensor.direction_axes])
+        inside = _meets_box(origin, local, _padded(cast_bounds), sensor.max_range)
+        cells, local = cells[inside], [axis[inside] for axis in local]
+    else:
+        cells = np.arange(sensor.beams * sensor.columns)
+        origin, local = _in_object_frame(sensor_from_object, sensor.direction_axes)
+    return cells, origin, np.column_stack(local)
 
 
 def _refined_ranges(planes: np.ndarray, origin: np.ndarray, directions: np.ndarray, bvh_range: np.ndarray):
@@ -149,22 +173,16 @@ def cast_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray
     """Scan ``target`` placed by ``sensor_from_object``: one row per return (returns.py)."""
     from mathutils import Vector
 
-    table = sensor.directions  # built once per sensor, outside the timing
+    sensor.directions  # the cached ray table: built on first use, kept out of the timing
     start = time.perf_counter()
-    cells = (candidate_cells(sensor, target.bounds, sensor_from_object) if options.window
-             else np.arange(sensor.beams * sensor.columns))
-    origin, directions = _to_object(sensor_from_object, table[cells])
-    if options.window:
-        # From range 0, not min_range: a hit inside the blind zone still takes its random
-        # draws, as in a full revolution, so both give the same bytes with noise on.
-        inside = _meets_box(origin, directions, _padded(target.bounds), 0.0, sensor.max_range)
-        cells, directions = cells[inside], directions[inside]
-    results = list(map(target.bvh.ray_cast, repeat(Vector(origin), len(cells)), directions.tolist(),
-                       repeat(sensor.max_range, len(cells))))
-    hit = np.fromiter((result[2] is not None for result in results), bool, len(results))
-    hits = [result for result in results if result[2] is not None]
-    polygons = np.fromiter((result[2] for result in hits), np.int64, len(hits))
-    bvh_range = np.fromiter((result[3] for result in hits), np.float64, len(hits))
+    cells, origin, directions = rays_to_cast(sensor, target.cast_bounds, sensor_from_object, options.window)
+    results = map(target.bvh.ray_cast, repeat(Vector(origin), len(cells)), directions.tolist(),
+                  repeat(sensor.max_range, len(cells)))
+    # One pass over the results: (polygon, distance) per ray, polygon -1 for a miss.
+    found = np.fromiter(chain.from_iterable(_MISS if result[2] is None else result[2:] for result in results),
+                        np.float64, 2 * len(cells)).reshape(-1, 2)
+    hit = found[:, 0] >= 0
+    polygons, bvh_range = found[hit, 0].astype(np.int64), found[hit, 1]
     ranges, cos_incidence = _refined_ranges(target.planes[polygons], origin, directions[hit], bvh_range)
     returns = build_returns(sensor, cells[hit], ranges, target.reflectivity[polygons], cos_incidence,
                             target.source_index[polygons], options, sweep)
@@ -177,24 +195,29 @@ def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflect
     """Rows of RETURN_DTYPE for returns at ``ranges`` (M,) m along the rays of ``cells``
     (M,), after the min/max range gate and the options' drops and noise. Random draws
     are one per candidate return in cell order, from a generator seeded by (seed, sweep)."""
-    rng = np.random.default_rng([options.seed, sweep])
-    lost = rng.random(len(cells)) < options.drop_rate
-    noise = rng.normal(0.0, sensor.range_noise_sigma, len(cells)) if options.range_noise else 0.0
+    keep = (ranges >= sensor.min_range) & (ranges <= sensor.max_range)
+    noisy = ranges
+    if options.drop_rate or options.range_noise:
+        rng = np.random.default_rng([options.seed, sweep])
+        keep &= rng.random(len(cells)) >= options.drop_rate
+        if options.range_noise:
+            noisy = ranges + rng.normal(0.0, sensor.range_noise_sigma, len(cells))
+            keep &= noisy > 0
     relative = relative_intensity(reflectivity, cos_incidence, ranges)
-    keep = (ranges >= sensor.min_range) & (ranges <= sensor.max_range) & ~lost
-    keep &= np.abs(cos_incidence) >= np.cos(np.radians(options.max_incidence_deg)) - 1e-12
-    keep &= relative >= options.min_intensity
-    noisy = ranges + noise
-    keep &= noisy > 0
+    if options.max_incidence_deg < 90:
+        keep &= np.abs(cos_incidence) >= np.cos(np.radians(options.max_incidence_deg))
+    if options.min_intensity:
+        keep &= relative >= options.min_intensity
+    cells, noisy = cells[keep], noisy[keep]
     points = sensor.directions[cells] * noisy[:, None]
     rings, columns = np.divmod(cells, sensor.columns)
-    rows = np.zeros(int(keep.sum()), RETURN_DTYPE)
-    rows["x"], rows["y"], rows["z"] = points[keep].T
+    rows = np.zeros(len(cells), RETURN_DTYPE)
+    rows["x"], rows["y"], rows["z"] = points.T
     rows["intensity"] = dataset_intensity(relative[keep], sensor.dataset)
-    rows["ring"], rows["column"] = rings[keep], columns[keep]
-    rows["azimuth"] = sensor.cell_azimuths.ravel()[cells[keep]]
-    rows["time"] = sensor.cell_times(rings[keep], columns[keep])
-    rows["range"] = noisy[keep]
+    rows["ring"], rows["column"] = rings, columns
+    rows["azimuth"] = sensor.cell_azimuths.ravel()[cells]
+    rows["time"] = sensor.cell_times(rings, columns)
+    rows["range"] = noisy
     rows["face"] = faces[keep]
     rows["time_lag"] = sweep * sensor.sweep_seconds
     rows["sweep"] = sweep

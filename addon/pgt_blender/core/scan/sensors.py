@@ -97,6 +97,11 @@ class Sensor:
         table.setflags(write=False)
         return table.reshape(-1, 3)
 
+    @cached_property
+    def direction_axes(self) -> tuple:
+        """The x, y, z columns of ``directions`` as three contiguous (cells,) arrays."""
+        return tuple(np.ascontiguousarray(self.directions[:, axis]) for axis in range(3))
+
     def cell_times(self, rings: np.ndarray, columns: np.ndarray) -> np.ndarray:
         """Seconds after the sweep's start at which cells (rings, columns) fire."""
         column_seconds = self.sweep_seconds / self.columns

@@ -39,7 +39,11 @@ class ScanTarget:
     """One object ready to be scanned from any pose.
 
     bvh:          mathutils BVHTree over the polygons (float32 inside).
-    bounds:       (2, 3) float64 [min, max] corners of the polygons, object frame, m.
+    bounds:       (2, 3) float64 [min, max] corners of the object's box, object frame,
+                  m: of the mesh's vertices or the cloud's points. Placement and the
+                  output box use it.
+    cast_bounds:  (2, 3) float64 box around every polygon (surfels reach past their
+                  points); the ray window uses it.
     planes:       (P, 4) float64 per polygon: unit normal n and offset n . v, so a hit's
                   range is refined in float64 on its polygon's plane.
     reflectivity: (P,) float32 in [0, 1] per polygon, for the physical intensity.
@@ -50,6 +54,7 @@ class ScanTarget:
 
     bvh: object
     bounds: np.ndarray
+    cast_bounds: np.ndarray
     planes: np.ndarray
     reflectivity: np.ndarray
     source_index: np.ndarray
@@ -113,7 +118,7 @@ def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
             raise InputError(name, f"{len(reflectivity)} face reflectivities for {len(faces)} faces")
     bvh = bvhtree_class().FromPolygons(vertices.tolist(), used.tolist(), all_triangles=True, epsilon=0.0)
     bounds = np.stack([vertices[used].reshape(-1, 3).min(0), vertices[used].reshape(-1, 3).max(0)])
-    return ScanTarget(bvh, bounds, _planes(normals, corners[:, 0]), reflectivity[kept],
+    return ScanTarget(bvh, bounds, bounds, _planes(normals, corners[:, 0]), reflectivity[kept],
                       kept.astype(np.int32), "mesh", name)
 
 
@@ -182,7 +187,8 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
                     else reflectivity_from_srgb(colors))
     flat = corners.reshape(-1, 3)
     normals = np.cross(tangents[:, :, 0], tangents[:, :, 1])
-    return ScanTarget(bvh, np.stack([flat.min(0), flat.max(0)]), _planes(normals, positions), reflectivity,
+    return ScanTarget(bvh, np.stack([positions.min(0), positions.max(0)]), np.stack([flat.min(0), flat.max(0)]),
+                      _planes(normals, positions), reflectivity,
                       np.arange(len(positions), dtype=np.int32), "surfels", name)
 
 
