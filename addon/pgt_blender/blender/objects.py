@@ -40,7 +40,7 @@ def add_reconstruction(scene: bpy.types.Scene, recon: Reconstruction, with_camer
         collection.objects.link(obj)
         extent = float(np.ptp(recon.positions, axis=0).max())
         if not len(recon.faces):
-            _show_as_points(obj, radius=0.5 * extent / np.sqrt(len(recon.positions)), made=made)
+            show_as_points(obj, radius=0.5 * extent / np.sqrt(len(recon.positions)), made=made)
         if with_cameras and recon.cameras:
             scene.render.resolution_x, scene.render.resolution_y = recon.cameras[0].width, recon.cameras[0].height
             scene.render.resolution_percentage = 100
@@ -66,7 +66,7 @@ def remove_datablocks(datablocks) -> None:
 POINTS_GROUP = "PGT Points"
 
 
-def _show_as_points(obj: bpy.types.Object, radius: float, made: list) -> None:
+def show_as_points(obj: bpy.types.Object, radius: float, made: list) -> None:
     """Blender does not draw loose vertices in Object Mode: a Mesh to Points geometry
     nodes modifier shows the cloud (viewport and render, colour attributes carried
     over) while the mesh keeps the imported data untouched."""
@@ -103,12 +103,12 @@ def _mesh(recon: Reconstruction, made: list) -> bpy.types.Mesh:
         colors.data.foreach_set("color_srgb", recon.colors.ravel())
         mesh.color_attributes.active_color = colors
     for name, values in recon.attributes.items():
-        _add_attribute(mesh, name, values)
+        add_attribute(mesh, name, values)
     mesh.update(calc_edges=bool(len(recon.faces)))
     return mesh
 
 
-def _add_attribute(mesh: bpy.types.Mesh, name: str, values: np.ndarray) -> None:
+def add_attribute(mesh: bpy.types.Mesh, name: str, values: np.ndarray) -> None:
     columns = 1 if values.ndim == 1 else values.shape[1]
     data_type, field = _ATTRIBUTE_TYPES[(values.dtype.kind, columns)]
     attribute = mesh.attributes.new(name, data_type, "POINT")

@@ -25,7 +25,7 @@ from ..core.scan.returns import Scan
 from ..core.scan.sensors import PRESETS, Sensor, load_sensor_toml
 from ..core.scan.targets import (DEFAULT_REFLECTIVITY, ScanTarget, mesh_target, reflectivity_from_linear,
                                  reflectivity_from_srgb, surfel_target)
-from .objects import _add_attribute, _show_as_points, remove_datablocks
+from .objects import add_attribute, show_as_points, remove_datablocks
 
 CUSTOM = "CUSTOM"
 SCAN_COLLECTION = "PGT Scan"
@@ -258,7 +258,7 @@ def _points_object(name: str, returns: np.ndarray, rgba: np.ndarray, made: list)
     for column in returns.dtype.names:
         if column not in ("x", "y", "z"):
             values = returns[column]
-            _add_attribute(mesh, column, values.astype(np.float32 if values.dtype.kind == "f" else np.int32))
+            add_attribute(mesh, column, values.astype(np.float32 if values.dtype.kind == "f" else np.int32))
     colors = mesh.color_attributes.new("color", "FLOAT_COLOR", "POINT")
     colors.data.foreach_set("color", rgba.ravel())
     mesh.color_attributes.active_color = colors
@@ -266,7 +266,7 @@ def _points_object(name: str, returns: np.ndarray, rgba: np.ndarray, made: list)
     mesh.update()
     obj = bpy.data.objects.new(name, mesh)
     made.append(obj)
-    _show_as_points(obj, POINT_RADIUS, made)
+    show_as_points(obj, POINT_RADIUS, made)
     return obj
 
 
