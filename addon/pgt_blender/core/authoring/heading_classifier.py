@@ -25,7 +25,7 @@ import hashlib
 import io
 import pickle
 import platform
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -49,12 +49,16 @@ class PointSet:
 
     points: (N, 3) float64 metres, origin at the box centre; dims: (3,) box (length,
     width, height) metres; source: where it came from, with a checksum (the
-    checkpoint's config records each source and how many sets it gave)."""
+    checkpoint's config records each source and how many sets it gave);
+    features: (N, C) float32 columns after x, y, z in a database's file (intensity, ...),
+    (N, 0) for mesh samples; class_name: the database's class, "" for meshes."""
 
     name: str
     points: np.ndarray
     dims: np.ndarray
     source: str
+    features: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
+    class_name: str = ""
 
 
 @dataclass
@@ -166,11 +170,12 @@ def read_gt_database(path, convention: str, min_points: int = 5) -> list:
                 raise InputError(path, f"a {class_name} box3d_lidar has {box.size} values, expected 7 or more")
             if count < max(min_points, 1):
                 continue
-            sets.append(_gt_object(path.parent / relative, box, count, convention, f"{class_name}:{relative}", source))
+            sets.append(_gt_object(path.parent / relative, box, count, convention, str(class_name), relative, source))
     return sets
 
 
-def _gt_object(path: Path, box: np.ndarray, count: int, convention: str, name: str, source: str) -> PointSet:
+def _gt_object(path: Path, box: np.ndarray, count: int, convention: str, class_name: str, relative: str,
+               source: str) -> PointSet:
     try:
         values = np.fromfile(path, np.float32)
     except OSError as error:
@@ -179,12 +184,13 @@ def _gt_object(path: Path, box: np.ndarray, count: int, convention: str, name: s
         raise InputError(path, f"its box has non-positive dims {box[3:6].tolist()}")
     if len(values) < 3 * count or len(values) % count:
         raise InputError(path, f"{len(values)} floats do not split into the {count} points its info declares")
-    points = values.reshape(count, -1)[:, :3].astype(np.float64)  # x, y, z, then intensity etc.
+    columns = values.reshape(count, -1)
+    points = columns[:, :3].astype(np.float64)  # x, y, z, then intensity etc.
     if convention == "mmdet3d":
         points[:, 2] -= box[5] / 2  # bottom centre -> centre
     cos, sin = np.cos(box[6]), np.sin(box[6])
     points[:, :2] = points[:, :2] @ np.array([[cos, -sin], [sin, cos]])  # rows rotated by -heading
-    return PointSet(name, points, box[3:6].copy(), source)
+    return PointSet(f"{class_name}:{relative}", points, box[3:6].copy(), source, columns[:, 3:].copy(), class_name)
 
 
 def normalise(points: np.ndarray, dims) -> np.ndarray:

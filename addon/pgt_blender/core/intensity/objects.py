@@ -1,0 +1,313 @@
+"""Step 4's data: LiDAR objects of the two domains the intensity estimator learns between.
+
+- Real LiDAR objects (intensity domain): an OpenPCDet / mmdetection3d ground-truth
+  database, or raw KITTI scans with their label_2 boxes (the points inside each box).
+- RGB objects: this project's scans of coloured objects (each return takes the colour
+  of the face it hit), so both domains share the LiDAR's sampling pattern.
+
+Every object is in its *box frame*: origin at the box centre, +x along its heading,
++z up, metres. Class names are lower case ("Truck" and "truck" are one class).
+Training takes fixed-size sets (ObjectSet): farthest point sampling to ``points``
+points, coordinates divided by half the box dims (the box is [-1, 1]^3).
+"""
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..scan.sensors import INTENSITY_MAX
+
+DEFAULT_POINTS = 256  # the paper's point count per object, and its minimum
+# KITTI label types that are not objects; every other type is kept under its own name.
+KITTI_SKIPPED = ("DontCare",)
+
+
+@dataclass
+class LidarObject:
+    """One object: points (N, 3) float64 in its box frame (m), dims (3,) l w h (m),
+    values (N, K) float32 in [0, 1] (K = 1 intensity over the dataset's maximum, or
+    K = 3 sRGB), its lower-case class and where it came from."""
+
+    name: str
+    class_name: str
+    points: np.ndarray
+    dims: np.ndarray
+    values: np.ndarray
+
+
+@dataclass
+class ObjectSet:
+    """Fixed-size point sets, one row per object.
+
+    xyz:         (B, P, 3) float32 box frame divided by dims / 2 (the box is [-1, 1]^3).
+    values:      (B, P, K) float32 in [0, 1]: K = 1 intensity, K = 3 sRGB.
+    class_index: (B,) int64 into ``classes``.
+    classes:     class names shared by both domains, sorted.
+    names:       per object, for messages.
+    dataset:     whose intensity scale the real values were divided by.
+    """
+
+    xyz: np.ndarray
+    values: np.ndarray
+    class_index: np.ndarray
+    classes: tuple
+    names: list
+    dataset: str
+
+
+def _box_frame(points: np.ndarray, centre: np.ndarray, heading: float) -> np.ndarray:
+    """(N, 3) sensor-frame points into the frame of a box at ``centre`` turned by ``heading``."""
+    cos, sin = np.cos(heading), np.sin(heading)
+    shifted = points - centre
+    return np.column_stack([shifted[:, 0] * cos + shifted[:, 1] * sin,
+                            -shifted[:, 0] * sin + shifted[:, 1] * cos, shifted[:, 2]])
+
+
+def _intensities(path, values: np.ndarray, dataset: str) -> np.ndarray:
+    """(N, 1) float32 in [0, 1] from a dataset's raw intensity column; InputError for
+    NaN or values beyond the dataset's range."""
+    maximum = INTENSITY_MAX[dataset]
+    if not np.isfinite(values).all():
+        raise InputError(path, f"{int((~np.isfinite(values)).sum())} intensities are NaN or infinite")
+    if len(values) and (values.min() < 0 or values.max() > maximum * (1 + 1e-6)):
+        raise InputError(path, f"intensities span {values.min():g}..{values.max():g}, outside {dataset}'s 0..{maximum:g}")
+    return (values / maximum).astype(np.float32)[:, None]
+
+
+def gt_database_objects(path, convention: str, dataset: str, min_points: int = 1) -> list:
+    """Real objects of an OpenPCDet (``convention="openpcdet"``, points about the box
+    centre) or mmdetection3d (``"mmdet3d"``, about its bottom centre) ``*_dbinfos_*.pkl``
+    whose .bin files carry x, y, z, intensity[, ...] columns."""
+    from ..authoring.heading_classifier import read_gt_database
+
+    objects = []
+    for point_set in read_gt_database(path, convention, min_points):
+        if point_set.features.shape[1] < 1:
+            raise InputError(path, f"{point_set.name} has no intensity column (3 columns per point)")
+        values = _intensities(f"{path}: {point_set.name}", point_set.features[:, 0], dataset)
+        objects.append(LidarObject(point_set.name, point_set.class_name.lower(), point_set.points,
+                                   point_set.dims, values))
+    return objects
+
+
+def _read_calibration(path: Path) -> np.ndarray:
+    """(4, 4) rect_from_velodyne of a KITTI calib file (R0_rect @ Tr_velo_to_cam)."""
+    rows = {}
+    for line in path.read_text().splitlines():
+        if ":" in line:
+            key, numbers = line.split(":", 1)
+            rows[key.strip()] = np.array(numbers.split(), np.float64)
+    try:
+        rect, velo_to_cam = np.eye(4), np.eye(4)
+        rect[:3, :3] = rows["R0_rect"].reshape(3, 3)
+        velo_to_cam[:3, :4] = rows["Tr_velo_to_cam"].reshape(3, 4)
+    except (KeyError, ValueError):
+        raise InputError(path, "not a KITTI calib file (needs R0_rect and Tr_velo_to_cam)") from None
+    return rect @ velo_to_cam
+
+
+def kitti_label_boxes(label_path: Path, calib_path: Path) -> list:
+    """[(type, centre (3,) velodyne frame, dims (l, w, h), heading)] of a KITTI label_2
+    file. Labels give the bottom centre in the rectified camera frame and ry about its
+    -y axis: heading = -ry - pi/2 in the velodyne frame."""
+    velodyne_from_rect = np.linalg.inv(_read_calibration(calib_path))
+    boxes = []
+    for number, line in enumerate(label_path.read_text().splitlines(), 1):
+        fields = line.split()
+        if not fields or fields[0] in KITTI_SKIPPED:
+            continue
+        try:
+            height, width, length, x, y, z, ry = map(float, fields[8:15])
+        except ValueError:
+            raise InputError(label_path, f"line {number} is not a KITTI label (15 fields)") from None
+        bottom = velodyne_from_rect @ np.array([x, y, z, 1.0])
+        boxes.append((fields[0], bottom[:3] + [0.0, 0.0, height / 2], np.array([length, width, height]),
+                      -ry - np.pi / 2))
+    return boxes
+
+
+def kitti_scan_objects(folder, min_points: int = 1) -> list:
+    """Real objects cut from raw KITTI scans: every ``velodyne/*.bin`` (float32 x y z
+    intensity) with ``label_2`` and ``calib`` files of the same name; the points inside
+    each labelled box, in its box frame."""
+    folder = Path(folder)
+    scans = sorted((folder / "velodyne").glob("*.bin"))
+    if not scans:
+        raise InputError(folder, "no velodyne/*.bin scans (expected a KITTI folder with velodyne, label_2, calib)")
+    objects = []
+    for scan in scans:
+        label, calib = folder / "label_2" / f"{scan.stem}.txt", folder / "calib" / f"{scan.stem}.txt"
+        if not label.is_file() or not calib.is_file():
+            raise InputError(scan, f"has no {label.name} in label_2 or calib")
+        raw = np.fromfile(scan, np.float32)
+        if raw.size % 4:
+            raise InputError(scan, f"{raw.size} floats do not split into x, y, z, intensity rows")
+        rows = raw.reshape(-1, 4).astype(np.float64)
+        for index, (kind, centre, dims, heading) in enumerate(kitti_label_boxes(label, calib)):
+            local = _box_frame(rows[:, :3], centre, heading)
+            inside = (np.abs(local) <= dims / 2).all(axis=1)
+            if inside.sum() >= max(min_points, 1):
+                values = _intensities(scan, rows[inside, 3], "kitti")
+                objects.append(LidarObject(f"{scan.stem}:{index}:{kind}", kind.lower(), local[inside], dims, values))
+    return objects
+
+
+def farthest_point_sample(points: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
+    """(count,) indices of ``points`` (N, 3), N >= count, by farthest point sampling from
+    a seeded random start: each next point is the one farthest from those chosen."""
+    if len(points) < count:
+        raise ValueError(f"{len(points)} points are fewer than the {count} to sample")
+    chosen = np.empty(count, np.int64)
+    chosen[0] = np.random.default_rng(seed).integers(len(points))
+    distance = np.full(len(points), np.inf)
+    for i in range(1, count):
+        distance = np.minimum(distance, ((points - points[chosen[i - 1]]) ** 2).sum(axis=1))
+        chosen[i] = int(np.argmax(distance))
+    return chosen
+
+
+def object_set(objects: list, classes: tuple, dataset: str, points: int = DEFAULT_POINTS, seed: int = 0) -> ObjectSet:
+    """The objects of ``classes`` as an ObjectSet of ``points`` points each: farthest point
+    sampling from seed + i for the i-th object, all points for one of exactly ``points``
+    (fewer is the caller's to drop or top up)."""
+    kept = [obj for obj in objects if obj.class_name in classes]
+    picks = [farthest_point_sample(obj.points, points, seed + i) if len(obj.points) > points
+             else np.arange(points) for i, obj in enumerate(kept)]
+    xyz = np.stack([obj.points[pick] / (obj.dims / 2) for obj, pick in zip(kept, picks)]).astype(np.float32)
+    values = np.stack([obj.values[pick] for obj, pick in zip(kept, picks)]).astype(np.float32)
+    index = np.array([classes.index(obj.class_name) for obj in kept], np.int64)
+    return ObjectSet(xyz, values, index, tuple(classes), [obj.name for obj in kept], dataset)
+
+
+def paired_classes(real: list, rgb: list, min_points: int, min_objects: int = 1, classes=None) -> tuple:
+    """The classes to train: ``classes`` if given (each must have ``min_objects`` objects
+    of at least ``min_points`` points in both domains), else every class that has them.
+    InputError naming the class, the count and the thresholds otherwise."""
+    def counts(objects):
+        found = {}
+        for obj in objects:
+            if len(obj.points) >= min_points:
+                found[obj.class_name] = found.get(obj.class_name, 0) + 1
+        return found
+
+    real_counts, rgb_counts = counts(real), counts(rgb)
+    wanted = sorted(classes) if classes else sorted(set(real_counts) | set(rgb_counts))
+    usable = [c for c in wanted if min(real_counts.get(c, 0), rgb_counts.get(c, 0)) >= min_objects]
+    short = [c for c in wanted if c not in usable]
+    if classes and short or not usable:
+        detail = "; ".join(f"{c}: {real_counts.get(c, 0)} real, {rgb_counts.get(c, 0)} rgb" for c in short)
+        raise InputError("training data", f"too few objects with at least {min_points} points "
+                                          f"(need {min_objects} per class in each domain): {detail}")
+    return tuple(usable)
+
+
+# Where the RGB domain's objects stand for their scans: (distance m, azimuth deg, heading deg).
+RGB_POSES = tuple((distance, azimuth, heading) for distance in (8.0, 15.0, 25.0)
+                  for azimuth, heading in ((0.0, 90.0), (30.0, 0.0), (-60.0, 200.0), (120.0, 315.0)))
+
+
+def scanned_rgb_objects(target, element_rgb: np.ndarray, class_name: str, name: str, sensor,
+                        poses=RGB_POSES) -> list:
+    """One RGB object per pose: ``target`` (a core.scan ScanTarget, object frame) scanned
+    by ``sensor`` at (distance, azimuth, heading) poses; each return takes the sRGB
+    colour ``element_rgb`` (E, 3) of the face or point it hit (the scan's ``face``)."""
+    from ..scan.raycast import placement, scan_object
+
+    centre, dims = target.bounds.mean(axis=0), target.bounds[1] - target.bounds[0]
+    objects = []
+    for distance, azimuth, heading in poses:
+        x, y = distance * np.cos(np.radians(azimuth)), distance * np.sin(np.radians(azimuth))
+        scan = scan_object(target, sensor, x, y, np.radians(heading))
+        matrix = placement(target.bounds, sensor, x, y, np.radians(heading))
+        local = (scan.xyz - matrix[:3, 3]) @ matrix[:3, :3] - centre  # sensor -> object -> box frame
+        rgb = np.asarray(element_rgb, np.float32)[scan.returns["face"], :3]
+        objects.append(LidarObject(f"{name}@{distance:g}m/{azimuth:g}/{heading:g}", class_name.lower(),
+                                   local, dims, rgb))
+    return objects
+
+
+def builtin_rgb_objects(sensor, classes=None, poses=RGB_POSES) -> list:
+    """Scans of the built-in sample vehicles, each face coloured by its part."""
+    from ..classes import MINORITY_CLASSES
+    from ..samples import sample_vehicle
+    from ..scan.targets import mesh_target, reflectivity_from_srgb
+
+    objects = []
+    for class_name in classes or MINORITY_CLASSES:
+        vehicle = sample_vehicle(class_name)
+        face_rgb = vehicle.colors_at(vehicle.vertices[vehicle.faces].mean(axis=1))
+        target = mesh_target(vehicle.vertices, vehicle.faces, f"sample {class_name}",
+                             reflectivity_from_srgb(face_rgb))
+        objects += scanned_rgb_objects(target, face_rgb, class_name, f"sample:{class_name}", sensor, poses)
+    return objects
+
+
+def prepared_rgb_objects(folder, sensor, poses=RGB_POSES) -> list:
+    """Scans of the coloured prepared objects in ``folder``: <name>.ply in the object
+    frame with a <name>.json sidecar naming its class (prepare_objects.py's output)."""
+    import json
+
+    from ..importing import load_reconstruction
+    from ..scan.targets import target_from_reconstruction
+
+    folder = Path(folder)
+    objects = []
+    for sidecar in sorted(folder.glob("*.json")):
+        model = sidecar.with_suffix(".ply")
+        if not model.is_file():
+            continue
+        try:
+            class_name = json.loads(sidecar.read_text())["class"]
+        except (json.JSONDecodeError, KeyError, TypeError):
+            raise InputError(sidecar, "sidecar has no class") from None
+        recon = load_reconstruction(model, with_cameras=False)
+        if recon.colors is None:
+            raise InputError(model, "has no colours, so it cannot be an RGB-domain object")
+        colors = recon.colors[:, :3]
+        element_rgb = colors[recon.faces].mean(axis=1) if len(recon.faces) else colors
+        objects += scanned_rgb_objects(target_from_reconstruction(recon), element_rgb, class_name,
+                                       model.stem, sensor, poses)
+    if not objects:
+        raise InputError(folder, "no prepared objects (<name>.ply with a <name>.json sidecar)")
+    return objects
+
+
+def real_objects(source, dataset: str, convention: str = "openpcdet") -> list:
+    """Real objects of a ground-truth database pickle or a KITTI folder."""
+    source = Path(source)
+    if source.suffix == ".pkl":
+        return gt_database_objects(source, convention, dataset)
+    if source.is_dir():
+        return kitti_scan_objects(source)
+    raise InputError(source, "not a ground-truth database .pkl or a KITTI folder")
+
+
+def training_sets(real_sources: list, rgb_sources: list, dataset: str, min_points: int = DEFAULT_POINTS,
+                  points: int = DEFAULT_POINTS, seed: int = 0, classes=None, convention: str = "openpcdet"):
+    """(real ObjectSet, rgb ObjectSet) over the classes both domains have (paired_classes).
+    ``rgb_sources``: folders of prepared objects; none = the built-in samples. Objects
+    with fewer than ``min_points`` points are dropped; those below ``points`` (when
+    ``min_points`` < ``points``) are topped up by repeating points, seeded."""
+    from ..scan.sensors import PRESETS
+
+    real = [obj for source in real_sources for obj in real_objects(source, dataset, convention)]
+    sensor = PRESETS[dataset]
+    rgb = ([obj for folder in rgb_sources for obj in prepared_rgb_objects(folder, sensor)] if rgb_sources
+           else builtin_rgb_objects(sensor))
+    chosen = paired_classes(real, rgb, min_points, classes=classes)
+    rng = np.random.default_rng(seed)
+    sets = []
+    for objects in (real, rgb):
+        kept = [_topped_up(obj, points, rng) for obj in objects if len(obj.points) >= min_points]
+        sets.append(object_set(kept, chosen, dataset, points, seed))
+    return tuple(sets)
+
+
+def _topped_up(obj: LidarObject, points: int, rng: np.random.Generator) -> LidarObject:
+    if len(obj.points) >= points:
+        return obj
+    extra = rng.integers(len(obj.points), size=points - len(obj.points))
+    return LidarObject(obj.name, obj.class_name, np.concatenate([obj.points, obj.points[extra]]), obj.dims,
+                       np.concatenate([obj.values, obj.values[extra]]))
