@@ -125,3 +125,15 @@ def test_training_sets_from_the_shared_data(kitti, gt_database):
     assert real.dataset == "kitti" and abs(real.values.mean() - 0.15) < 0.02
     with pytest.raises(InputError, match="too few objects with at least 256 points"):
         training_sets([kitti], [], "kitti")
+
+
+def test_material_colours_of_a_real_mesh(chrono_meshes):
+    from pgt_blender.core.intensity.objects import material_mesh_rgb_objects
+
+    sedan = next(p for p in chrono_meshes if p.name == "sedan_chassis_vis.obj")
+    with pytest.warns(UserWarning, match="zero-area faces"):
+        objects = material_mesh_rgb_objects(sedan, "Car", PRESETS["kitti"])
+    body = np.array([102, 6, 1], np.float32) / 255  # Material.001's Kd as trimesh reads it
+    near = objects[0]
+    assert near.class_name == "car" and len(near.points) > 500
+    assert np.isclose(near.values, body, atol=1e-6).all(axis=1).mean() > 0.3  # mostly red paint

@@ -274,6 +274,35 @@ def prepared_rgb_objects(folder, sensor, poses=RGB_POSES) -> list:
     return objects
 
 
+def material_mesh_rgb_objects(path, class_name: str, sensor, poses=RGB_POSES) -> list:
+    """Scans of a mesh whose parts carry material colours (e.g. OBJ + MTL ``Kd``), in the
+    object frame (+x forward, +z up, m); each face takes its material's main colour."""
+    import trimesh
+
+    from ..scan.targets import mesh_target, reflectivity_from_srgb
+
+    path = Path(path)
+    try:
+        scene = trimesh.load(str(path), process=False, force="scene")
+    except Exception as error:  # trimesh raises many types for corrupt files
+        raise InputError(path, f"could not be read as a mesh: {error}") from None
+    parts = [geometry for geometry in scene.dump() if len(getattr(geometry, "faces", ()))]
+    if not parts:
+        raise InputError(path, "mesh has no faces")
+    vertices, faces, face_rgb, offset = [], [], [], 0
+    for part in parts:
+        material = getattr(part.visual, "material", None)
+        colour = (np.asarray(material.main_color[:3], np.float32) / 255 if material is not None
+                  else np.asarray(part.visual.face_colors[:, :3], np.float32).mean(axis=0) / 255)
+        vertices.append(part.vertices)
+        faces.append(part.faces + offset)
+        face_rgb.append(np.tile(colour, (len(part.faces), 1)))
+        offset += len(part.vertices)
+    face_rgb = np.concatenate(face_rgb)
+    target = mesh_target(np.concatenate(vertices), np.concatenate(faces), path.name, reflectivity_from_srgb(face_rgb))
+    return scanned_rgb_objects(target, face_rgb, class_name, path.stem, sensor, poses)
+
+
 def real_objects(source, dataset: str, convention: str = "openpcdet") -> list:
     """Real objects of a ground-truth database pickle or a KITTI folder."""
     source = Path(source)
@@ -287,15 +316,15 @@ def real_objects(source, dataset: str, convention: str = "openpcdet") -> list:
 def training_sets(real_sources: list, rgb_sources: list, dataset: str, min_points: int = DEFAULT_POINTS,
                   points: int = DEFAULT_POINTS, seed: int = 0, classes=None, convention: str = "openpcdet"):
     """(real ObjectSet, rgb ObjectSet) over the classes both domains have (paired_classes).
-    ``rgb_sources``: folders of prepared objects; none = the built-in samples. Objects
+    ``rgb_sources``: folders of prepared objects, or "class=mesh path" for a mesh with
+    material colours (e.g. "car=sedan.obj"); none = the built-in samples. Objects
     with fewer than ``min_points`` points are dropped; those below ``points`` (when
     ``min_points`` < ``points``) are topped up by repeating points, seeded."""
     from ..scan.sensors import PRESETS
 
     real = [obj for source in real_sources for obj in real_objects(source, dataset, convention)]
     sensor = PRESETS[dataset]
-    rgb = ([obj for folder in rgb_sources for obj in prepared_rgb_objects(folder, sensor)] if rgb_sources
-           else builtin_rgb_objects(sensor))
+    rgb = [obj for source in rgb_sources for obj in rgb_objects(source, sensor)] or builtin_rgb_objects(sensor)
     chosen = paired_classes(real, rgb, min_points, classes=classes)
     rng = np.random.default_rng(seed)
     sets = []
@@ -303,6 +332,14 @@ def training_sets(real_sources: list, rgb_sources: list, dataset: str, min_point
         kept = [_topped_up(obj, points, rng) for obj in objects if len(obj.points) >= min_points]
         sets.append(object_set(kept, chosen, dataset, points, seed))
     return tuple(sets)
+
+
+def rgb_objects(source, sensor) -> list:
+    """RGB objects of one source: "class=mesh path" or a folder of prepared objects."""
+    if isinstance(source, str) and "=" in source:
+        class_name, path = source.split("=", 1)
+        return material_mesh_rgb_objects(path, class_name, sensor)
+    return prepared_rgb_objects(source, sensor)
 
 
 def _topped_up(obj: LidarObject, points: int, rng: np.random.Generator) -> LidarObject:
