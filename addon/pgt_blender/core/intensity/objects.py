@@ -28,13 +28,15 @@ KITTI_SKIPPED = ("DontCare",)
 class LidarObject:
     """One object: points (N, 3) float64 in its box frame (m), dims (3,) l w h (m),
     values (N, K) float32 in [0, 1] (K = 1 intensity over the dataset's maximum, or
-    K = 3 sRGB), its lower-case class and where it came from."""
+    K = 3 sRGB), its lower-case class and where it came from. Scanned RGB objects also
+    keep ``physical`` (N,) float32 in [0, 1], the scanner's physical intensity."""
 
     name: str
     class_name: str
     points: np.ndarray
     dims: np.ndarray
     values: np.ndarray
+    physical: np.ndarray | None = None
 
 
 @dataclass
@@ -224,7 +226,7 @@ def scanned_rgb_objects(target, element_rgb: np.ndarray, class_name: str, name: 
         local = (scan.xyz - matrix[:3, 3]) @ matrix[:3, :3] - centre  # sensor -> object -> box frame
         rgb = np.asarray(element_rgb, np.float32)[scan.returns["face"], :3]
         objects.append(LidarObject(f"{name}@{distance:g}m/{azimuth:g}/{heading:g}", class_name.lower(),
-                                   local, dims, rgb))
+                                   local, dims, rgb, scan.returns["intensity"] / sensor.intensity_max))
     return objects
 
 
@@ -346,5 +348,6 @@ def _topped_up(obj: LidarObject, points: int, rng: np.random.Generator) -> Lidar
     if len(obj.points) >= points:
         return obj
     extra = rng.integers(len(obj.points), size=points - len(obj.points))
+    physical = None if obj.physical is None else np.concatenate([obj.physical, obj.physical[extra]])
     return LidarObject(obj.name, obj.class_name, np.concatenate([obj.points, obj.points[extra]]), obj.dims,
-                       np.concatenate([obj.values, obj.values[extra]]))
+                       np.concatenate([obj.values, obj.values[extra]]), physical)
