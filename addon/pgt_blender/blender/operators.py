@@ -10,7 +10,7 @@ from ..core.authoring import prepare
 from ..core.classes import MINORITY_CLASSES
 from ..core.errors import InputError
 from ..core.importing import load_reconstruction
-from . import authoring, objects, scanning
+from . import authoring, intensity, objects, properties, scanning
 
 
 def _select_only(context, obj):
@@ -243,8 +243,42 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class OBJECT_OT_pgt_apply_intensity(bpy.types.Operator):
+    """Replace the scan preview's intensities by the trained estimator's (checkpoint in the add-on preferences)"""
+
+    bl_idname = "object.pgt_apply_intensity"
+    bl_label = "Apply Intensity Model"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        if context.active_object is None or intensity.source_of(context.active_object) is None:
+            cls.poll_message_set("Select a scan preview (\"<object> Scan\") whose object still exists")
+            return False
+        return True
+
+    def execute(self, context):
+        settings = properties.preferences(context)
+        checkpoint = bpy.path.abspath(settings.intensity_checkpoint) if settings else ""
+        if not checkpoint:
+            self.report({"ERROR"}, "No intensity checkpoint: set one in Preferences > Add-ons > PGT Blender "
+                                   "(the scan keeps its physical intensities)")
+            return {"CANCELLED"}
+        preview = context.active_object
+        source = intensity.source_of(preview)
+        try:
+            estimator = intensity.load(checkpoint)
+            class_name = source.pgt.class_name or (estimator.classes[0] if len(estimator.classes) == 1 else "")
+            rate = intensity.apply_estimator(preview, estimator, class_name)
+        except ValueError as error:  # InputError: no torch, bad checkpoint, other dataset or class
+            self.report({"ERROR"}, f"{error} (the scan keeps its physical intensities)")
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"{len(preview.data.vertices)} intensities from {checkpoint} ({rate:,.0f} points/s)")
+        return {"FINISHED"}
+
+
 AUTHORING = (OBJECT_OT_pgt_align, OBJECT_OT_pgt_turn, OBJECT_OT_pgt_front_from_cursor,
              OBJECT_OT_pgt_auto_heading, OBJECT_OT_pgt_set_size)
 IMPORTERS = (IMPORT_SCENE_OT_pgt_colmap, IMPORT_SCENE_OT_pgt_gaussian_splat,
              IMPORT_SCENE_OT_pgt_point_cloud, IMPORT_SCENE_OT_pgt_mesh)
-classes = IMPORTERS + (OBJECT_OT_pgt_add_sample,) + AUTHORING + (OBJECT_OT_pgt_scan,)
+classes = IMPORTERS + (OBJECT_OT_pgt_add_sample,) + AUTHORING + (OBJECT_OT_pgt_scan, OBJECT_OT_pgt_apply_intensity)

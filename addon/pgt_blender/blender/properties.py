@@ -102,7 +102,31 @@ class PGT_PG_scan(bpy.types.PropertyGroup):
     stats: StringProperty(name="Statistics", description="Points, rays and time of the last scan")
 
 
-classes = (PGT_PG_object, PGT_PG_authoring, PGT_PG_scan)
+# The add-on's own module name: "pgt_blender", or "bl_ext.<repo>.pgt_blender" as an extension.
+ADDON = __package__.rpartition(".")[0]
+
+
+class PGTPreferences(bpy.types.AddonPreferences):
+    """Edit > Preferences > Add-ons > PGT Blender."""
+
+    bl_idname = ADDON
+
+    intensity_checkpoint: StringProperty(
+        name="Intensity checkpoint", subtype="FILE_PATH",
+        description="intensity.pt written by headless_scripts/train_intensity.py, used by Apply Intensity Model")
+
+    def draw(self, context):
+        self.layout.prop(self, "intensity_checkpoint")
+
+
+def preferences(context):
+    """The add-on's preferences, or None when it runs without an add-on entry (a script
+    that called register() itself)."""
+    addon = context.preferences.addons.get(ADDON)
+    return addon.preferences if addon is not None else None
+
+
+classes = (PGT_PG_object, PGT_PG_authoring, PGT_PG_scan, PGTPreferences)
 
 
 def register():

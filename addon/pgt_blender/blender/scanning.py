@@ -30,6 +30,7 @@ from .objects import add_attribute, show_as_points, remove_datablocks
 CUSTOM = "CUSTOM"
 SCAN_COLLECTION = "PGT Scan"
 SOURCE_TAG = "pgt_scan_of"  # on every result object: the name of the object scanned
+DATASET_TAG = "pgt_dataset"  # on the points object: whose intensity scale its returns use
 POINT_RADIUS = 0.03  # m: a visible dot per return at street distances
 GROUND_MARGIN = 10.0  # m beyond the object's distance on each side
 CACHE_SIZE = 4  # objects whose BVH stays in memory
@@ -107,7 +108,7 @@ def _fingerprint(inputs: tuple) -> bytes:
     return digest.digest()
 
 
-def _read(collection, field: str, count: int, dtype) -> np.ndarray:
+def read(collection, field: str, count: int, dtype) -> np.ndarray:
     values = np.empty(count, dtype)
     collection.foreach_get(field, values)
     return values
@@ -116,7 +117,7 @@ def _read(collection, field: str, count: int, dtype) -> np.ndarray:
 def _vertices(mesh: bpy.types.Mesh) -> np.ndarray:
     """(V, 3) float32 vertex positions, object frame (an empty mesh has no "position"
     attribute, so read ``vertices``)."""
-    return _read(mesh.vertices, "co", len(mesh.vertices) * 3, np.float32).reshape(-1, 3)
+    return read(mesh.vertices, "co", len(mesh.vertices) * 3, np.float32).reshape(-1, 3)
 
 
 def _triangles(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
@@ -124,39 +125,39 @@ def _triangles(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
     each triangle belongs to."""
     mesh.calc_loop_triangles()
     count = len(mesh.loop_triangles)
-    triangles = _read(mesh.loop_triangles, "vertices", count * 3, np.int32).reshape(-1, 3)
-    return triangles, _read(mesh.loop_triangles, "polygon_index", count, np.int32)
+    triangles = read(mesh.loop_triangles, "vertices", count * 3, np.int32).reshape(-1, 3)
+    return triangles, read(mesh.loop_triangles, "polygon_index", count, np.int32)
 
 
-def _srgb(attribute) -> np.ndarray:
+def srgb(attribute) -> np.ndarray:
     """(N, 4) float32 sRGB 0..1 of a colour attribute (byte or float, any domain)."""
-    return _read(attribute.data, "color_srgb", len(attribute.data) * 4, np.float32).reshape(-1, 4)
+    return read(attribute.data, "color_srgb", len(attribute.data) * 4, np.float32).reshape(-1, 4)
 
 
-def _color_attribute(mesh: bpy.types.Mesh):
+def color_attribute(mesh: bpy.types.Mesh):
     colors = mesh.color_attributes
     return colors.active_color or next(iter(colors), None)
 
 
 def _point_colors(mesh: bpy.types.Mesh):
     """(N, 4) sRGB per vertex from the colour attribute when it is per point, else None."""
-    attribute = _color_attribute(mesh)
-    return _srgb(attribute) if attribute is not None and attribute.domain == "POINT" else None
+    attribute = color_attribute(mesh)
+    return srgb(attribute) if attribute is not None and attribute.domain == "POINT" else None
 
 
 def _face_reflectivity(obj: bpy.types.Object, triangles: np.ndarray):
     """(T,) reflectivity per triangle: the mean over its corners of the colour
     attribute, else its material's base colour, else None (the core's default)."""
     mesh = obj.data
-    attribute = _color_attribute(mesh)
+    attribute = color_attribute(mesh)
     if attribute is not None:
         corners = (triangles if attribute.domain == "POINT"
-                   else _read(mesh.loop_triangles, "loops", triangles.size, np.int32).reshape(-1, 3))
-        return reflectivity_from_srgb(_srgb(attribute))[corners].mean(axis=1)
+                   else read(mesh.loop_triangles, "loops", triangles.size, np.int32).reshape(-1, 3))
+        return reflectivity_from_srgb(srgb(attribute))[corners].mean(axis=1)
     per_slot = _material_reflectivity(obj)
     if per_slot is None:
         return None
-    material_index = _read(mesh.loop_triangles, "material_index", len(triangles), np.int32)
+    material_index = read(mesh.loop_triangles, "material_index", len(triangles), np.int32)
     return per_slot[np.clip(material_index, 0, len(per_slot) - 1)]
 
 
@@ -168,12 +169,12 @@ def _material_reflectivity(obj: bpy.types.Object):
     if not used:
         return None
     reflectivity = np.full(len(materials), DEFAULT_REFLECTIVITY, np.float32)
-    linear = np.array([_base_color(materials[index]) for index in used], np.float64)
+    linear = np.array([base_color(materials[index]) for index in used], np.float64)
     reflectivity[used] = reflectivity_from_linear(linear)
     return reflectivity
 
 
-def _base_color(material: bpy.types.Material) -> tuple:
+def base_color(material: bpy.types.Material) -> tuple:
     """Linear RGB: the first Principled BSDF's Base Color, else the viewport colour."""
     if material.use_nodes and material.node_tree:
         for node in material.node_tree.nodes:
@@ -225,6 +226,7 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
     except BaseException:
         remove_datablocks(made)
         raise
+    points[DATASET_TAG] = sensor.dataset
     for obj in (points, origin, ground):
         obj[SOURCE_TAG] = source.name
         obj.matrix_world = world

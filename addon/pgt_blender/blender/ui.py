@@ -133,6 +133,7 @@ class VIEW3D_PT_pgt_scan(_PGTPanel, bpy.types.Panel):
         layout.operator("object.pgt_scan", icon="LIGHT_SPOT")
         if settings.stats:
             layout.label(text=settings.stats, icon="INFO")
+        layout.operator("object.pgt_apply_intensity", icon="SHADING_TEXTURE")
 
 
 class VIEW3D_PT_pgt_objects(_PGTPanel, bpy.types.Panel):

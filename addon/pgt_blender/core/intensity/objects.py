@@ -327,6 +327,12 @@ def training_sets(real_sources: list, rgb_sources: list, dataset: str, min_point
     real = [obj for source in real_sources for obj in real_objects(source, dataset, convention)]
     sensor = PRESETS[dataset]
     rgb = [obj for source in rgb_sources for obj in rgb_objects(source, sensor)] or builtin_rgb_objects(sensor)
+    return paired_sets(real, rgb, dataset, min_points, points, seed, classes)
+
+
+def paired_sets(real: list, rgb: list, dataset: str, min_points: int = DEFAULT_POINTS,
+                points: int = DEFAULT_POINTS, seed: int = 0, classes=None) -> tuple:
+    """(real ObjectSet, rgb ObjectSet) of LidarObject lists, over paired_classes."""
     chosen = paired_classes(real, rgb, min_points, classes=classes)
     rng = np.random.default_rng(seed)
     sets = []

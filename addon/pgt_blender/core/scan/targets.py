@@ -74,6 +74,12 @@ def reflectivity_from_linear(rgb: np.ndarray) -> np.ndarray:
     return (linear @ np.array([0.2126, 0.7152, 0.0722])).astype(np.float32)
 
 
+def srgb_from_linear(rgb: np.ndarray) -> np.ndarray:
+    """(N, 3) sRGB in [0, 1] of linear RGB (Blender's material colours)."""
+    linear = np.clip(np.asarray(rgb, np.float64), 0.0, 1.0)
+    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055).astype(np.float32)
+
+
 def reflectivity_from_srgb(colors: np.ndarray) -> np.ndarray:
     """As reflectivity_from_linear, for (N, 3 or 4) sRGB colours in [0, 1] (files, colour attributes)."""
     srgb = np.clip(np.asarray(colors, np.float64)[:, :3], 0.0, 1.0)

@@ -1,0 +1,202 @@
+"""LiDAR intensity for coloured points: the trained rgb -> int generator, or the physical
+default when PyTorch or a checkpoint is missing.
+
+Input per object: xyz (N, 3) in its box frame (origin at the box centre, +x the heading,
++z up, metres), the box dims (3,) l w h in metres, sRGB (N, 3) in [0, 1] and the class
+name. Output: (N,) float32 intensities in [0, 1], the fraction of the dataset's maximum
+(``scan.physical_intensity.dataset_intensity`` scales them to the dataset's numbers).
+
+The network sees a *support* cloud of the checkpoint's P points (farthest point sampled,
+as in training; an object of fewer points repeats them) and writes a value at every one
+of the N points, so objects of any size are estimated whole. Load a checkpoint once
+(``IntensityEstimator.load``) and pass many objects to ``predict_many``: they go through
+the network in batches; ``last_rate`` then holds the points per second it reached.
+"""
+
+import functools
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..scan.physical_intensity import REFERENCE_RANGE, relative_intensity
+from ..scan.targets import reflectivity_from_srgb
+from . import model
+from .losses import farthest_point_centres
+
+# The fallback's |cos(incidence)| when the caller has none: its mean over surface
+# normals uniformly distributed on the sphere.
+DEFAULT_COS_INCIDENCE = 0.5
+BATCH_OBJECTS = 64  # objects per forward pass in predict_many
+
+
+@dataclass
+class IntensityEstimator:
+    """A loaded rgb -> int generator (torch nn.Module, eval mode), its training config
+    (dict, as in config.json) and the file it came from."""
+
+    network: object
+    config: dict
+    path: Path
+    last_rate: float = 0.0  # points per second of the latest predict / predict_many
+
+    @classmethod
+    def load(cls, path, dataset: str | None = None) -> "IntensityEstimator":
+        """The estimator saved at ``path`` (training's intensity.pt). InputError when
+        torch is missing, the file is missing, damaged or not such a checkpoint, or it
+        was trained on another ``dataset``'s intensities (when one is given)."""
+        path = Path(path)
+        torch = model.require_torch(path)
+        if not path.is_file():
+            raise InputError(path, "no intensity-estimator checkpoint here "
+                                   "(train one with headless_scripts/train_intensity.py)")
+        try:
+            saved = torch.load(path, map_location="cpu", weights_only=True)
+            found = saved.get("format") if isinstance(saved, dict) else None
+            if found != model.FORMAT:
+                raise ValueError(f"format {found!r}, expected {model.FORMAT!r}")
+            config = saved["config"]
+            network = model.generator(len(config["classes"]), 3, 1)
+            network.load_state_dict(saved["state_dict"])
+        except Exception as error:  # torch raises many types for a damaged archive
+            reason = str(error).split("\n")[0][:200]  # torch's messages run to paragraphs
+            raise InputError(path, f"not a readable intensity-estimator checkpoint "
+                                   f"({type(error).__name__}: {reason})") from None
+        estimator = cls(network.eval(), config, path)
+        if dataset is not None and dataset != estimator.dataset:
+            raise InputError(path, f"was trained on {estimator.dataset} intensities, not {dataset}'s")
+        return estimator
+
+    @property
+    def classes(self) -> tuple:
+        """The class names it was trained for."""
+        return tuple(self.config["classes"])
+
+    @property
+    def dataset(self) -> str:
+        """The dataset (and so sensor and intensity scale) its real objects came from."""
+        return self.config["dataset"]
+
+    def predict(self, xyz, dims, rgb, class_name: str, name: str = "object") -> np.ndarray:
+        """(N,) float32 intensities in [0, 1] for one object (see the module docstring)."""
+        return self.predict_many([(xyz, dims, rgb, class_name)], [name])[0]
+
+    def predict_many(self, objects: list, names: list | None = None) -> list:
+        """[(N_i,) float32 in [0, 1]] for ``objects`` [(xyz, dims, rgb, class_name)], in
+        batches of BATCH_OBJECTS; ``names`` (default object<i>) name them in errors."""
+        import torch
+
+        names = names or [f"object{i}" for i in range(len(objects))]
+        start = time.perf_counter()
+        prepared = [self._prepared(obj, name) for obj, name in zip(objects, names)]
+        order = np.argsort([len(xyz) for xyz, _, _ in prepared], kind="stable")  # alike sizes share a batch
+        results = [None] * len(prepared)
+        with torch.inference_mode():
+            for first in range(0, len(order), BATCH_OBJECTS):
+                rows = order[first:first + BATCH_OBJECTS]
+                for row, values in zip(rows, self._batch(torch, [prepared[row] for row in rows])):
+                    results[row] = values
+        self.last_rate = sum(len(values) for values in results) / max(time.perf_counter() - start, 1e-9)
+        return results
+
+    def _prepared(self, obj, name: str) -> tuple:
+        """(normalised xyz (N, 3) float32, rgb (N, 3) float32, class index); InputError
+        for bad arrays or a class the checkpoint does not know."""
+        xyz, dims, rgb, class_name = obj
+        xyz, dims, rgb = checked_object(xyz, dims, rgb, name)
+        if class_name not in self.classes:
+            raise InputError(self.path, f"has no class '{class_name}' (trained for {', '.join(self.classes)})")
+        return (xyz / (dims / 2)).astype(np.float32), rgb.astype(np.float32), self.classes.index(class_name)
+
+    def _batch(self, torch, prepared: list) -> list:
+        """Network outputs for a list of ``_prepared`` objects, split per object."""
+        points = self.config["points"]
+        support = _supports([xyz for xyz, _, _ in prepared], points)
+        links = model.neighbourhoods(np.stack([xyz[pick] for (xyz, _, _), pick in zip(prepared, support)]))
+        values = np.stack([rgb[pick] for (_, rgb, _), pick in zip(prepared, support)])
+        query = model.queries(links, [(xyz, rgb) for xyz, rgb, _ in prepared])
+        classes = torch.tensor([index for _, _, index in prepared])
+        out = self.network(model.as_tensors(torch, links), torch.from_numpy(values), classes,
+                           model.as_tensors(torch, query))
+        return np.split(out[:, 0].numpy().astype(np.float32), np.cumsum([len(x) for x, _, _ in prepared])[:-1])
+
+
+def checked_object(xyz, dims, rgb, name: str) -> tuple:
+    """(xyz (N, 3), dims (3,), rgb (N, 3)) float64; InputError naming ``name`` for
+    mismatched shapes, NaN or colours outside 0..1."""
+    xyz, dims, rgb = (np.asarray(a, np.float64) for a in (xyz, dims, rgb))
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or len(xyz) == 0:
+        raise InputError(name, f"points have shape {xyz.shape}, expected (N, 3) with N > 0")
+    if rgb.shape != xyz.shape:
+        raise InputError(name, f"colours have shape {rgb.shape}, expected {xyz.shape} (one sRGB row per point)")
+    if dims.shape != (3,) or not (dims > 0).all():
+        raise InputError(name, f"box dims must be three positive lengths, not {dims.tolist()}")
+    if not (np.isfinite(xyz).all() and np.isfinite(rgb).all()):
+        raise InputError(name, "points or colours are NaN or infinite")
+    if rgb.min() < 0 or rgb.max() > 1:
+        raise InputError(name, f"colours span {rgb.min():g}..{rgb.max():g}, expected sRGB in 0..1")
+    return xyz, dims, rgb
+
+
+def _supports(clouds: list, points: int) -> list:
+    """Per cloud (N_i, 3) the (points,) indices of its support cloud: farthest point
+    sampling as in training (one padded batch), or for a cloud of fewer points every
+    point repeated in turn."""
+    supports = [np.resize(np.arange(len(xyz)), points) for xyz in clouds]
+    large = [i for i, xyz in enumerate(clouds) if len(xyz) >= points]
+    if large:
+        lengths = np.array([len(clouds[i]) for i in large])
+        padded = np.zeros((len(large), lengths.max(), 3), np.float32)
+        for row, i in enumerate(large):
+            padded[row, :lengths[row]] = clouds[i]
+        for row, picks in zip(large, farthest_point_centres(padded, points, lengths)):
+            supports[row] = picks
+    return supports
+
+
+@functools.lru_cache(maxsize=4)
+def _cached(path: Path, dataset: str | None, stamp: tuple) -> IntensityEstimator:
+    """One load per checkpoint file version (``stamp``: its mtime and size)."""
+    return IntensityEstimator.load(path, dataset)
+
+
+def physical_default(rgb, cos_incidence=None, ranges=None) -> np.ndarray:
+    """(N,) float32 in [0, 1]: ``relative_intensity`` of the sRGB colours' reflectivity,
+    with |cos(incidence)| DEFAULT_COS_INCIDENCE and range REFERENCE_RANGE (no range
+    falloff) where ``cos_incidence`` / ``ranges`` (N,) are not given."""
+    reflectivity = reflectivity_from_srgb(np.asarray(rgb, np.float64).reshape(-1, 3))
+    cos = DEFAULT_COS_INCIDENCE if cos_incidence is None else np.asarray(cos_incidence, np.float64)
+    distance = REFERENCE_RANGE if ranges is None else np.asarray(ranges, np.float64)
+    return relative_intensity(reflectivity, cos, distance).astype(np.float32)
+
+
+def estimate_intensity(xyz, dims, rgb, class_name: str, checkpoint=None, dataset: str | None = None,
+                       cos_incidence=None, ranges=None, name: str = "object") -> tuple:
+    """(intensities (N,) float32 in [0, 1], reason) for one object.
+
+    ``checkpoint``: an IntensityEstimator, a path to intensity.pt (loaded once and kept
+    while the file is unchanged) or None. The learned estimate when it can be had
+    (reason None); the physical default (``physical_default``) with a one-line reason
+    when torch is not installed or there is no checkpoint. InputError for bad arrays, a
+    damaged checkpoint, one without ``class_name`` or one of another ``dataset``.
+    """
+    checked_object(xyz, dims, rgb, name)
+    if checkpoint is None:
+        return physical_default(rgb, cos_incidence, ranges), "no intensity checkpoint given: physical default used"
+    if not isinstance(checkpoint, IntensityEstimator):
+        path = Path(checkpoint).resolve()
+        try:
+            model.require_torch(path)
+        except InputError:
+            return physical_default(rgb, cos_incidence, ranges), (
+                f"PyTorch ({model.TORCH_REQUIREMENT}) is not installed: physical default used instead of {path}")
+        if not path.is_file():
+            return (physical_default(rgb, cos_incidence, ranges),
+                    f"no intensity checkpoint at {path}: physical default used")
+        status = path.stat()
+        checkpoint = _cached(path, dataset, (status.st_mtime_ns, status.st_size))
+    elif dataset is not None and dataset != checkpoint.dataset:
+        raise InputError(checkpoint.path, f"was trained on {checkpoint.dataset} intensities, not {dataset}'s")
+    return checkpoint.predict(xyz, dims, rgb, class_name, name), None

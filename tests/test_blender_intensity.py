@@ -1,0 +1,117 @@
+"""Apply Intensity Model in real headless Blender: the estimator's values on the scan
+preview, equal to the core's on the same returns; clear errors leave it untouched."""
+
+import numpy as np
+import pytest
+
+from pgt_blender.core.intensity.objects import ObjectSet
+from pgt_blender.core.scan.physical_intensity import dataset_intensity
+from pgt_blender.core.scan.raycast import placement
+from pgt_blender.core.scan.targets import srgb_from_linear
+
+bpy = pytest.importorskip("bpy")
+torch = pytest.importorskip("torch")
+
+from pgt_blender.blender import properties, scanning  # noqa: E402
+from pgt_blender.core.intensity.estimator import IntensityEstimator  # noqa: E402
+from pgt_blender.core.intensity.training import TrainConfig, train  # noqa: E402
+
+from .test_blender_scan import box_geometry, core_scan, mesh_object  # noqa: E402
+
+
+def tiny_sets(dataset: str):
+    """Two small domains of one class: real intensity rising with height, red-blue RGB."""
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(-1, 1, (4, 256, 3)).astype(np.float32)
+    intensity = ((xyz[..., 2:] + 1) / 2).astype(np.float32)
+    rgb = np.concatenate([(xyz[..., :1] + 1) / 2, np.zeros_like(intensity), 1 - (xyz[..., :1] + 1) / 2], axis=-1)
+    common = dict(class_index=np.zeros(4, np.int64), classes=("object",), names=[f"o{i}" for i in range(4)],
+                  dataset=dataset)
+    return ObjectSet(xyz, intensity, **common), ObjectSet(xyz[::-1].copy(), rgb.astype(np.float32), **common)
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    real, rgb = tiny_sets("nuscenes")
+    return train(real, rgb, TrainConfig(steps=2, batch=2, checkpoint_every=2, patches=4),
+                 tmp_path_factory.mktemp("model"), progress=False)
+
+
+@pytest.fixture
+def preferences(registered):
+    addon = bpy.context.preferences.addons.new()
+    addon.module = properties.ADDON
+    yield addon.preferences
+    bpy.context.preferences.addons.remove(addon)
+
+
+def coloured_box(scene):
+    vertices, faces = box_geometry()
+    obj = mesh_object(scene, "Box", vertices, faces)
+    colours = obj.data.color_attributes.new("Col", "FLOAT_COLOR", "POINT")
+    shade = np.column_stack([(np.asarray(vertices)[:, 0] > 0) * 0.9, np.full(8, 0.2), np.full(8, 0.4), np.ones(8)])
+    colours.data.foreach_set("color", shade.astype(np.float32).ravel())
+    return obj, shade
+
+
+def intensities(preview):
+    values = np.empty(len(preview.data.vertices), np.float32)
+    preview.data.attributes["intensity"].data.foreach_get("value", values)
+    return values
+
+
+def test_apply_intensity_model_matches_the_core(scene, preferences, checkpoint):
+    obj, shade = coloured_box(scene)
+    bpy.ops.object.pgt_scan()
+    preview = bpy.data.objects["Box Scan"]
+    before = intensities(preview)
+    preferences.intensity_checkpoint = str(checkpoint)
+    bpy.context.view_layer.objects.active = preview
+    assert bpy.ops.object.pgt_apply_intensity() == {"FINISHED"}
+    after = intensities(preview)
+    # the core on the same returns: box frame points, the colour of the polygon hit
+    settings = scene.pgt_scan
+    target = scanning.scan_target(obj)
+    result = core_scan(target, settings)
+    x, y = settings.distance * np.cos(settings.azimuth), settings.distance * np.sin(settings.azimuth)
+    matrix = placement(target.bounds, scanning.PRESETS[settings.sensor], x, y, settings.heading)
+    local = (result.xyz - matrix[:3, 3]) @ matrix[:3, :3] - target.bounds.mean(axis=0)
+    corner_srgb = srgb_from_linear(shade[:, :3])  # Blender stores float colours linear
+    rgb = np.array([corner_srgb[list(p.vertices)].mean(axis=0) for p in obj.data.polygons])[result.returns["face"]]
+    expected = dataset_intensity(IntensityEstimator.load(checkpoint).predict(local, target.size, rgb, "object"),
+                                 "nuscenes")
+    assert len(after) == len(expected) > 100
+    assert np.abs(after - expected).max() <= 1.0  # float32 positions may flip a rounding
+    assert not np.array_equal(after, before)
+
+
+def test_without_a_checkpoint_the_scan_keeps_its_physical_intensities(scene, preferences):
+    coloured_box(scene)
+    bpy.ops.object.pgt_scan()
+    preview = bpy.data.objects["Box Scan"]
+    before = intensities(preview)
+    bpy.context.view_layer.objects.active = preview
+    with pytest.raises(RuntimeError, match="No intensity checkpoint: set one in Preferences"):
+        bpy.ops.object.pgt_apply_intensity()
+    preferences.intensity_checkpoint = "/nowhere/intensity.pt"
+    with pytest.raises(RuntimeError, match="/nowhere/intensity.pt: no intensity-estimator checkpoint here"):
+        bpy.ops.object.pgt_apply_intensity()
+    assert np.array_equal(intensities(preview), before)
+
+
+def test_another_dataset_or_class_is_refused(scene, preferences, checkpoint):
+    obj, _ = coloured_box(scene)
+    preferences.intensity_checkpoint = str(checkpoint)
+    scene.pgt_scan.sensor = "kitti"
+    bpy.ops.object.pgt_scan()
+    preview = bpy.data.objects["Box Scan"]
+    bpy.context.view_layer.objects.active = preview
+    with pytest.raises(RuntimeError, match="trained on nuscenes intensities, the scan is kitti's"):
+        bpy.ops.object.pgt_apply_intensity()
+    scene.pgt_scan.sensor = "nuscenes"
+    bpy.context.view_layer.objects.active = obj
+    bpy.ops.object.pgt_scan()
+    obj.pgt.class_name = "bus"
+    bpy.context.view_layer.objects.active = bpy.data.objects["Box Scan"]
+    with pytest.raises(RuntimeError, match="has no class 'bus'"):
+        bpy.ops.object.pgt_apply_intensity()
