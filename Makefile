@@ -31,6 +31,7 @@ bench: $(VENV)/.dev-installed
 	$(VENV)/bin/python headless_scripts/bench_alignment.py
 	$(VENV)/bin/python headless_scripts/bench_heading.py
 	$(VENV)/bin/python headless_scripts/bench_scan.py
+	$(VENV)/bin/python headless_scripts/bench_intensity.py
 
 clean:
 	rm -rf $(VENV) dist demo_output

@@ -15,7 +15,10 @@ Output by suffix: .bin float32 in the dataset's columns (KITTI x y z intensity;
 nuScenes/Lyft x y z intensity time_lag), .ply every column, .npy the structured rows
 (columns: pgt_blender/core/scan/returns.py). With --sweeps N the object moves as its
 class's motion model draws (seeded; class from --class or the sidecar <object>.json),
-or at --speed/--acceleration. Bad input: a one-line error and exit code 1.
+or at --speed/--acceleration. Intensity: the physical default, or with
+--intensity-checkpoint the learned estimator (train_intensity.py) on each return's
+colour (the file's vertex or point colours) for the object's class. Bad input: a
+one-line error and exit code 1.
 """
 
 import argparse
@@ -49,11 +52,34 @@ def sidecar_class(path: Path) -> str | None:
         raise InputError(sidecar, "sidecar is not a JSON object") from None
 
 
+def learned_intensity(result, recon, bounds: np.ndarray, sensor, class_name: str, checkpoint: Path) -> str:
+    """Replace the scan's intensities, in place, by the estimator's for ``class_name``:
+    each return in the frame of the box ``bounds`` (2, 3) at the pose its sweep saw,
+    with the colour of the face or point it hit. Returns a note on what was used."""
+    from pgt_blender.core.intensity.estimator import IntensityEstimator
+    from pgt_blender.core.scan.physical_intensity import dataset_intensity
+
+    if not class_name:
+        raise InputError(recon.source, "the learned intensity needs the object's class: give --class")
+    estimator = IntensityEstimator.load(checkpoint, dataset=sensor.dataset)
+    colors = np.full((len(recon.positions), 3), 0.5, np.float32) if recon.colors is None else recon.colors[:, :3]
+    element_rgb = colors[recon.faces].mean(axis=1) if len(recon.faces) else colors
+    rows = result.returns
+    for sweep, pose in enumerate(result.poses):
+        mine = rows["sweep"] == sweep
+        local = (result.xyz[mine] - pose[:3, 3]) @ pose[:3, :3] - bounds.mean(axis=0)
+        relative = estimator.predict(local, bounds[1] - bounds[0], element_rgb[rows["face"][mine]], class_name,
+                                     recon.name)
+        rows["intensity"][mine] = dataset_intensity(relative, sensor.dataset)
+    return f"learned ({estimator.last_rate:,.0f} points/s)"
+
+
 def scan(args):
     sensor = sensor_from_name(args.sensor)
     recon = load_reconstruction(args.object, with_cameras=False)
     options = ScanOptions(range_noise=args.noise, drop_rate=args.drop_rate, seed=args.seed)
     heading = np.radians(args.heading)
+    class_name = args.class_name or sidecar_class(args.object)
     if args.surface == "range-view":
         if args.sweeps != 1:
             raise InputError(args.object, "range view scans one sweep; drop --sweeps")
@@ -61,7 +87,16 @@ def scan(args):
         bounds = np.stack([positions.min(0), positions.max(0)])
         reflectivity = None if recon.colors is None else reflectivity_from_srgb(recon.colors)
         pose = placement(bounds, sensor, args.x, args.y, heading)
-        return range_view_scan(positions, sensor, pose, bounds, reflectivity, options=options), sensor
+        result = range_view_scan(positions, sensor, pose, bounds, reflectivity, options=options)
+    else:
+        result, bounds = ray_cast(args, recon, sensor, heading, class_name, options)
+    if args.intensity_checkpoint:
+        learned_intensity(result, recon, bounds, sensor, class_name, args.intensity_checkpoint)
+    return result, sensor
+
+
+def ray_cast(args, recon, sensor, heading: float, class_name: str, options):
+    """A mesh (or surfel) scan over --sweeps sweeps: (Scan, the object's box bounds (2, 3))."""
     if args.surface == "mesh" and not len(recon.faces):
         raise InputError(args.object, "has no faces to scan as a mesh; use --surface surfels")
     if args.surface == "surfels":
@@ -70,9 +105,8 @@ def scan(args):
     if args.speed is not None:
         motion = Motion(args.speed, args.acceleration)
     else:
-        class_name = args.class_name or sidecar_class(args.object)
         motion = sample_motion(class_name, np.random.default_rng(args.seed)) if class_name else Motion()
-    return scan_sweeps(target, sensor, args.x, args.y, heading, motion, args.sweeps, options), sensor
+    return scan_sweeps(target, sensor, args.x, args.y, heading, motion, args.sweeps, options), target.bounds
 
 
 def main(argv: list) -> int:
@@ -89,6 +123,8 @@ def main(argv: list) -> int:
     parser.add_argument("--surface", choices=("auto", "mesh", "surfels", "range-view"), default="auto",
                         help="auto: mesh when the file has faces, else surfels")
     parser.add_argument("--radius-scale", type=float, default=1.0, help="surfel radius / local point spacing")
+    parser.add_argument("--intensity-checkpoint", type=Path,
+                        help="intensity.pt of train_intensity.py: learned intensities instead of the physical default")
     parser.add_argument("--noise", action="store_true", help="add the sensor's range noise")
     parser.add_argument("--drop-rate", type=float, default=0.0, help="random ray drop probability")
     parser.add_argument("--seed", type=int, default=0)

@@ -48,7 +48,7 @@ def test_import_bad_input_exits_non_zero_and_writes_nothing(tmp_path):
 
 
 @pytest.mark.parametrize("script", ["import_reconstruction.py", "demo.py", "bench_import.py", "build_extension.py",
-                                    "scan_object.py", "bench_scan.py"])
+                                    "scan_object.py", "bench_scan.py", "train_intensity.py", "bench_intensity.py"])
 def test_help(script):
     result = run_script(script, "--help")
     assert result.returncode == 0 and result.stdout.startswith("usage:")
@@ -102,6 +102,17 @@ def test_bench_scan_quick(tmp_path):
     assert "| bvh windowed |" in (tmp_path / "scan.md").read_text()
     windowed = [row for row in results["rows"] if row["method"] == "bvh windowed"]
     assert windowed and all(row["false"] == row["missed"] == 0 and row["error_max_m"] < 1e-6 for row in windowed)
+
+
+def test_bench_intensity_quick(tmp_path):
+    pytest.importorskip("torch")
+    result = run_script("bench_intensity.py", "--quick", "--out", tmp_path / "intensity")
+    assert result.returncode == 0, result.stderr
+    rows = json.loads((tmp_path / "intensity.json").read_text())["rows"]
+    assert {row["method"] for row in rows} == {"constant class mean", "physical default", "histogram matching",
+                                               "learned (CycleGAN)"}
+    assert all(row["w1_points"] >= 0 and row["real_points"] > 0 for row in rows)
+    assert (tmp_path / "intensity.png").stat().st_size > 0
 
 
 @pytest.fixture(scope="module")
@@ -169,3 +180,35 @@ def test_scan_object_usage_errors_exit_2(truck_sample, tmp_path):
     result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"], "--x", 1, "--y", 1,
                         "--out", tmp_path / "scan.txt")
     assert result.returncode == 2 and "--out must end in" in result.stderr
+
+
+def test_train_intensity_end_to_end_on_the_shared_data(shared_data, truck_sample, tmp_path):
+    """KITTI scans + the mmdet3d GT database + the built-in samples, a few steps; then
+    scan_object.py paints a scan with the model it wrote."""
+    pytest.importorskip("torch")
+    import csv
+
+    import numpy as np
+
+    out = tmp_path / "model"
+    result = run_script("train_intensity.py", "--out", out, "--real", shared_data / "kitti_scans",
+                        "--real", shared_data / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl",
+                        "--gt-convention", "mmdet3d", "--steps", 12, "--checkpoint-every", 6)
+    assert result.returncode == 0, result.stderr
+    assert "of truck (kitti)" in result.stdout
+    rows = list(csv.DictReader((out / "losses.csv").open()))
+    assert len(rows) == 12 and float(rows[-1]["generator"]) < float(rows[0]["generator"])
+    scans = {}
+    for name, extra in (("physical", []), ("learned", ["--intensity-checkpoint", out / "intensity.pt"])):
+        scans[name] = tmp_path / f"{name}.npy"
+        result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"], "--sensor", "kitti",
+                            "--x", 12, "--y", 0, "--heading", 30, "--class", "truck", *extra, "--out", scans[name])
+        assert result.returncode == 0, result.stderr
+    physical, learned = (np.load(scans[name]) for name in ("physical", "learned"))
+    assert np.array_equal(physical[["x", "y", "z", "ring"]], learned[["x", "y", "z", "ring"]])
+    assert not np.array_equal(physical["intensity"], learned["intensity"]) and learned["intensity"].max() <= 1
+    result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"], "--sensor", "nuscenes", "--x", 12,
+                        "--y", 0, "--class", "truck", "--intensity-checkpoint", out / "intensity.pt",
+                        "--out", tmp_path / "wrong.npy")
+    assert result.returncode == 1 and "trained on kitti intensities" in result.stderr
+    assert not (tmp_path / "wrong.npy").exists()

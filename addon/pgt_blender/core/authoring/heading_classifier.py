@@ -30,11 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import learning
 from ..errors import InputError
 from ..files import atomic_output
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[2] / "models" / "heading_pointnet.pt"
-TORCH_REQUIREMENT = "torch==2.13.0"
 FORMAT = "pgt_blender.heading_pointnet/1"
 ARCHITECTURE = "PointNet: shared MLP 3-64-128 (ReLU), max-pool -> 128-dim feature, MLP 128-64-1 -> logit"
 # Chrono meshes without a front (a tyre): left out of mesh folders.
@@ -70,14 +70,8 @@ class HeadingClassifier:
 
 
 def require_torch(path):
-    """The torch module; InputError(path) with a one-line reason when this Python cannot
-    import it (``path``: the checkpoint or output the caller was about to use)."""
-    try:
-        import torch
-    except ImportError:
-        raise InputError(path, f"the heading classifier needs PyTorch ({TORCH_REQUIREMENT}), "
-                               "which this Python cannot import") from None
-    return torch
+    """The torch module, or InputError(path) saying the heading classifier needs it."""
+    return learning.require_torch(path, "the heading classifier")
 
 
 def _sha256(data: bytes) -> str:

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..learning import TORCH_REQUIREMENT
 from ..scan.physical_intensity import REFERENCE_RANGE, relative_intensity
 from ..scan.targets import reflectivity_from_srgb
 from . import model
@@ -191,7 +192,7 @@ def estimate_intensity(xyz, dims, rgb, class_name: str, checkpoint=None, dataset
             model.require_torch(path)
         except InputError:
             return physical_default(rgb, cos_incidence, ranges), (
-                f"PyTorch ({model.TORCH_REQUIREMENT}) is not installed: physical default used instead of {path}")
+                f"PyTorch ({TORCH_REQUIREMENT}) is not installed: physical default used instead of {path}")
         if not path.is_file():
             return (physical_default(rgb, cos_incidence, ranges),
                     f"no intensity checkpoint at {path}: physical default used")

@@ -33,10 +33,9 @@ import functools
 
 import numpy as np
 
-from ..errors import InputError
+from .. import learning
 from .losses import farthest_point_centres, squared_distances
 
-TORCH_REQUIREMENT = "torch==2.13.0"
 FORMAT = "pgt_blender.intensity_estimator/1"  # intensity.pt: the rgb -> int generator and its config
 CLASS_EMBEDDING = 8
 SA1 = (64, 16, 0.4)  # centres M1, neighbours K1, radius R1 (normalised box frame)
@@ -48,14 +47,8 @@ ARCHITECTURE = (f"class-aware PointNet++: class embedding {CLASS_EMBEDDING}; SA1
 
 
 def require_torch(path):
-    """The torch module; InputError(path) with a one-line reason when this Python cannot
-    import it (``path``: the checkpoint or output the caller was about to use)."""
-    try:
-        import torch
-    except ImportError:
-        raise InputError(path, f"the intensity estimator needs PyTorch ({TORCH_REQUIREMENT}), "
-                               "which this Python cannot import") from None
-    return torch
+    """The torch module, or InputError(path) saying the intensity estimator needs it."""
+    return learning.require_torch(path, "the intensity estimator")
 
 
 def ball_query(xyz: np.ndarray, centres: np.ndarray, count: int, radius: float) -> np.ndarray:

@@ -68,4 +68,4 @@ def range_view_scan(positions: np.ndarray, sensor: Sensor, sensor_from_object: n
     returns = build_returns(sensor, cells[kept], ranges[kept], reflectivity[kept], cos_incidence,
                             kept.astype(np.int32), options, sweep)
     return Scan(returns, placed_box(bounds, sensor_from_object, velocity), len(positions),
-                time.perf_counter() - start, sensor.dataset)
+                time.perf_counter() - start, sensor.dataset, [sensor_from_object])

@@ -187,7 +187,7 @@ def cast_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray
     returns = build_returns(sensor, cells[hit], ranges, target.reflectivity[polygons], cos_incidence,
                             target.source_index[polygons], options, sweep)
     box = placed_box(target.bounds, sensor_from_object, velocity)
-    return Scan(returns, box, len(cells), time.perf_counter() - start, sensor.dataset)
+    return Scan(returns, box, len(cells), time.perf_counter() - start, sensor.dataset, [sensor_from_object])
 
 
 def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflectivity: np.ndarray,

@@ -42,6 +42,7 @@ class Scan:
              sensor frame, for the current sweep (OpenPCDet's box3d_lidar layout).
     rays:    rays cast (ray-cast modes) or points projected (range view).
     seconds: wall time of the scan.
+    poses:   (4, 4) float64 sensor_from_object of each sweep, sweep 0 first.
     """
 
     returns: np.ndarray
@@ -49,7 +50,7 @@ class Scan:
     rays: int
     seconds: float
     dataset: str = "nuscenes"
-    extra: dict = field(default_factory=dict)
+    poses: list = field(default_factory=list)
 
     @property
     def hits(self) -> int:

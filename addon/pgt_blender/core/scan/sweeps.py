@@ -69,4 +69,5 @@ def scan_sweeps(target: ScanTarget, sensor: Sensor, x: float, y: float, heading:
         pose = placement(target.bounds, sensor, x + shift[0], y + shift[1], heading)
         parts.append(cast_rays(target, sensor, pose, options, sweep, velocity))
     return Scan(np.concatenate([part.returns for part in parts]), parts[0].box,
-                sum(part.rays for part in parts), sum(part.seconds for part in parts), sensor.dataset)
+                sum(part.rays for part in parts), sum(part.seconds for part in parts), sensor.dataset,
+                [part.poses[0] for part in parts])
