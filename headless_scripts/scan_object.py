@@ -33,6 +33,7 @@ import numpy as np  # noqa: E402
 from pgt_blender.cli import script_argv  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
 from pgt_blender.core.importing import load_reconstruction  # noqa: E402
+from pgt_blender.core.learning import TORCH_REQUIREMENT  # noqa: E402
 from pgt_blender.core.scan.range_view import range_view_scan  # noqa: E402
 from pgt_blender.core.scan.raycast import ScanOptions, placement  # noqa: E402
 from pgt_blender.core.scan.returns import OUTPUT_SUFFIXES, write_scan  # noqa: E402
@@ -61,6 +62,10 @@ def learned_intensity(result, recon, bounds: np.ndarray, sensor, class_name: str
 
     if not class_name:
         raise InputError(recon.source, "the learned intensity needs the object's class: give --class")
+    try:
+        import torch  # noqa: F401  (only whether it imports)
+    except ImportError:
+        return f"physical default: PyTorch ({TORCH_REQUIREMENT}) is not installed, so {checkpoint} was not used"
     estimator = IntensityEstimator.load(checkpoint, dataset=sensor.dataset)
     colors = np.full((len(recon.positions), 3), 0.5, np.float32) if recon.colors is None else recon.colors[:, :3]
     element_rgb = colors[recon.faces].mean(axis=1) if len(recon.faces) else colors
@@ -90,9 +95,10 @@ def scan(args):
         result = range_view_scan(positions, sensor, pose, bounds, reflectivity, options=options)
     else:
         result, bounds = ray_cast(args, recon, sensor, heading, class_name, options)
+    note = "physical default"
     if args.intensity_checkpoint:
-        learned_intensity(result, recon, bounds, sensor, class_name, args.intensity_checkpoint)
-    return result, sensor
+        note = learned_intensity(result, recon, bounds, sensor, class_name, args.intensity_checkpoint)
+    return result, sensor, note
 
 
 def ray_cast(args, recon, sensor, heading: float, class_name: str, options):
@@ -135,7 +141,7 @@ def main(argv: list) -> int:
     if args.sweeps < 1 or not 0 <= args.drop_rate < 1:
         parser.error("--sweeps must be >= 1 and --drop-rate in [0, 1)")
     try:
-        result, sensor = scan(args)
+        result, sensor, intensity_note = scan(args)
         write_scan(result, args.out)
     except (InputError, OSError) as error:
         print(f"error: {error}", file=sys.stderr)
@@ -143,7 +149,7 @@ def main(argv: list) -> int:
     stats = result.stats()
     box = ", ".join(f"{v:.3f}" for v in result.box)
     print(f"{sensor.name}: {stats['points']} points from {stats['rays']} rays "
-          f"({stats['efficiency']:.0%} hit) in {stats['ms']:.2f} ms\n"
+          f"({stats['efficiency']:.0%} hit) in {stats['ms']:.2f} ms; intensity: {intensity_note}\n"
           f"box [x, y, z, dx, dy, dz, heading, vx, vy] = [{box}]\nwrote {args.out}")
     return 0
 

@@ -212,3 +212,16 @@ def test_train_intensity_end_to_end_on_the_shared_data(shared_data, truck_sample
                         "--out", tmp_path / "wrong.npy")
     assert result.returncode == 1 and "trained on kitti intensities" in result.stderr
     assert not (tmp_path / "wrong.npy").exists()
+
+
+def test_scan_object_without_torch_keeps_the_physical_intensity(truck_sample, tmp_path):
+    code = ("import sys, runpy; sys.modules['torch'] = None; sys.argv = sys.argv[1:];"
+            "runpy.run_path(sys.argv[0], run_name='__main__')")
+    args = ["--object", truck_sample["mesh.ply"], "--sensor", "kitti", "--x", 10, "--y", 2, "--class", "truck"]
+    plain = run_script("scan_object.py", *args, "--out", tmp_path / "plain.bin")
+    result = subprocess.run([sys.executable, "-c", code, str(ROOT / "headless_scripts" / "scan_object.py"),
+                             *map(str, args), "--intensity-checkpoint", tmp_path / "model.pt",
+                             "--out", tmp_path / "fallback.bin"], capture_output=True, text=True, timeout=600)
+    assert plain.returncode == result.returncode == 0, result.stderr
+    assert "intensity: physical default: PyTorch (torch==2.13.0) is not installed" in result.stdout
+    assert (tmp_path / "fallback.bin").read_bytes() == (tmp_path / "plain.bin").read_bytes()
