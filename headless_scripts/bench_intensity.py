@@ -61,9 +61,7 @@ def patch_means(obj) -> np.ndarray:
     """Mean intensity of each ball patch of one object (normalised box frame)."""
     xyz = obj.points / (obj.dims / 2)
     centres = losses.farthest_point_centres(xyz, min(losses.PATCHES, len(xyz)))
-    members = losses.ball_patches(xyz, centres, losses.PATCH_RADIUS)
-    values = obj.values[:, 0]
-    return (members * values).sum(axis=1) / members.sum(axis=1)
+    return losses.patch_means(losses.ball_patches(xyz, centres, losses.PATCH_RADIUS), obj.values[:, 0])
 
 
 def histogram_matched(values: np.ndarray, reference: np.ndarray) -> np.ndarray:

@@ -39,7 +39,8 @@ from pgt_blender.core.scan.raycast import ScanOptions, placement  # noqa: E402
 from pgt_blender.core.scan.returns import OUTPUT_SUFFIXES, write_scan  # noqa: E402
 from pgt_blender.core.scan.sensors import PRESETS, sensor_from_name  # noqa: E402
 from pgt_blender.core.scan.sweeps import Motion, sample_motion, scan_sweeps  # noqa: E402
-from pgt_blender.core.scan.targets import reflectivity_from_srgb, target_from_reconstruction  # noqa: E402
+from pgt_blender.core.scan.targets import (element_colors, reflectivity_from_srgb,  # noqa: E402
+                                           target_from_reconstruction)
 
 
 def sidecar_class(path: Path) -> str | None:
@@ -67,13 +68,13 @@ def learned_intensity(result, recon, bounds: np.ndarray, sensor, class_name: str
     except ImportError:
         return f"physical default: PyTorch ({TORCH_REQUIREMENT}) is not installed, so {checkpoint} was not used"
     estimator = IntensityEstimator.load(checkpoint, dataset=sensor.dataset)
-    colors = np.full((len(recon.positions), 3), 0.5, np.float32) if recon.colors is None else recon.colors[:, :3]
-    element_rgb = colors[recon.faces].mean(axis=1) if len(recon.faces) else colors
-    rows = result.returns
-    for sweep, pose in enumerate(result.poses):
+    element_rgb = element_colors(recon)
+    if element_rgb is None:
+        element_rgb = np.full((len(recon.faces) or len(recon.positions), 3), 0.5, np.float32)  # grey
+    rows, local = result.returns, result.box_frame_points(bounds)
+    for sweep in range(len(result.poses)):  # each sweep is the object at another pose
         mine = rows["sweep"] == sweep
-        local = (result.xyz[mine] - pose[:3, 3]) @ pose[:3, :3] - bounds.mean(axis=0)
-        relative = estimator.predict(local, bounds[1] - bounds[0], element_rgb[rows["face"][mine]], class_name,
+        relative = estimator.predict(local[mine], bounds[1] - bounds[0], element_rgb[rows["face"][mine]], class_name,
                                      recon.name)
         rows["intensity"][mine] = dataset_intensity(relative, sensor.dataset)
     return f"learned ({estimator.last_rate:,.0f} points/s)"

@@ -215,18 +215,16 @@ def scanned_rgb_objects(target, element_rgb: np.ndarray, class_name: str, name: 
     """One RGB object per pose: ``target`` (a core.scan ScanTarget, object frame) scanned
     by ``sensor`` at (distance, azimuth, heading) poses; each return takes the sRGB
     colour ``element_rgb`` (E, 3) of the face or point it hit (the scan's ``face``)."""
-    from ..scan.raycast import placement, scan_object
+    from ..scan.raycast import scan_object
 
-    centre, dims = target.bounds.mean(axis=0), target.bounds[1] - target.bounds[0]
     objects = []
     for distance, azimuth, heading in poses:
         x, y = distance * np.cos(np.radians(azimuth)), distance * np.sin(np.radians(azimuth))
         scan = scan_object(target, sensor, x, y, np.radians(heading))
-        matrix = placement(target.bounds, sensor, x, y, np.radians(heading))
-        local = (scan.xyz - matrix[:3, 3]) @ matrix[:3, :3] - centre  # sensor -> object -> box frame
         rgb = np.asarray(element_rgb, np.float32)[scan.returns["face"], :3]
         objects.append(LidarObject(f"{name}@{distance:g}m/{azimuth:g}/{heading:g}", class_name.lower(),
-                                   local, dims, rgb, scan.returns["intensity"] / sensor.intensity_max))
+                                   scan.box_frame_points(target.bounds), target.size, rgb,
+                                   scan.returns["intensity"] / sensor.intensity_max))
     return objects
 
 
@@ -252,7 +250,7 @@ def prepared_rgb_objects(folder, sensor, poses=RGB_POSES) -> list:
     import json
 
     from ..importing import load_reconstruction
-    from ..scan.targets import target_from_reconstruction
+    from ..scan.targets import element_colors, target_from_reconstruction
 
     folder = Path(folder)
     objects = []
@@ -267,9 +265,7 @@ def prepared_rgb_objects(folder, sensor, poses=RGB_POSES) -> list:
         recon = load_reconstruction(model, with_cameras=False)
         if recon.colors is None:
             raise InputError(model, "has no colours, so it cannot be an RGB-domain object")
-        colors = recon.colors[:, :3]
-        element_rgb = colors[recon.faces].mean(axis=1) if len(recon.faces) else colors
-        objects += scanned_rgb_objects(target_from_reconstruction(recon), element_rgb, class_name,
+        objects += scanned_rgb_objects(target_from_reconstruction(recon), element_colors(recon), class_name,
                                        model.stem, sensor, poses)
     if not objects:
         raise InputError(folder, "no prepared objects (<name>.ply with a <name>.json sidecar)")

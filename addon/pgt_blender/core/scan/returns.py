@@ -65,6 +65,15 @@ class Scan:
     def xyz(self) -> np.ndarray:
         return np.column_stack([self.returns["x"], self.returns["y"], self.returns["z"]])
 
+    def box_frame_points(self, bounds: np.ndarray) -> np.ndarray:
+        """(N, 3) float64: each return in the frame of the object's box ``bounds`` (2, 3,
+        object frame) at the pose its sweep saw: origin at the box centre, +x forward."""
+        local = np.empty((self.hits, 3))
+        for sweep, pose in enumerate(self.poses):
+            mine = self.returns["sweep"] == sweep
+            local[mine] = (self.xyz[mine] - pose[:3, 3]) @ pose[:3, :3]
+        return local - bounds.mean(axis=0)
+
     def stats(self) -> dict:
         return {"points": self.hits, "rays": self.rays, "efficiency": round(self.efficiency, 4),
                 "ms": round(self.seconds * 1e3, 3)}

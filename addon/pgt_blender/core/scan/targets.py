@@ -198,6 +198,15 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
                       np.arange(len(positions), dtype=np.int32), "surfels", name)
 
 
+def element_colors(reconstruction) -> np.ndarray | None:
+    """(E, 3) float32 sRGB of what a scan's ``face`` column indexes: per face (the mean of
+    its vertices' colours) for a mesh, per point otherwise; None without colours."""
+    if reconstruction.colors is None:
+        return None
+    colors = reconstruction.colors[:, :3]
+    return colors[reconstruction.faces].mean(axis=1) if len(reconstruction.faces) else colors
+
+
 def target_from_reconstruction(reconstruction, radius_scale: float = 1.0) -> ScanTarget:
     """A mesh target when the reconstruction has faces, else surfels (splat-shaped when
     it carries ``scale`` and ``rotation``). Positions must already be in the object frame."""
