@@ -10,11 +10,11 @@ $(VENV)/bin/python:
 
 # Stamps make the installs idempotent: they rerun only when the dependency lists change.
 $(VENV)/.run-installed: pyproject.toml constraints.txt | $(VENV)/bin/python
-	$(PIP) -e '.[blender]'
+	$(PIP) -e '.[blender,scripts]'
 	touch $@
 
 $(VENV)/.dev-installed: $(VENV)/.run-installed
-	$(PIP) -e '.[blender,dev,learn]'
+	$(PIP) -e '.[blender,scripts,dev,learn]'
 	touch $@
 
 demo: $(VENV)/.run-installed

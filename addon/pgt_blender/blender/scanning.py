@@ -82,12 +82,12 @@ def _target_inputs(obj: bpy.types.Object, radius_scale: float):
     """Everything the target is made of (the cache's fingerprint covers it all) and the
     function that builds the target from it."""
     mesh = obj.data
-    vertices = _vertices(mesh)
+    vertices = mesh_vertices(mesh)
     if not len(mesh.polygons):
-        colors = _point_colors(mesh)
+        colors = point_colors(mesh)
         return ("surfels", vertices, colors, radius_scale), \
             lambda: surfel_target(vertices, obj.name, colors, radius_scale)
-    triangles, polygon_index = _triangles(mesh)
+    triangles, polygon_index = mesh_triangles(mesh)
     reflectivity = _face_reflectivity(obj, triangles)
 
     def build():
@@ -114,13 +114,13 @@ def read(collection, field: str, count: int, dtype) -> np.ndarray:
     return values
 
 
-def _vertices(mesh: bpy.types.Mesh) -> np.ndarray:
+def mesh_vertices(mesh: bpy.types.Mesh) -> np.ndarray:
     """(V, 3) float32 vertex positions, object frame (an empty mesh has no "position"
     attribute, so read ``vertices``)."""
     return read(mesh.vertices, "co", len(mesh.vertices) * 3, np.float32).reshape(-1, 3)
 
 
-def _triangles(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
+def mesh_triangles(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
     """(T, 3) int32 vertex indices of the mesh's triangulation and (T,) int32 polygon
     each triangle belongs to."""
     mesh.calc_loop_triangles()
@@ -139,7 +139,7 @@ def color_attribute(mesh: bpy.types.Mesh):
     return colors.active_color or next(iter(colors), None)
 
 
-def _point_colors(mesh: bpy.types.Mesh):
+def point_colors(mesh: bpy.types.Mesh):
     """(N, 4) sRGB per vertex from the colour attribute when it is per point, else None."""
     attribute = color_attribute(mesh)
     return srgb(attribute) if attribute is not None and attribute.domain == "POINT" else None

@@ -168,14 +168,31 @@ def _refined_ranges(planes: np.ndarray, origin: np.ndarray, directions: np.ndarr
     return np.where(usable, solved, bvh_range), cos_incidence
 
 
-def cast_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray, options: ScanOptions,
-              sweep: int = 0, velocity=(0.0, 0.0)) -> Scan:
-    """Scan ``target`` placed by ``sensor_from_object``: one row per return (returns.py)."""
+@dataclass(frozen=True)
+class Trace:
+    """What the rays of one pose met, before any sensor effect: the cells cast (M,),
+    and for the hits among them their cells, float64 ranges (m), cosines of incidence
+    and BVH polygons; ``seconds`` the wall time."""
+
+    rays: int
+    cells: np.ndarray
+    ranges: np.ndarray
+    cos_incidence: np.ndarray
+    polygons: np.ndarray
+    seconds: float
+
+
+def trace_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray, window: bool = True,
+               cast_bounds: np.ndarray | None = None) -> Trace:
+    """Cast the rays of ``target`` placed by ``sensor_from_object`` through its BVH; with
+    ``cast_bounds`` (2, 3, object frame) the window keeps only rays meeting that box
+    instead of the whole geometry's (a scan that wants part of the object)."""
     from mathutils import Vector
 
     sensor.directions  # the cached ray table: built on first use, kept out of the timing
     start = time.perf_counter()
-    cells, origin, directions = rays_to_cast(sensor, target.cast_bounds, sensor_from_object, options.window)
+    cast_bounds = target.cast_bounds if cast_bounds is None else cast_bounds
+    cells, origin, directions = rays_to_cast(sensor, cast_bounds, sensor_from_object, window)
     results = map(target.bvh.ray_cast, repeat(Vector(origin), len(cells)), directions.tolist(),
                   repeat(sensor.max_range, len(cells)))
     # One pass over the results: (polygon, distance) per ray, polygon -1 for a miss.
@@ -184,10 +201,23 @@ def cast_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray
     hit = found[:, 0] >= 0
     polygons, bvh_range = found[hit, 0].astype(np.int64), found[hit, 1]
     ranges, cos_incidence = _refined_ranges(target.planes[polygons], origin, directions[hit], bvh_range)
-    returns = build_returns(sensor, cells[hit], ranges, target.reflectivity[polygons], cos_incidence,
+    return Trace(len(cells), cells[hit], ranges, cos_incidence, polygons, time.perf_counter() - start)
+
+
+def cast_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray, options: ScanOptions,
+              sweep: int = 0, velocity=(0.0, 0.0), bounds: np.ndarray | None = None,
+              trace: Trace | None = None) -> Scan:
+    """Scan ``target`` placed by ``sensor_from_object``: one row per return (returns.py).
+    The Scan's box is ``bounds`` (2, 3, object frame; default the geometry's) placed.
+    A ``trace`` of this very pose (``trace_rays``) is reused instead of casting again."""
+    trace = trace or trace_rays(target, sensor, sensor_from_object, options.window)
+    start = time.perf_counter()
+    polygons = trace.polygons
+    returns = build_returns(sensor, trace.cells, trace.ranges, target.reflectivity[polygons], trace.cos_incidence,
                             target.source_index[polygons], options, sweep)
-    box = placed_box(target.bounds, sensor_from_object, velocity)
-    return Scan(returns, box, len(cells), time.perf_counter() - start, sensor.dataset, [sensor_from_object])
+    box = placed_box(target.bounds if bounds is None else bounds, sensor_from_object, velocity)
+    return Scan(returns, box, trace.rays, trace.seconds + time.perf_counter() - start, sensor.dataset,
+                [sensor_from_object])
 
 
 def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflectivity: np.ndarray,

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .raycast import ScanOptions, cast_rays, placement
+from .raycast import ScanOptions, Trace, cast_rays, placement, trace_rays
 from .returns import Scan
 from .sensors import Sensor
 from .targets import ScanTarget
@@ -57,17 +57,39 @@ def sample_motion(class_name: str, rng: np.random.Generator) -> Motion:
 
 
 def scan_sweeps(target: ScanTarget, sensor: Sensor, x: float, y: float, heading: float, motion: Motion,
-                sweeps: int, options: ScanOptions = ScanOptions()) -> Scan:
-    """``sweeps`` sweeps of ``target`` moving with ``motion``, merged, current sweep first."""
+                sweeps: int, options: ScanOptions = ScanOptions(), bounds: np.ndarray | None = None,
+                box_margin: float | None = None) -> Scan:
+    """``sweeps`` sweeps of ``target`` moving with ``motion``, merged, current sweep first.
+    ``bounds`` (2, 3, object frame) is the box that stands on the ground and that the
+    Scan reports (default: the geometry's bounds). Sweeps that see the object at the
+    same pose (a still object) share one ray cast; their noise and drops still differ.
+
+    ``box_margin`` (m): cast only the rays that meet the current box grown by it, the
+    only rays whose returns can lie in that box (a database keeps just those): older
+    sweeps of a moving object then cost only the part that overlaps the box."""
     if sweeps < 1:
         raise ValueError(f"sweeps must be at least 1, got {sweeps}")
+    bounds = target.bounds if bounds is None else bounds
     direction = np.array([np.cos(heading), np.sin(heading)])
     velocity = motion.speed * direction
-    parts = []
+    parts, traces = [], {}
     for sweep in range(sweeps):
-        shift = motion.displacement(-sweep * sensor.sweep_seconds) * direction
-        pose = placement(target.bounds, sensor, x + shift[0], y + shift[1], heading)
-        parts.append(cast_rays(target, sensor, pose, options, sweep, velocity))
+        travelled = motion.displacement(-sweep * sensor.sweep_seconds)
+        shift = travelled * direction
+        pose = placement(bounds, sensor, x + shift[0], y + shift[1], heading)
+        cast_bounds = None
+        if box_margin is not None:  # the current box in this sweep's object frame, met with the geometry's
+            current = bounds + np.array([[-travelled - box_margin, -box_margin, -box_margin],
+                                         [-travelled + box_margin, box_margin, box_margin]])
+            cast_bounds = np.stack([np.maximum(current[0], target.cast_bounds[0]),
+                                    np.minimum(current[1], target.cast_bounds[1])])
+        key = (pose.tobytes(), None if cast_bounds is None else cast_bounds.tobytes())
+        if key not in traces:
+            if cast_bounds is not None and np.any(cast_bounds[1] < cast_bounds[0]):
+                traces[key] = Trace(0, *(np.zeros(0, dtype) for dtype in ("i8", "f8", "f8", "i8")), 0.0)
+            else:
+                traces[key] = trace_rays(target, sensor, pose, options.window, cast_bounds)
+        parts.append(cast_rays(target, sensor, pose, options, sweep, velocity, bounds, traces[key]))
     return Scan(np.concatenate([part.returns for part in parts]), parts[0].box,
                 sum(part.rays for part in parts), sum(part.seconds for part in parts), sensor.dataset,
                 [part.poses[0] for part in parts])

@@ -1,0 +1,186 @@
+"""The bank's settings, from a TOML file; every key optional (defaults: the paper's).
+
+    [bank]
+    dataset = "nuscenes"        # nuscenes | kitti | lyft: grid, columns, intensity scale, class names
+    sensor = ""                 # preset name or sensor .toml (relative to this file); "" = the dataset's
+    formats = ["openpcdet", "mmdet3d"]
+    seed = 0
+    min_points = 16             # entries with fewer points in the box are dropped
+    max_distance = 0.0          # m from the sensor to the box centre; 0 = no filter (paper option: 54)
+    sweeps = 0                  # merged sweeps per entry; 0 = the dataset's (nuScenes 10, others 1)
+    radius_scale = 1.0          # surfel radius / point spacing, for point objects
+    intensity_checkpoint = ""   # train_intensity.py output; "" = the physical intensity
+    chunk_size = 64             # entries per unit of work (resume and sharding granularity)
+
+    [grid]                      # [start, stop, step], stop included
+    headings_deg = [-180, 180, 30]
+    x = [-50, 50, 5]            # m, box centre in the sensor frame (defaults per dataset)
+    y = [-50, 50, 5]
+    ego_clearance = 2.0         # m: positions whose box comes closer to the sensor are skipped
+
+    [jitter]
+    centre = 0.5                # m: box centre moved by U(-centre, centre) in x and y
+    size = 0.05                 # relative: each axis scaled by 1 + N(0, size) clipped to +-size
+    size_variants = 8           # differently jittered copies (one BVH each) per object
+
+    [scan]
+    range_noise = true          # Gaussian range noise with the sensor's sigma
+    drop_rate = 0.0
+    max_incidence_deg = 90.0
+
+    [classes]                   # object class = dataset class name; "" skips that class
+    bus = "Misc"
+
+Unknown keys and wrong types raise InputError naming the file and the key.
+"""
+
+import tomllib
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from ..classes import DATASETS
+from ..errors import InputError
+
+FORMATS = ("openpcdet", "mmdet3d")
+
+# The paper's perception range per dataset (REFERENCE.md 4): x and y [start, stop, step] m.
+DATASET_GRIDS = {
+    "nuscenes": ((-50.0, 50.0, 5.0), (-50.0, 50.0, 5.0)),
+    "kitti": ((0.0, 70.0, 5.0), (-40.0, 40.0, 5.0)),
+    "lyft": ((-80.0, 80.0, 5.0), (-80.0, 80.0, 5.0)),
+}
+
+
+@dataclass(frozen=True)
+class BankConfig:
+    """Validated bank settings; see the module docstring for each key's meaning."""
+
+    dataset: str = "nuscenes"
+    sensor: str = ""
+    formats: tuple = FORMATS
+    seed: int = 0
+    min_points: int = 16
+    max_distance: float = 0.0
+    sweeps: int = 0
+    radius_scale: float = 1.0
+    intensity_checkpoint: str = ""
+    chunk_size: int = 64
+    headings_deg: tuple = (-180.0, 180.0, 30.0)
+    x: tuple = ()
+    y: tuple = ()
+    ego_clearance: float = 2.0
+    centre_jitter: float = 0.5
+    size_jitter: float = 0.05
+    size_variants: int = 8
+    range_noise: bool = True
+    drop_rate: float = 0.0
+    max_incidence_deg: float = 90.0
+    classes: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        grid_x, grid_y = DATASET_GRIDS.get(self.dataset, DATASET_GRIDS["nuscenes"])
+        object.__setattr__(self, "x", tuple(self.x) or grid_x)
+        object.__setattr__(self, "y", tuple(self.y) or grid_y)
+
+    def to_dict(self) -> dict:
+        """Plain JSON values: what the manifest records and ``--resume`` compares."""
+        return {key: list(value) if isinstance(value, tuple) else value for key, value in asdict(self).items()}
+
+
+# TOML section.key -> BankConfig field and the check of its value.
+def _positive_int(value):
+    return isinstance(value, int) and not isinstance(value, bool) and value > 0
+
+
+def _non_negative(value):
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 0
+
+
+def _grid_range(value):
+    if not (isinstance(value, list) and len(value) == 3 and all(_number(v) for v in value)):
+        return False
+    start, stop, step = value
+    return step > 0 and stop >= start
+
+
+def _number(value):
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+_KEYS = {
+    "bank.dataset": ("dataset", lambda v: v in DATASETS, f"one of {', '.join(DATASETS)}"),
+    "bank.sensor": ("sensor", lambda v: isinstance(v, str), "a preset name or a .toml path"),
+    "bank.formats": ("formats", lambda v: isinstance(v, list) and v and set(v) <= set(FORMATS),
+                     f"a non-empty list of {', '.join(FORMATS)}"),
+    "bank.seed": ("seed", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+                  "an integer >= 0"),
+    "bank.min_points": ("min_points", _positive_int, "an integer >= 1"),
+    "bank.max_distance": ("max_distance", _non_negative, "metres >= 0 (0: no filter)"),
+    "bank.sweeps": ("sweeps", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+                    "an integer >= 0 (0: the dataset's)"),
+    "bank.radius_scale": ("radius_scale", lambda v: _number(v) and v > 0, "a number > 0"),
+    "bank.intensity_checkpoint": ("intensity_checkpoint", lambda v: isinstance(v, str), "a path"),
+    "bank.chunk_size": ("chunk_size", _positive_int, "an integer >= 1"),
+    "grid.headings_deg": ("headings_deg", _grid_range, "[start, stop, step] degrees, step > 0"),
+    "grid.x": ("x", _grid_range, "[start, stop, step] metres, step > 0"),
+    "grid.y": ("y", _grid_range, "[start, stop, step] metres, step > 0"),
+    "grid.ego_clearance": ("ego_clearance", _non_negative, "metres >= 0"),
+    "jitter.centre": ("centre_jitter", _non_negative, "metres >= 0"),
+    "jitter.size": ("size_jitter", lambda v: _number(v) and 0 <= v < 0.5, "a fraction in [0, 0.5)"),
+    "jitter.size_variants": ("size_variants", _positive_int, "an integer >= 1"),
+    "scan.range_noise": ("range_noise", lambda v: isinstance(v, bool), "true or false"),
+    "scan.drop_rate": ("drop_rate", lambda v: _number(v) and 0 <= v < 1, "a fraction in [0, 1)"),
+    "scan.max_incidence_deg": ("max_incidence_deg", lambda v: _number(v) and 0 < v <= 90, "degrees in (0, 90]"),
+}
+_SECTIONS = {"bank", "grid", "jitter", "scan", "classes"}
+
+
+def load_config(path) -> BankConfig:
+    """The BankConfig of a TOML file; relative sensor and checkpoint paths are taken
+    relative to the file. A bad file, section, key or value raises InputError."""
+    path = Path(path)
+    try:
+        table = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
+        raise InputError(path, f"not a readable TOML file: {error}") from None
+    return config_from_table(table, path)
+
+
+def config_from_table(table: dict, path="bank config") -> BankConfig:
+    values = {}
+    for section, entries in table.items():
+        if section not in _SECTIONS:
+            raise InputError(path, f"unknown section [{section}] (known: {', '.join(sorted(_SECTIONS))})")
+        if not isinstance(entries, dict):
+            raise InputError(path, f"{section} must be a [{section}] table")
+        if section == "classes":
+            bad = [key for key, name in entries.items() if not isinstance(name, str)]
+            if bad:
+                raise InputError(path, f"classes.{bad[0]}: expected a dataset class name (a string)")
+            values["classes"] = dict(entries)
+            continue
+        for key, value in entries.items():
+            name = f"{section}.{key}"
+            if name not in _KEYS:
+                known = ", ".join(k for k in _KEYS if k.startswith(section + "."))
+                raise InputError(path, f"unknown key {name} (known: {known})")
+            attribute, valid, expected = _KEYS[name]
+            if not valid(value):
+                raise InputError(path, f"{name} = {value!r}: expected {expected}")
+            values[attribute] = tuple(value) if isinstance(value, list) else value
+    for attribute in ("sensor", "intensity_checkpoint"):
+        value = values.get(attribute, "")
+        if value.endswith((".toml", ".pt")) and not Path(value).is_absolute() and isinstance(path, Path):
+            values[attribute] = str((path.parent / value).resolve())
+    return BankConfig(**values)
+
+
+def grid_values(start: float, stop: float, step: float) -> np.ndarray:
+    """start, start + step, ... up to stop included (to 1e-9 of a step)."""
+    count = int(np.floor((stop - start) / step + 1e-9)) + 1
+    return start + step * np.arange(count)
+
+
+CONFIG_FIELDS = tuple(f.name for f in fields(BankConfig))

@@ -1,0 +1,409 @@
+"""Export a bank: entries in chunks, on any executor, resumable, then one assembly.
+
+Output folder::
+
+    OUT/manifest.json                           config, objects, versions, counts, sha256 per file
+    OUT/<format>/<dataset>_dbinfos_pgt.pkl      the info pickle (formats.py)
+    OUT/<format>/pgt_gt_database/<object>_<class>_<index>.bin
+    OUT/.work/identity.json                     what this bank is made of (checked on --resume)
+    OUT/.work/chunks/<chunk>.pkl                one chunk's infos, file checksums and statistics
+
+A chunk is ``chunk_size`` consecutive entries (objects in name order, each in grid
+order). Each chunk's .bin files are written first, its record last, each file
+atomically, so a chunk is done exactly when its record exists: a killed run resumes
+with the chunks that have none, and since every entry is a function of the config and
+its own seed, the bank ends byte-identical whatever the workers, shards or restarts.
+The pickles and the manifest are written last, from the records, in chunk order.
+"""
+
+import hashlib
+import json
+import os
+import pickle
+import shutil
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..files import atomic_output
+from ..scan.physical_intensity import dataset_intensity
+from ..scan.sensors import INTENSITY_MAX, sensor_from_name
+from ..scan.targets import element_colors
+from .config import BankConfig
+from .entries import TargetCache, scan_entry
+from .formats import DATABASE_FOLDER, class_name_for, database_record, entry_points
+from .grid import object_entries
+from .inputs import BankObject, safe_name
+
+WORK = ".work"
+MANIFEST = "manifest.json"
+INTENSITY_BINS = 32  # the report's per-class intensity histograms, over the dataset's range
+
+STATS_DTYPE = np.dtype([("object", "i4"), ("index", "i4"), ("x", "f4"), ("y", "f4"), ("heading", "f4"),
+                        ("points", "i4"), ("kept", "?")])
+
+
+@dataclass
+class BankJob:
+    """Everything a worker needs: the objects, the config, the output folder."""
+
+    objects: list
+    config: BankConfig
+    out: Path
+    class_names: list = field(default_factory=list)  # per object: the dataset's class name
+
+    @property
+    def sensor(self):
+        return sensor_from_name(self.config.sensor or self.config.dataset)
+
+    def entries(self) -> np.ndarray:
+        """Every entry of the bank, object by object (grid.ENTRY_DTYPE)."""
+        return np.concatenate([object_entries(self.config, i, obj.class_name, obj.dims)
+                               for i, obj in enumerate(self.objects)])
+
+    def chunks(self, entries: np.ndarray) -> list:
+        size = self.config.chunk_size
+        return [entries[start:start + size] for start in range(0, len(entries), size)]
+
+
+def new_job(objects: list, config: BankConfig, out) -> BankJob:
+    """A job for ``objects`` (checked BankObjects); InputError for a class without a
+    dataset name, an unusable sensor or intensity checkpoint."""
+    job = BankJob(objects, config, Path(out))
+    unnamed = sorted({obj.class_name for obj in objects if class_name_for(config.dataset, obj.class_name,
+                                                                          config.classes) is None})
+    if unnamed:
+        raise InputError(out, f"no {config.dataset} class for {', '.join(unnamed)}: name one in the config's "
+                              f"[classes] table (\"\" skips the class)")
+    job.class_names = [class_name_for(config.dataset, obj.class_name, config.classes) for obj in objects]
+    job.objects = [obj for obj, name in zip(objects, job.class_names) if name]
+    job.class_names = [name for name in job.class_names if name]
+    if not job.objects:
+        raise InputError(out, "every object's class is skipped by the config's [classes] table")
+    if job.sensor.dataset != config.dataset:
+        raise InputError(config.sensor, f"is a {job.sensor.dataset} sensor, the bank is {config.dataset}")
+    if config.intensity_checkpoint:
+        _estimator(config)  # fails now, not in a worker
+    return job
+
+
+def identity(job: BankJob, chunk_count: int) -> dict:
+    """What the bank is made of: equal identities give equal banks."""
+    return {"config": job.config.to_dict(), "objects": [obj.summary() for obj in job.objects],
+            "class_names": job.class_names, "chunks": chunk_count}
+
+
+def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared: bool = False) -> None:
+    """Make ``out`` ready: new or empty; with ``overwrite`` an earlier bank there is
+    removed; with ``resume`` (or ``shared``, for shards) an unfinished bank of the same
+    identity is continued. Anything else is refused with InputError."""
+    marker = out / WORK / "identity.json"
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file, not an output folder")
+    if out.is_dir() and any(out.iterdir()):
+        is_bank = marker.is_file() or (out / MANIFEST).is_file()
+        if overwrite:
+            if not is_bank:
+                raise InputError(out, "is not empty and holds no bank: refusing to delete it; choose another --out")
+            for child in out.iterdir():
+                shutil.rmtree(child) if child.is_dir() else child.unlink()
+        elif resume or shared:
+            if not marker.is_file():
+                raise InputError(out, "holds no unfinished bank to resume (no .work/identity.json)")
+            if json.loads(marker.read_text()) != ident:
+                raise InputError(out, "holds a bank of other objects or settings; use --overwrite or another --out")
+            return
+        else:
+            raise InputError(out, "is not empty: pass --resume to continue the bank there or --overwrite to replace it")
+    (out / WORK / "chunks").mkdir(parents=True, exist_ok=True)
+    with atomic_output(marker) as stream:
+        stream.write(json.dumps(ident, indent=1).encode())
+
+
+def chunk_record_path(out: Path, chunk_id: int) -> Path:
+    return out / WORK / "chunks" / f"{chunk_id:06d}.pkl"
+
+
+def pending_chunks(out: Path, chunk_count: int, shard=(0, 1)) -> list:
+    """The chunk ids of this shard (id % count == index) that have no record yet."""
+    index, count = shard
+    return [i for i in range(index, chunk_count, count) if not chunk_record_path(out, i).is_file()]
+
+
+@dataclass
+class Plan:
+    """A bank ready to run: its job, every chunk of entries, the chunk ids left to do."""
+
+    job: BankJob
+    chunks: list
+    pending: list
+
+    @property
+    def pending_entries(self) -> int:
+        return sum(len(self.chunks[i]) for i in self.pending)
+
+
+def plan_bank(objects: list, config: BankConfig, out, resume: bool = False, overwrite: bool = False,
+              shard=None) -> Plan:
+    """Check the inputs, ready the output folder (see ``prepare_folder``) and list the
+    chunks to do; ``shard`` (i, n) keeps chunk ids = i mod n."""
+    job = new_job(objects, config, out)
+    chunks = job.chunks(job.entries())
+    prepare_folder(job.out, identity(job, len(chunks)), resume, overwrite, shared=shard is not None)
+    return Plan(job, chunks, pending_chunks(job.out, len(chunks), shard or (0, 1)))
+
+
+def run_plan(plan: Plan, workers: int = 1, executor: str = "local", address: str | None = None):
+    """Export the pending chunks; yields each one's entry count as it finishes."""
+    if executor == "ray":
+        return run_ray(plan.job, plan.chunks, plan.pending, address)
+    return run_local(plan.job, plan.chunks, plan.pending, workers)
+
+
+def export_bank(objects: list, config: BankConfig, out, workers: int = 1, overwrite: bool = False) -> dict:
+    """The whole export in one call (no progress bar): returns the manifest."""
+    plan = plan_bank(objects, config, out, overwrite=overwrite)
+    for _ in run_plan(plan, workers):
+        pass
+    return assemble(plan.job.out)
+
+
+# One job per worker process, set by the pool's initializer (or before a fork).
+_job: BankJob | None = None
+_cache: TargetCache | None = None
+
+
+def start_worker(job: BankJob) -> None:
+    global _job, _cache
+    if "bpy" not in sys.modules:
+        # A spawned worker inherits the parent's sys.path, to which the bpy module added
+        # its scripts folders; their "bpy" package would shadow the module itself.
+        sys.path[:] = [path for path in sys.path if Path(path).parent.name != "scripts"]
+    _job, _cache = job, TargetCache(job.objects, job.config)
+
+
+def run_chunk(chunk_id: int, entries: np.ndarray) -> int:
+    """Export one chunk in this worker (``start_worker`` first); returns its entry count."""
+    write_chunk(_job, _cache, chunk_id, entries)
+    return len(entries)
+
+
+def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.ndarray) -> None:
+    """Scan ``entries``, write their .bin files in every format, then the chunk record."""
+    config, sensor = job.config, job.sensor
+    infos = {fmt: [] for fmt in config.formats}
+    files, stats = {}, np.zeros(len(entries), STATS_DTYPE)
+    histograms = {}
+    for row, entry in zip(stats, entries):
+        obj: BankObject = job.objects[entry["object"]]
+        scan, keep = scan_entry(cache, sensor, entry, config)
+        rows = scan.returns[keep]
+        row["object"], row["index"], row["heading"] = entry["object"], entry["index"], entry["heading"]
+        row["x"], row["y"], row["points"] = scan.box[0], scan.box[1], len(rows)
+        row["kept"] = len(rows) >= config.min_points
+        if not row["kept"]:
+            continue
+        if config.intensity_checkpoint:
+            rows["intensity"] = _learned_intensity(config, cache, entry, obj, scan, keep)
+        class_name = job.class_names[entry["object"]]
+        name = f"{safe_name(obj.name)}_{class_name}_{int(entry['index']):05d}.bin"
+        shared = {"name": class_name, "path": f"{DATABASE_FOLDER}/{name}", "image_idx": f"pgt/{obj.name}",
+                  "gt_idx": int(entry["index"]), "group_id": _group_id(entry)}
+        points = entry_points(rows, config.dataset)
+        for fmt in config.formats:
+            data, info = database_record(fmt, config.dataset, points, scan.box, shared)
+            relative = f"{fmt}/{info['path']}"
+            files[relative] = _write_bytes(job.out / relative, data.tobytes())
+            infos[fmt].append(info)
+        histogram = histograms.setdefault(class_name, np.zeros(INTENSITY_BINS, np.int64))
+        histogram += np.histogram(rows["intensity"], INTENSITY_BINS, (0.0, INTENSITY_MAX[config.dataset]))[0]
+    record = {"chunk": chunk_id, "infos": infos, "files": files, "stats": stats, "intensity": histograms}
+    _write_bytes(chunk_record_path(job.out, chunk_id), pickle.dumps(record, protocol=4))
+
+
+def _group_id(entry) -> int:
+    """Unique over the bank: objects' grids never exceed 2**24 entries."""
+    return int(entry["object"]) * 2**24 + int(entry["index"])
+
+
+def _write_bytes(path: Path, data: bytes) -> str:
+    """Write ``data`` atomically (parents made) and return its sha256."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_output(path) as stream:
+        stream.write(data)
+    return hashlib.sha256(data).hexdigest()
+
+
+_estimators: dict = {}
+
+
+def _estimator(config: BankConfig):
+    from ..intensity.estimator import IntensityEstimator
+
+    if config.intensity_checkpoint not in _estimators:
+        _estimators[config.intensity_checkpoint] = IntensityEstimator.load(config.intensity_checkpoint,
+                                                                           config.dataset)
+    return _estimators[config.intensity_checkpoint]
+
+
+def _learned_intensity(config: BankConfig, cache: TargetCache, entry, obj: BankObject, scan, keep) -> np.ndarray:
+    """The estimator's intensities (dataset scale) for the kept returns, each in the box
+    frame of the pose its sweep saw, with the colour of the element it hit (grey
+    without colours). One object per call: the same numbers whatever the chunking."""
+    import torch
+
+    torch.set_num_threads(1)  # float sums in a fixed order: the same bytes on any machine load
+    _, bounds = cache.get(int(entry["object"]), int(entry["variant"]))
+    colors = element_colors(obj.geometry)
+    rows = scan.returns[keep]
+    rgb = np.full((len(rows), 3), 0.5, np.float32) if colors is None else colors[rows["face"]]
+    relative = _estimator(config).predict(scan.box_frame_points(bounds)[keep], bounds[1] - bounds[0], rgb,
+                                          obj.class_name, obj.name)
+    return dataset_intensity(relative, config.dataset)
+
+
+def assemble(out: Path) -> dict:
+    """Write every format's info pickle and then the manifest from the chunk records
+    (all must exist: InputError names the missing ones). Returns the manifest."""
+    ident = json.loads((out / WORK / "identity.json").read_text())
+    config = ident["config"]
+    missing = [i for i in range(ident["chunks"]) if not chunk_record_path(out, i).is_file()]
+    if missing:
+        raise InputError(out, f"{len(missing)} of {ident['chunks']} chunks not exported yet "
+                              f"(first: {missing[0]}); run the missing shards or --resume")
+    infos = {fmt: {} for fmt in config["formats"]}
+    files, counts, dropped = {}, {}, {}
+    for chunk_id in range(ident["chunks"]):
+        record = pickle.loads(chunk_record_path(out, chunk_id).read_bytes())
+        for fmt, entries in record["infos"].items():
+            for info in entries:
+                infos[fmt].setdefault(info["name"], []).append(info)
+        files.update(record["files"])
+        for row in record["stats"]:
+            name = ident["class_names"][row["object"]]
+            bucket = counts if row["kept"] else dropped
+            bucket[name] = bucket.get(name, 0) + 1
+    pickle_name = f"{config['dataset']}_dbinfos_pgt.pkl"
+    for fmt, by_class in infos.items():
+        relative = f"{fmt}/{pickle_name}"
+        files[relative] = _write_bytes(out / relative, pickle.dumps(by_class, protocol=4))
+    manifest = {
+        "pgt_blender": _version(), "config": config, "seed": config["seed"], "objects": ident["objects"],
+        "versions": _library_versions(), "frames": FRAMES,
+        "info_pickles": {fmt: f"{fmt}/{pickle_name}" for fmt in config["formats"]},
+        "entries": sum(counts.values()), "counts": dict(sorted(counts.items())),
+        "dropped_below_min_points": dict(sorted(dropped.items())),
+        "files": dict(sorted(files.items())),
+    }
+    with atomic_output(out / MANIFEST) as stream:
+        stream.write(json.dumps(manifest, indent=1).encode())
+    return manifest
+
+
+FRAMES = ("sensor frame of the dataset's LiDAR (KITTI x forward, y left; nuScenes x right, y forward; z up); "
+          "openpcdet: points and box3d_lidar z relative to / at the box centre; mmdet3d: at the box bottom "
+          "centre; points keep the sensor's orientation; heading from +x counter-clockwise")
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("pgt_blender")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _library_versions() -> dict:
+    import numpy
+    import scipy
+
+    versions = {"numpy": numpy.__version__, "scipy": scipy.__version__}
+    try:
+        import bpy
+
+        versions["blender"] = bpy.app.version_string
+    except ImportError:
+        pass
+    return versions
+
+
+def copy_shard(source: Path, out: Path) -> int:
+    """Copy a shard folder's chunk records and database files into ``out`` (same
+    identity required); returns the records copied."""
+    ident = json.loads((out / WORK / "identity.json").read_text())
+    marker = source / WORK / "identity.json"
+    if not marker.is_file() or json.loads(marker.read_text()) != ident:
+        raise InputError(source, "is not a shard of this bank (its .work/identity.json differs or is missing)")
+    records = sorted((source / WORK / "chunks").glob("*.pkl"))
+    for record_path in records:
+        record = pickle.loads(record_path.read_bytes())
+        for relative in record["files"]:
+            target = out / relative
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(source / relative, target)
+        shutil.copyfile(record_path, out / WORK / "chunks" / record_path.name)  # last: the chunk counts once here
+    return len(records)
+
+
+def run_local(job: BankJob, chunks: list, pending: list, workers: int):
+    """Yield each pending chunk's entry count as it finishes, on ``workers`` processes
+    (1: in this process). Linux forks (the BVH library is already loaded), except for a
+    learned intensity: PyTorch's thread pool does not survive a fork, so those workers,
+    like every worker elsewhere, are spawned with the job."""
+    if workers <= 1 or len(pending) <= 1:
+        cache = TargetCache(job.objects, job.config)
+        for chunk_id in pending:
+            write_chunk(job, cache, chunk_id, chunks[chunk_id])
+            yield len(chunks[chunk_id])
+        return
+    import multiprocessing
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    forks = sys.platform == "linux" and not job.config.intensity_checkpoint
+    context = multiprocessing.get_context("fork" if forks else "spawn")
+    with ProcessPoolExecutor(workers, context, initializer=start_worker, initargs=(job,)) as pool:
+        queue = list(pending)
+        running = set()
+        while queue or running:
+            # A bounded queue: at most two chunks per worker wait, so memory stays flat.
+            while queue and len(running) < 2 * workers:
+                chunk_id = queue.pop(0)
+                running.add(pool.submit(run_chunk, chunk_id, chunks[chunk_id]))
+            done, running = wait(running, return_when=FIRST_COMPLETED)
+            for future in done:
+                yield future.result()
+
+
+def run_ray(job: BankJob, chunks: list, pending: list, address: str | None):
+    """The same chunks as tasks on a Ray cluster (``address`` None: a local one). Every
+    node must see ``job.out`` (a shared file system) and have pgt_blender's Python."""
+    import ray
+
+    ray.init(address=address, ignore_reinit_error=True, log_to_driver=False,
+             runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in _python_path() if p)}})
+    try:
+        job_ref = ray.put(job)
+        remote = ray.remote(_ray_chunk)
+        running = [remote.remote(job_ref, chunk_id, chunks[chunk_id]) for chunk_id in pending]
+        while running:
+            done, running = ray.wait(running, num_returns=1)
+            yield ray.get(done[0])
+    finally:
+        ray.shutdown()
+
+
+def _python_path() -> list:
+    """This process's import path for pgt_blender, so Ray workers find the same code."""
+    package_parent = str(Path(__file__).resolve().parents[3])
+    return [package_parent, os.environ.get("PYTHONPATH", "")]
+
+
+def _ray_chunk(job: BankJob, chunk_id: int, entries: np.ndarray) -> int:
+    global _job, _cache
+    if _job is None or _job.out != job.out:
+        start_worker(job)
+    return run_chunk(chunk_id, entries)

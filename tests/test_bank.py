@@ -1,0 +1,437 @@
+"""The bank export: config, grid, the two frameworks' loading contracts for nuScenes and
+KITTI, determinism over workers, executors and shards, resume after a kill, bad input."""
+
+import json
+import os
+import pickle
+import resource
+import signal
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pgt_blender.core.authoring.prepare import prepare, write_prepared
+from pgt_blender.core.bank import export
+from pgt_blender.core.bank.config import BankConfig, config_from_table, grid_values, load_config
+from pgt_blender.core.bank.entries import BOX_TOLERANCE, inside_box
+from pgt_blender.core.bank.formats import BOX_VALUES, kitti_image_box
+from pgt_blender.core.bank.grid import footprint_distance, object_entries
+from pgt_blender.core.bank.inputs import checked_objects, prepared_objects
+from pgt_blender.core.errors import InputError
+from pgt_blender.core.importing import load_reconstruction
+from pgt_blender.core.samples import write_sample
+from pgt_blender.core.scan.sensors import PRESETS
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "headless_scripts" / "export_bank.py"
+CHRONO_TRUCK = Path("data") / "vehicle" / "truck" / "truck_chassis.obj"
+# A small grid: 5 headings x 3 x 3 positions (less the sensor's own) per object.
+SMALL = {"grid": {"headings_deg": [-180, 180, 90], "x": [-20, 20, 20], "y": [-20, 20, 20]},
+         "bank": {"chunk_size": 4}}
+
+
+def write_config(path: Path, table: dict) -> Path:
+    lines = []
+    for section, entries in table.items():
+        lines.append(f"[{section}]")
+        lines += [f"{key} = {json.dumps(value)}" for key, value in entries.items()]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def run_script(*args, check=True, **kwargs):
+    result = subprocess.run([sys.executable, str(SCRIPT), *map(str, args)], capture_output=True, text=True,
+                            **kwargs)
+    if check:
+        assert result.returncode == 0, result.stderr
+    return result
+
+
+def bank_bytes(out: Path) -> dict:
+    """Every file of a bank but the work records' folder, by relative path."""
+    return {str(path.relative_to(out)): path.read_bytes() for path in sorted(out.rglob("*"))
+            if path.is_file() and ".work" not in path.parts and not path.name.startswith("report")}
+
+
+@pytest.fixture(scope="module")
+def prepared(tmp_path_factory, shared_data) -> Path:
+    """Prepared objects: the built-in sample truck and bicycle (points, so surfels) and
+    the Chrono truck mesh (11k triangles), each authored to a nuScenes class size."""
+    folder = tmp_path_factory.mktemp("prepared")
+    samples = tmp_path_factory.mktemp("samples")
+    for class_name, seed in (("truck", 1), ("bicycle", 2)):
+        source = write_sample(samples, class_name, seed=seed, points=3000)["reconstruction.ply"]
+        write_prepared(prepare(load_reconstruction(source), class_name, up="pca", heading_method="baseline",
+                               seed=seed), class_name, "nuscenes", folder)
+    chrono = load_reconstruction(shared_data / "chrono_vehicles" / CHRONO_TRUCK)
+    write_prepared(prepare(chrono, "truck", up="+z", heading_method="none", size="keep"), "truck", "nuscenes",
+                   folder)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def objects(prepared) -> list:
+    found, incomplete = prepared_objects(prepared)
+    return checked_objects(found, incomplete, False, prepared)
+
+
+@pytest.fixture(scope="module", params=["nuscenes", "kitti"])
+def bank(request, objects, tmp_path_factory):
+    """(out folder, manifest) of a small bank of the three objects."""
+    table = {**SMALL, "bank": {**SMALL["bank"], "dataset": request.param}}
+    if request.param == "kitti":
+        table["grid"] = {**table["grid"], "x": [0, 40, 20]}
+        table["classes"] = {"bicycle": "Cyclist"}
+    out = tmp_path_factory.mktemp(f"bank_{request.param}")
+    return out, export.export_bank(objects, config_from_table(table), out, workers=2)
+
+
+# --- config and grid -----------------------------------------------------------------
+
+
+def test_default_config_is_the_papers_nuscenes_bank():
+    config = BankConfig()
+    assert len(grid_values(*config.headings_deg)) == 13
+    assert len(grid_values(*config.x)) == len(grid_values(*config.y)) == 21
+    assert (config.min_points, config.dataset, config.formats) == (16, "nuscenes", ("openpcdet", "mmdet3d"))
+    assert BankConfig(dataset="kitti").x == (0.0, 70.0, 5.0) and BankConfig(dataset="kitti").y == (-40.0, 40.0, 5.0)
+    assert BankConfig(dataset="lyft").x == (-80.0, 80.0, 5.0)
+
+
+@pytest.mark.parametrize("text, named", [
+    ("[grid]\nheadingz = [0, 1, 1]\n", "grid.headingz"),
+    ("[bank]\nmin_points = 0\n", "bank.min_points"),
+    ("[bank]\ndataset = \"waymo\"\n", "bank.dataset"),
+    ("[grid]\nx = [0, 10]\n", "grid.x"),
+    ("[jitter]\nsize = 0.9\n", "jitter.size"),
+    ("[scan]\nrange_noise = 1\n", "scan.range_noise"),
+    ("[sensors]\nx = 1\n", "[sensors]"),
+    ("[classes]\nbus = 3\n", "classes.bus"),
+    ("[bank\n", "not a readable TOML"),
+])
+def test_a_bad_config_names_the_bad_key(tmp_path, text, named):
+    path = tmp_path / "bank.toml"
+    path.write_text(text)
+    with pytest.raises(InputError, match="bank.toml") as error:
+        load_config(path)
+    assert named in str(error.value) and "\n" not in str(error.value)
+
+
+def test_grid_entries_are_jittered_filtered_and_reproducible():
+    dims = np.array([7.0, 2.5, 3.0])
+    config = BankConfig(max_distance=30.0)
+    entries = object_entries(config, 0, "truck", dims)
+    assert np.array_equal(entries, object_entries(config, 0, "truck", dims))
+    assert not np.array_equal(entries, object_entries(BankConfig(max_distance=30.0, seed=1), 0, "truck", dims))
+    assert np.hypot(entries["x"], entries["y"]).max() <= 30.0
+    nominal = np.round(entries["x"] / 5) * 5
+    assert np.abs(entries["x"] - nominal).max() <= config.centre_jitter
+    headings = np.degrees(np.unique(entries["heading"]))
+    np.testing.assert_allclose(headings, np.arange(-180, 181, 30))
+    assert 0 < entries["variant"].min() + 1 and entries["variant"].max() < config.size_variants
+    assert (entries["speed"] == 0).mean() > 0.2 and entries["speed"].max() > 0  # still and moving trucks
+    # The sensor stands on the ego vehicle: no box comes within the clearance.
+    lengths = footprint_distance(entries["x"], entries["y"], entries["heading"], dims[0] * 0.95, dims[1] * 0.95)
+    assert lengths.min() > config.ego_clearance
+    assert footprint_distance(np.array([0.0]), np.array([0.0]), np.array([0.3]), 4.0, 2.0)[0] == 0.0
+
+
+def test_kitti_image_box_and_difficulty():
+    near = np.array([10.0, 0.0, -0.9, 4.0, 1.8, 1.6, 0.0])
+    bbox, difficulty = kitti_image_box(near)
+    assert difficulty == 0 and 0 < bbox[0] < bbox[2] < 1242 and 0 < bbox[1] < bbox[3] <= 375
+    assert kitti_image_box(np.array([60.0, 0.0, -0.9, 4.0, 1.8, 1.0, 0.0]))[1] == 2  # ~12 px tall
+    assert kitti_image_box(np.array([-10.0, 0.0, -0.9, 4.0, 1.8, 1.6, 0.0]))[1] == -1  # behind the camera
+
+
+# --- the frameworks' loading contracts ----------------------------------------------
+
+
+def load_like_openpcdet(root: Path, info: dict, columns: int) -> np.ndarray:
+    """pcdet/datasets/augmentor/database_sampler.py: fromfile, reshape, the count check,
+    then the points moved by the box centre."""
+    points = np.fromfile(str(root / info["path"]), dtype=np.float32).reshape([-1, columns])
+    assert points.shape[0] == info["num_points_in_gt"]
+    points[:, :3] += info["box3d_lidar"][:3]
+    return points
+
+
+def load_like_mmdet3d(root: Path, info: dict, columns: int) -> tuple:
+    """mmdet3d/datasets/transforms/dbsampler.py: fromfile, reshape to load_dim, translate by
+    the (bottom-centre) box; the box back to a centre box for the inside test."""
+    points = np.fromfile(os.path.join(root, info["path"]), dtype=np.float32).reshape(-1, columns)
+    assert points.shape[0] == info["num_points_in_gt"]
+    points[:, :3] += info["box3d_lidar"][:3]
+    box = info["box3d_lidar"].astype(np.float64)
+    box[2] += box[5] / 2
+    return points, box
+
+
+def test_every_entry_loads_through_both_frameworks(bank):
+    out, manifest = bank
+    dataset = manifest["config"]["dataset"]
+    columns = 5 if dataset == "nuscenes" else 4
+    sensor = PRESETS[dataset]
+    loaded = {}
+    for fmt in ("openpcdet", "mmdet3d"):
+        root = out / fmt
+        infos = pickle.loads((root / f"{dataset}_dbinfos_pgt.pkl").read_bytes())
+        loaded[fmt] = infos
+        for name, entries in infos.items():
+            for info in entries:
+                assert info["num_points_in_gt"] >= 16 and len(info["box3d_lidar"]) == BOX_VALUES[dataset]
+                if fmt == "openpcdet":
+                    points, box = load_like_openpcdet(root, info, columns), info["box3d_lidar"].astype(np.float64)
+                else:
+                    points, box = load_like_mmdet3d(root, info, columns)
+                    assert isinstance(info["group_id"], int)
+                # float32 storage of points and box: a few micrometres beyond the tolerance at 30 m
+                assert inside_box(points[:, :3].astype(np.float64), box, BOX_TOLERANCE + 1e-4).all()
+                assert abs(box[2] - box[5] / 2 + sensor.mounting_height) < 1e-4  # standing on the ground
+                if dataset == "nuscenes":
+                    assert np.array_equal(points[:, 3], np.round(points[:, 3])) and points[:, 3].max() <= 255
+                    lags = points[:, 4] / sensor.sweep_seconds
+                    np.testing.assert_allclose(lags, np.round(lags), atol=1e-4)
+                    assert lags.max() <= 9 + 1e-4
+                else:
+                    assert 0 <= points[:, 3].min() and points[:, 3].max() <= 1
+                    assert {"difficulty", "bbox", "score"} <= set(info) or fmt == "mmdet3d"
+    assert set(loaded["openpcdet"]) == set(manifest["counts"])
+    for name, count in manifest["counts"].items():
+        assert len(loaded["openpcdet"][name]) == len(loaded["mmdet3d"][name]) == count
+    assert (set(manifest["counts"]) == {"truck", "bicycle"} if dataset == "nuscenes"
+            else set(manifest["counts"]) == {"Truck", "Cyclist"})
+
+
+def test_manifest_checksums_every_file(bank):
+    import hashlib
+
+    out, manifest = bank
+    files = [path for path in out.rglob("*") if path.is_file() and ".work" not in path.parts
+             and path.name != "manifest.json"]
+    assert sorted(manifest["files"]) == sorted(str(path.relative_to(out)) for path in files)
+    for relative, digest in list(manifest["files"].items())[:50]:
+        assert hashlib.sha256((out / relative).read_bytes()).hexdigest() == digest
+    assert manifest["entries"] == sum(manifest["counts"].values()) > 0
+    assert {obj["name"] for obj in manifest["objects"]} == {"bicycle_reconstruction", "truck_chassis",
+                                                           "truck_reconstruction"}
+
+
+def test_openpcdet_and_mmdet3d_hold_the_same_points(bank):
+    out, manifest = bank
+    dataset = manifest["config"]["dataset"]
+    columns = 5 if dataset == "nuscenes" else 4
+    pcdet = pickle.loads((out / "openpcdet" / f"{dataset}_dbinfos_pgt.pkl").read_bytes())
+    mmdet = pickle.loads((out / "mmdet3d" / f"{dataset}_dbinfos_pgt.pkl").read_bytes())
+    for name in pcdet:
+        for a, b in zip(pcdet[name][:20], mmdet[name][:20]):
+            first = load_like_openpcdet(out / "openpcdet", a, columns)
+            second, _ = load_like_mmdet3d(out / "mmdet3d", b, columns)
+            np.testing.assert_allclose(first, second, atol=2e-5)
+
+
+# --- determinism, executors, shards, resume -------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def reference(objects, tmp_path_factory, prepared):
+    """A nuScenes bank in one process, and its config file."""
+    config_path = write_config(tmp_path_factory.mktemp("config") / "bank.toml", SMALL)
+    out = tmp_path_factory.mktemp("reference") / "bank"
+    export.export_bank(objects, load_config(config_path), out, workers=1)
+    return out, config_path
+
+
+def test_same_bank_whatever_the_workers(reference, prepared, tmp_path):
+    out, config = reference
+    run_script("--objects", prepared, "--config", config, "--out", tmp_path / "two", "--workers", "2")
+    assert bank_bytes(tmp_path / "two") == bank_bytes(out)
+
+
+def test_shards_assemble_to_the_same_bank(reference, prepared, tmp_path):
+    out, config = reference
+    for index in range(3):
+        result = run_script("--objects", prepared, "--config", config, "--out", tmp_path / f"shard{index}",
+                            "--shard", f"{index}/3", "--workers", "1")
+        assert "--assemble" in result.stdout
+    assert not (tmp_path / "shard0" / "manifest.json").exists()
+    failed = run_script("--assemble", "--out", tmp_path / "shard0", check=False)
+    assert failed.returncode == 1 and "not exported yet" in failed.stderr
+    run_script("--assemble", "--out", tmp_path / "shard0", "--from", tmp_path / "shard1", tmp_path / "shard2")
+    assert bank_bytes(tmp_path / "shard0") == bank_bytes(out)
+
+
+def test_a_killed_run_resumes_to_the_same_bank(reference, prepared, tmp_path):
+    out, config = reference
+    target = tmp_path / "bank"
+    process = subprocess.Popen([sys.executable, str(SCRIPT), "--objects", str(prepared), "--config", str(config),
+                                "--out", str(target), "--workers", "2"], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, start_new_session=True)
+    chunks = target / ".work" / "chunks"
+    deadline = time.monotonic() + 120
+    while len(list(chunks.glob("*.pkl"))) < 5 and time.monotonic() < deadline and process.poll() is None:
+        time.sleep(0.05)
+    os.killpg(process.pid, signal.SIGKILL)  # the whole run, workers too, mid-way
+    process.wait()
+    done = len(list(chunks.glob("*.pkl")))
+    total = json.loads((target / ".work" / "identity.json").read_text())["chunks"]
+    assert 0 < done < total and not (target / "manifest.json").exists()
+    refused = run_script("--objects", prepared, "--config", config, "--out", target, check=False)
+    assert refused.returncode == 1 and "not empty" in refused.stderr
+    result = run_script("--objects", prepared, "--config", config, "--out", target, "--resume")
+    assert f"{total - done} to do" in result.stdout
+    assert bank_bytes(target) == bank_bytes(out)
+
+
+def test_ray_executor_on_a_local_cluster(reference, prepared, tmp_path):
+    pytest.importorskip("ray")
+    out, config = reference
+    run_script("--objects", prepared, "--config", config, "--out", tmp_path / "ray", "--executor", "ray",
+               timeout=300)
+    assert bank_bytes(tmp_path / "ray") == bank_bytes(out)
+
+
+# --- bad input ------------------------------------------------------------------------
+
+
+def test_output_folder_rules(reference, prepared, tmp_path):
+    out, config = reference
+    stranger = tmp_path / "photos"
+    stranger.mkdir()
+    (stranger / "holiday.jpg").write_bytes(b"jpeg")
+    for flags in ((), ("--overwrite",), ("--resume",)):
+        result = run_script("--objects", prepared, "--config", config, "--out", stranger, *flags, check=False)
+        assert result.returncode == 1 and str(stranger) in result.stderr
+    assert (stranger / "holiday.jpg").exists()
+    other = write_config(tmp_path / "other.toml", {**SMALL, "bank": {"chunk_size": 4, "seed": 5}})
+    copy = tmp_path / "copy"
+    run_script("--objects", prepared, "--config", config, "--out", copy)
+    mismatch = run_script("--objects", prepared, "--config", other, "--out", copy, "--resume", check=False)
+    assert mismatch.returncode == 1 and "other objects or settings" in mismatch.stderr
+    run_script("--objects", prepared, "--config", other, "--out", copy, "--overwrite")
+    assert json.loads((copy / "manifest.json").read_text())["seed"] == 5
+
+
+def test_incomplete_objects_are_listed_and_refused(prepared, tmp_path, reference):
+    _, config = reference
+    folder = tmp_path / "objects"
+    folder.mkdir()
+    for path in prepared.glob("truck_reconstruction.*"):
+        (folder / path.name).write_bytes(path.read_bytes())
+    (folder / "loose.ply").write_bytes((prepared / "bicycle_reconstruction.ply").read_bytes())
+    unsized = json.loads((prepared / "bicycle_reconstruction.json").read_text())
+    unsized["steps"] = [step for step in unsized["steps"] if step["step"] != "size"]
+    (folder / "unsized.ply").write_bytes((prepared / "bicycle_reconstruction.ply").read_bytes())
+    (folder / "unsized.json").write_text(json.dumps(unsized))
+    result = run_script("--objects", folder, "--config", config, "--out", tmp_path / "bank", check=False)
+    assert result.returncode == 1 and "2 incomplete" in result.stderr
+    assert "loose.ply: no sidecar" in result.stderr and "unsized.ply: no size set" in result.stderr
+    assert not (tmp_path / "bank").exists()
+    run_script("--objects", folder, "--config", config, "--out", tmp_path / "bank", "--skip-incomplete")
+    manifest = json.loads((tmp_path / "bank" / "manifest.json").read_text())
+    assert [obj["name"] for obj in manifest["objects"]] == ["truck_reconstruction"]
+
+
+def test_a_class_without_a_dataset_name_is_refused(objects, tmp_path):
+    trailer = [replace(objects[0], class_name="trailer")]
+    with pytest.raises(InputError, match="no kitti class for trailer"):
+        export.new_job(trailer, BankConfig(dataset="kitti"), tmp_path)
+    assert export.new_job(trailer, BankConfig(dataset="kitti", classes={"trailer": "Truck"}), tmp_path).class_names \
+        == ["Truck"]
+    with pytest.raises(InputError, match="every object's class is skipped"):
+        export.new_job(trailer, BankConfig(dataset="kitti", classes={"trailer": ""}), tmp_path)
+
+
+@contextmanager
+def read_only_folder(path: Path):
+    """A folder nobody may write into, root included (root ignores mode bits, not the
+    immutable attribute)."""
+    path.mkdir(mode=0o555)
+    if os.getuid() == 0:
+        if subprocess.run(["chattr", "+i", str(path)], capture_output=True).returncode:
+            pytest.skip("running as root on a file system without chattr +i: cannot make a read-only folder")
+        try:
+            yield path
+        finally:
+            subprocess.run(["chattr", "-i", str(path)])
+    else:
+        yield path
+
+
+def file_size_limit(limit: int):
+    """A child-process setup that makes writes past ``limit`` bytes fail (EFBIG), as a
+    full disk makes them fail (ENOSPC): the same OSError path."""
+    def limited():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return limited
+
+
+def last_line(result) -> str:
+    return result.stderr.strip().splitlines()[-1]
+
+
+def test_write_errors_end_cleanly(reference, prepared, tmp_path):
+    """A full disk (writes past a file-size limit fail), while scanning and while
+    assembling, and a folder the user may not write: a one-line error naming the file,
+    exit 1, no manifest, no partial file and no broken pickle."""
+    out, config = reference
+    full = tmp_path / "full"
+    result = run_script("--objects", prepared, "--config", config, "--out", full, "--workers", "1", check=False,
+                        preexec_fn=file_size_limit(64_000))
+    assert result.returncode == 1 and "File too large" in last_line(result) and str(full) in last_line(result)
+    assert not (full / "manifest.json").exists() and not list(full.rglob("*dbinfos*"))
+    assert not [path for path in full.rglob("*") if path.name.endswith(".partial")]
+    for record in (full / ".work" / "chunks").glob("*.pkl"):
+        pickle.loads(record.read_bytes())  # the chunks that finished are whole
+    run_script("--objects", prepared, "--config", config, "--out", full, "--resume")
+    for name in ("manifest.json", "openpcdet/nuscenes_dbinfos_pgt.pkl", "mmdet3d/nuscenes_dbinfos_pgt.pkl"):
+        (full / name).unlink()
+    result = run_script("--assemble", "--out", full, check=False, preexec_fn=file_size_limit(4_000))
+    assert result.returncode == 1 and "dbinfos_pgt.pkl: File too large" in last_line(result)
+    assert not (full / "manifest.json").exists() and not list(full.rglob("*dbinfos*"))
+    assert not [path for path in full.rglob("*") if path.name.endswith(".partial")]
+    run_script("--assemble", "--out", full)
+    assert bank_bytes(full) == bank_bytes(out)
+    with read_only_folder(tmp_path / "locked") as locked:
+        result = run_script("--objects", prepared, "--config", config, "--out", locked / "bank", check=False)
+        assert result.returncode == 1 and str(locked) in last_line(result)
+        assert "Permission denied" in last_line(result) or "Operation not permitted" in last_line(result)
+        assert not (locked / "bank").exists()
+
+
+def test_learned_intensity_paints_the_bank(objects, tmp_path):
+    """A (tiny) trained estimator replaces the physical intensities, the same bytes on
+    one worker or two (spawned: PyTorch does not survive a fork)."""
+    pytest.importorskip("torch")
+    from pgt_blender.core.intensity.objects import ObjectSet
+    from pgt_blender.core.intensity.training import TrainConfig, train
+
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(-1, 1, (4, 128, 3)).astype(np.float32)
+    classes, names = ("truck", "bicycle"), [f"object{i}" for i in range(4)]
+    real = ObjectSet(xyz, rng.uniform(0, 1, (4, 128, 1)).astype(np.float32), np.arange(4) % 2, classes, names,
+                     "nuscenes")
+    rgb = ObjectSet(xyz, rng.uniform(0, 1, (4, 128, 3)).astype(np.float32), np.arange(4) % 2, classes, names,
+                    "nuscenes")
+    checkpoint = train(real, rgb, TrainConfig(points=128, batch=2, steps=3, checkpoint_every=3, threads=1),
+                       tmp_path / "model", progress=False)
+    two_objects = [obj for obj in objects if obj.name != "truck_chassis"]
+    physical = BankConfig(x=(-20.0, 20.0, 20.0), y=(-20.0, 20.0, 20.0), headings_deg=(0.0, 90.0, 90.0), chunk_size=4)
+    learned = replace(physical, intensity_checkpoint=str(checkpoint))
+    banks = {name: export.export_bank(two_objects, config, tmp_path / name, workers=workers)
+             for name, config, workers in (("physical", physical, 1), ("one", learned, 1), ("two", learned, 2))}
+    assert bank_bytes(tmp_path / "one") == bank_bytes(tmp_path / "two")
+    assert banks["one"]["counts"] == banks["physical"]["counts"]
+    info = pickle.loads((tmp_path / "one" / "openpcdet" / "nuscenes_dbinfos_pgt.pkl").read_bytes())["truck"][0]
+    learned_points = np.fromfile(tmp_path / "one" / "openpcdet" / info["path"], np.float32).reshape(-1, 5)
+    physical_points = np.fromfile(tmp_path / "physical" / "openpcdet" / info["path"], np.float32).reshape(-1, 5)
+    np.testing.assert_array_equal(learned_points[:, [0, 1, 2, 4]], physical_points[:, [0, 1, 2, 4]])
+    assert not np.array_equal(learned_points[:, 3], physical_points[:, 3])
+    assert np.array_equal(learned_points[:, 3], np.round(learned_points[:, 3])) and learned_points[:, 3].max() <= 255

@@ -1,0 +1,290 @@
+"""core.bank.merge and headless_scripts/mix_bank.py: a real database mixed with a bank
+at a GT:PGT ratio, on synthetic pickles and on the real mmdet3d KITTI database."""
+
+import os
+import pickle
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pgt_blender.core.bank.merge import mix_databases, parse_ratio
+from pgt_blender.core.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# Pedestrian (2 in the bank) and Truck (none) are short at 1:1; Bus is not in the real database.
+REAL_COUNTS = {"Car": 5, "Pedestrian": 3, "Cyclist": 2, "Truck": 4}
+BANK_COUNTS = {"Bus": 4, "Car": 20, "Cyclist": 5, "Pedestrian": 2}
+REAL_GROUP_START = 10  # real group ids 10, 12, 14, ...: the bank's must start above the maximum
+
+
+def write_database(pickle_path, counts, folder, box_values=7, group_ids=False, bank=False):
+    """An info pickle at ``pickle_path`` with one points file per info under
+    ``pickle_path.parent / folder``; returns the path."""
+    infos, group = {}, REAL_GROUP_START
+    for name, count in counts.items():
+        infos[name] = []
+        for index in range(count):
+            info = {"name": name, "path": f"{folder}/{name}_{index:03d}.bin",
+                    "image_idx": f"pgt_{index:06d}" if bank else index, "gt_idx": index,
+                    "box3d_lidar": np.arange(box_values, dtype=np.float32) + index,
+                    "num_points_in_gt": 3 + index, "difficulty": 0}
+            if group_ids:
+                info["group_id"], group = group, group + 2
+            file = pickle_path.parent / info["path"]
+            file.parent.mkdir(parents=True, exist_ok=True)
+            np.zeros((info["num_points_in_gt"], 4), np.float32).tofile(file)
+            infos[name].append(info)
+    pickle_path.write_bytes(pickle.dumps(infos))
+    return pickle_path
+
+
+@pytest.fixture
+def real(tmp_path):
+    """An mmdet3d-style real database (with group_id) at tmp/data, its dataset root."""
+    (tmp_path / "data").mkdir()
+    return write_database(tmp_path / "data" / "kitti_dbinfos_train.pkl", REAL_COUNTS, "kitti_gt_database",
+                          group_ids=True)
+
+
+@pytest.fixture
+def bank(tmp_path):
+    """A bank laid out like a dataset root, inside the real dataset root."""
+    (tmp_path / "data" / "pgt").mkdir(parents=True)
+    return write_database(tmp_path / "data" / "pgt" / "kitti_dbinfos_pgt.pkl", BANK_COUNTS, "pgt_gt_database",
+                          group_ids=True, bank=True)
+
+
+def load(path):
+    return pickle.loads(Path(path).read_bytes())
+
+
+def bank_index(info):
+    return int(Path(info["path"]).stem.split("_")[-1])
+
+
+def assert_nothing_written(out):
+    assert not out.exists()
+    assert not list(out.parent.glob(f".{out.name}*"))  # no partial file either
+
+
+@pytest.mark.parametrize("text, expected", [("1:1", (1.0, 1.0)), ("2:1", (2.0, 1.0)), ("1:0.5", (1.0, 0.5)),
+                                            ("1:0", (1.0, 0.0)), (" 3 : 2 ", (3.0, 2.0))])
+def test_parse_ratio(text, expected):
+    assert parse_ratio(text) == expected
+
+
+@pytest.mark.parametrize("text", ["", "1", "1:1:1", "a:b", "0:1", "-1:1", "1:-0.5", "inf:1", "1:nan", "1/1"])
+def test_parse_ratio_rejects(text):
+    with pytest.raises(ValueError, match=f"ratio '{text}'"):
+        parse_ratio(text)
+
+
+# Requested per class = round(n_real * pgt / gt), halves to even (Car 2.5 -> 2); used = min(requested, bank).
+@pytest.mark.parametrize("ratio, used", [
+    ((1, 1), {"Car": 5, "Pedestrian": 2, "Cyclist": 2, "Truck": 0}),
+    ((2, 1), {"Car": 2, "Pedestrian": 2, "Cyclist": 1, "Truck": 0}),
+    ((1, 0.5), {"Car": 2, "Pedestrian": 2, "Cyclist": 1, "Truck": 0}),
+    ((1, 3), {"Car": 15, "Pedestrian": 2, "Cyclist": 5, "Truck": 0}),
+    ((1, 0), {"Car": 0, "Pedestrian": 0, "Cyclist": 0, "Truck": 0}),
+])
+def test_counts_per_ratio(real, bank, tmp_path, ratio, used):
+    out = tmp_path / "mixed.pkl"
+    summary = mix_databases(real, bank, out, ratio)
+    mixed = load(out)
+    assert list(mixed) == list(REAL_COUNTS)  # the real class order
+    assert {name: len(infos) - REAL_COUNTS[name] for name, infos in mixed.items()} == used
+    for name, counts in summary["classes"].items():
+        assert counts["real"] == REAL_COUNTS[name] and counts["bank_used"] == used[name]
+        assert counts["requested"] == round(REAL_COUNTS[name] * ratio[1] / ratio[0])
+        assert counts["bank_available"] == BANK_COUNTS.get(name, 0)
+        assert counts["effective_ratio"] == pytest.approx(used[name] / REAL_COUNTS[name])
+    assert summary["total"]["bank_used"] == sum(used.values()) and summary["total"]["real"] == 14
+    assert summary["skipped"] == ["Bus"] and summary["out"] == str(out)
+
+
+def test_real_infos_first_and_unchanged_inputs_untouched(real, bank, tmp_path):
+    real_bytes, bank_bytes = real.read_bytes(), bank.read_bytes()
+    mix_databases(real, bank, tmp_path / "mixed.pkl")
+    mixed, original = load(tmp_path / "mixed.pkl"), load(real)
+    for name, infos in original.items():
+        assert pickle.dumps(mixed[name][:len(infos)]) == pickle.dumps(infos)
+        assert all(info["image_idx"].startswith("pgt_") for info in mixed[name][len(infos):])
+    assert real.read_bytes() == real_bytes and bank.read_bytes() == bank_bytes
+
+
+def test_seed_decides_the_selection_and_bank_order_is_kept(real, bank, tmp_path):
+    outs = [tmp_path / name for name in ("a.pkl", "b.pkl", "c.pkl")]
+    for out, seed in zip(outs, (7, 7, 8)):
+        mix_databases(real, bank, out, (1, 1), seed=seed)
+    assert outs[0].read_bytes() == outs[1].read_bytes()
+    chosen = [[bank_index(info) for info in load(out)["Car"][5:]] for out in outs]
+    assert chosen[0] != chosen[2]  # 5 of 20 cars: another seed draws others
+    for indices in chosen:
+        assert indices == sorted(indices) and len(set(indices)) == 5
+
+
+def test_bank_paths_relative_to_root_and_resolvable(real, bank, tmp_path):
+    mix_databases(real, bank, tmp_path / "mixed.pkl")
+    added = load(tmp_path / "mixed.pkl")["Car"][5:]
+    for info in added:
+        assert info["path"].startswith("pgt/pgt_gt_database/Car_")
+        # mmdet3d's join; OpenPCDet's root_path / path is the same file.
+        file = os.path.join(real.parent, info["path"])
+        assert np.fromfile(file, np.float32).reshape(-1, 4).shape[0] == info["num_points_in_gt"]
+    mix_databases(real, bank, tmp_path / "mixed2.pkl", root=bank.parent)
+    assert load(tmp_path / "mixed2.pkl")["Car"][5]["path"].startswith("pgt_gt_database/")
+
+
+def test_bank_outside_root_gets_absolute_paths(real, tmp_path):
+    (tmp_path / "elsewhere").mkdir()
+    bank = write_database(tmp_path / "elsewhere" / "bank.pkl", BANK_COUNTS, "pgt_gt_database", bank=True)
+    mix_databases(real, bank, tmp_path / "mixed.pkl")
+    for info in load(tmp_path / "mixed.pkl")["Cyclist"][2:]:
+        assert Path(info["path"]).is_absolute() and Path(info["path"]).is_file()
+        assert os.path.join(real.parent, info["path"]) == info["path"]  # the join keeps it
+
+
+def test_group_ids_fresh_and_unique(real, bank, tmp_path):
+    mix_databases(real, bank, tmp_path / "mixed.pkl", (1, 3))
+    mixed, original = load(tmp_path / "mixed.pkl"), load(real)
+    real_ids = [info["group_id"] for infos in original.values() for info in infos]
+    added_ids = [info["group_id"] for name, infos in mixed.items() for info in infos[len(original[name]):]]
+    assert added_ids == list(range(max(real_ids) + 1, max(real_ids) + 1 + len(added_ids)))  # in output order
+    all_ids = [info["group_id"] for infos in mixed.values() for info in infos]
+    assert len(set(all_ids)) == len(all_ids)
+
+
+def test_no_group_id_when_the_real_database_has_none(bank, tmp_path):
+    """OpenPCDet's format has no group_id: the bank's own ids are not carried over."""
+    (tmp_path / "data").mkdir(exist_ok=True)
+    real = write_database(tmp_path / "data" / "pcdet_dbinfos.pkl", REAL_COUNTS, "gt_database")
+    mix_databases(real, bank, tmp_path / "mixed.pkl")
+    assert not any("group_id" in info for infos in load(tmp_path / "mixed.pkl").values() for info in infos)
+
+
+def garbage(path):
+    path.write_bytes(b"\x80\x04not a pickle at all")
+
+
+def not_a_dict(path):
+    path.write_bytes(pickle.dumps([1, 2, 3]))
+
+
+def nuscenes_boxes(path):
+    write_database(path, {"Car": 3}, "pgt_gt_database", box_values=9, bank=True)
+
+
+def missing_box(path):
+    infos = load(path)
+    del infos["Car"][1]["box3d_lidar"]
+    path.write_bytes(pickle.dumps(infos))
+
+
+def missing_difficulty(path):
+    infos = load(path)
+    del infos["Cyclist"][0]["difficulty"]
+    path.write_bytes(pickle.dumps(infos))
+
+
+@pytest.mark.parametrize("which, spoil, problem", [
+    ("real", Path.unlink, "no such file"),
+    ("real", garbage, "not a readable pickle"),
+    ("bank", not_a_dict, "not an info database"),
+    ("bank", nuscenes_boxes, r"9 values \(nuScenes layout\) .* 7 values \(KITTI layout\)"),
+    ("real", missing_box, "info 1 of 'Car' lacks box3d_lidar"),
+    ("bank", missing_difficulty, "info 0 of 'Cyclist' lacks difficulty"),
+])
+def test_bad_input_names_the_file_and_writes_nothing(real, bank, tmp_path, which, spoil, problem):
+    bad = {"real": real, "bank": bank}[which]
+    spoil(bad)
+    out = tmp_path / "mixed.pkl"
+    with pytest.raises(InputError, match=problem) as caught:
+        mix_databases(real, bank, out)
+    assert str(caught.value).startswith(f"{bad}: ") and "\n" not in str(caught.value)
+    assert_nothing_written(out)
+
+
+def test_output_must_not_be_an_input(real, bank):
+    real_bytes, bank_bytes = real.read_bytes(), bank.read_bytes()
+    with pytest.raises(InputError, match="is the real database pickle"):
+        mix_databases(real, bank, real)
+    with pytest.raises(InputError, match="is the bank pickle"):
+        mix_databases(real, bank, bank.parent / ".." / "pgt" / bank.name)  # the same file, spelt otherwise
+    assert real.read_bytes() == real_bytes and bank.read_bytes() == bank_bytes
+
+
+@pytest.mark.parametrize("ratio", [(0, 1), (1, -1), (1, 2, 3)])
+def test_bad_ratio_writes_nothing(real, bank, tmp_path, ratio):
+    with pytest.raises(ValueError, match="ratio"):
+        mix_databases(real, bank, tmp_path / "mixed.pkl", ratio)
+    assert_nothing_written(tmp_path / "mixed.pkl")
+
+
+def test_real_mmdet3d_kitti_database(shared_data, tmp_path):
+    """The real mmdet3d database (one Pedestrian, group_id 0) and a Pedestrian bank
+    inside its root: both files load through mmdet3d's join with the right row count."""
+    data_root = Path(shutil.copytree(shared_data / "mmdet3d_kitti_gtdb", tmp_path / "kitti"))
+    real = data_root / "kitti_dbinfos_train.pkl"
+    real_bytes = real.read_bytes()
+    (data_root / "pgt").mkdir()
+    bank = write_database(data_root / "pgt" / "kitti_dbinfos_pgt.pkl", {"Pedestrian": 4, "Car": 2},
+                          "pgt_gt_database", group_ids=True, bank=True)
+    summary = mix_databases(real, bank, data_root / "kitti_dbinfos_train_pgt.pkl", parse_ratio("1:1"), seed=3)
+    assert summary["classes"]["Pedestrian"] == {"real": 1, "requested": 1, "bank_available": 4, "bank_used": 1,
+                                                "effective_ratio": 1.0}
+    assert summary["skipped"] == ["Car"]
+    mixed = load(data_root / "kitti_dbinfos_train_pgt.pkl")
+    assert list(mixed) == ["Pedestrian"] and len(mixed["Pedestrian"]) == 2
+    original, added = mixed["Pedestrian"]
+    assert original["path"] == "kitti_gt_database/0_Pedestrian_0.bin" and original["num_points_in_gt"] == 377
+    assert added["path"].startswith("pgt/pgt_gt_database/Pedestrian_") and added["group_id"] == 1
+    for info in mixed["Pedestrian"]:
+        points = np.fromfile(os.path.join(data_root, info["path"]), np.float32).reshape(-1, 4)
+        assert len(points) == info["num_points_in_gt"] and info["box3d_lidar"].shape == (7,)
+    assert real.read_bytes() == real_bytes
+
+    nuscenes = write_database(data_root / "pgt" / "nus.pkl", {"Pedestrian": 2}, "nus", box_values=9, bank=True)
+    with pytest.raises(InputError, match="nuScenes layout"):
+        mix_databases(real, nuscenes, tmp_path / "never.pkl")
+
+
+def run_script(*args, blender_style=False):
+    script = str(ROOT / "headless_scripts" / "mix_bank.py")
+    if blender_style:  # ``blender -b -P script.py -- ARGS``: Blender's own arguments precede ``--``
+        code = ("import sys, runpy; script = sys.argv[1]; sys.argv = ['blender', '-b', '-P', script, '--', "
+                "*sys.argv[2:]]; runpy.run_path(script, run_name='__main__')")
+        command = [sys.executable, "-c", code, script, *map(str, args)]
+    else:
+        command = [sys.executable, script, *map(str, args)]
+    return subprocess.run(command, capture_output=True, text=True, timeout=120)
+
+
+def test_cli(real, bank, tmp_path):
+    out = tmp_path / "mixed.pkl"
+    result = run_script("--real", real, "--bank", bank, "--out", out, "--ratio", "2:1", "--seed", "4")
+    assert result.returncode == 0, result.stderr
+    rows = {line.split()[0]: line.split()[1:] for line in result.stdout.splitlines() if line.strip()}
+    assert rows["Car"] == ["5", "2", "20", "2", "1:0.40"]
+    assert rows["Truck"] == ["4", "2", "0", "0", "1:0.00", "(bank", "short)"]
+    assert "skipped bank classes absent from the real database: Bus" in result.stdout
+    assert f"wrote {out}" in result.stdout
+    assert len(load(out)["Car"]) == 7
+
+    again = tmp_path / "again.pkl"
+    result = run_script("--real", real, "--bank", bank, "--out", again, "--ratio", "2:1", "--seed", "4",
+                        blender_style=True)
+    assert result.returncode == 0, result.stderr
+    assert again.read_bytes() == out.read_bytes()
+
+    garbage(bank)
+    failed = tmp_path / "failed.pkl"
+    result = run_script("--real", real, "--bank", bank, "--out", failed)
+    assert result.returncode == 1 and result.stdout == ""
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {bank}: not a readable pickle")
+    assert_nothing_written(failed)

@@ -1,0 +1,78 @@
+"""The .blend route of the bank: objects authored in Blender give the same bank as the
+same objects prepared headless (prepare_objects.py's folder)."""
+
+import numpy as np
+import pytest
+
+from pgt_blender.core.authoring.prepare import prepare, write_prepared
+from pgt_blender.core.bank.inputs import prepared_objects
+from pgt_blender.core.importing import load_reconstruction
+from pgt_blender.core.samples import write_sample
+
+from .test_bank import CHRONO_TRUCK, SMALL, bank_bytes, run_script, write_config
+
+bpy = pytest.importorskip("bpy")
+
+from pgt_blender.blender import objects as blender_objects  # noqa: E402  (needs bpy)
+from pgt_blender.blender.bank import scene_bank_objects  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def sources(tmp_path_factory, shared_data) -> dict:
+    folder = tmp_path_factory.mktemp("sources")
+    sample = write_sample(folder, "bicycle", seed=3, points=3000)["reconstruction.ply"]
+    return {"sample": sample, "chrono": shared_data / "chrono_vehicles" / CHRONO_TRUCK}
+
+
+def author_in_blender(scene, sources) -> None:
+    """The Align / Heading / Size operators, with the settings prepare() is given below."""
+    settings = scene.pgt_authoring
+    for key, up, heading, size in (("sample", "pca", "baseline", "class"), ("chrono", "+z", None, "keep")):
+        obj = blender_objects.add_reconstruction(scene, load_reconstruction(sources[key]))
+        bpy.context.view_layer.objects.active = obj
+        settings.up, settings.heading_method, settings.size_mode = up, heading or "baseline", size
+        settings.dataset, settings.class_name, settings.seed = "nuscenes", "bicycle" if key == "sample" else "truck", 4
+        assert bpy.ops.object.pgt_align() == {"FINISHED"}
+        if heading:
+            assert bpy.ops.object.pgt_auto_heading() == {"FINISHED"}
+        assert bpy.ops.object.pgt_set_size() == {"FINISHED"}
+
+
+def prepare_headless(sources, folder) -> None:
+    write_prepared(prepare(load_reconstruction(sources["sample"]), "bicycle", up="pca", heading_method="baseline",
+                           seed=4), "bicycle", "nuscenes", folder)
+    write_prepared(prepare(load_reconstruction(sources["chrono"]), "truck", up="+z", heading_method="none",
+                           size="keep"), "truck", "nuscenes", folder)
+
+
+def test_blend_and_prepared_folder_give_the_same_bank(scene, sources, tmp_path):
+    author_in_blender(scene, sources)
+    bpy.ops.object.select_all(action="DESELECT")
+    incomplete = blender_objects.add_reconstruction(scene, load_reconstruction(sources["sample"]))
+    incomplete.name = "unsized"
+    found, missing = scene_bank_objects(scene)
+    assert missing == [("unsized", "no class and no size set")]
+    blend = tmp_path / "objects.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    folder = tmp_path / "prepared"
+    prepare_headless(sources, folder)
+    headless, _ = prepared_objects(folder)
+    assert [obj.name for obj in sorted(found, key=lambda o: o.name)] == [obj.name for obj in headless]
+    for ours, theirs in zip(sorted(found, key=lambda o: o.name), headless):
+        assert ours.summary() == theirs.summary()
+        np.testing.assert_array_equal(ours.dims, theirs.dims)
+
+    config = write_config(tmp_path / "bank.toml", SMALL)
+    refused = run_script("--blend", blend, "--config", config, "--out", tmp_path / "from_blend", check=False)
+    assert refused.returncode == 1 and "unsized: no class and no size set" in refused.stderr
+    run_script("--blend", blend, "--config", config, "--out", tmp_path / "from_blend", "--skip-incomplete")
+    run_script("--objects", folder, "--config", config, "--out", tmp_path / "from_folder")
+    assert bank_bytes(tmp_path / "from_blend") == bank_bytes(tmp_path / "from_folder")
+
+
+def test_a_bad_blend_file_is_named(tmp_path):
+    broken = tmp_path / "broken.blend"
+    broken.write_bytes(b"not a blend file")
+    result = run_script("--blend", broken, "--out", tmp_path / "bank", check=False)
+    assert result.returncode == 1 and f"{broken}: not a readable .blend file" in result.stderr
+    assert not (tmp_path / "bank").exists()
