@@ -32,6 +32,7 @@ bench: $(VENV)/.dev-installed
 	$(VENV)/bin/python headless_scripts/bench_heading.py
 	$(VENV)/bin/python headless_scripts/bench_scan.py
 	$(VENV)/bin/python headless_scripts/bench_intensity.py
+	$(VENV)/bin/python headless_scripts/bench_bank.py
 
 clean:
 	rm -rf $(VENV) dist demo_output

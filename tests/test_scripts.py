@@ -48,7 +48,8 @@ def test_import_bad_input_exits_non_zero_and_writes_nothing(tmp_path):
 
 
 @pytest.mark.parametrize("script", ["import_reconstruction.py", "demo.py", "bench_import.py", "build_extension.py",
-                                    "scan_object.py", "bench_scan.py", "train_intensity.py", "bench_intensity.py"])
+                                    "scan_object.py", "bench_scan.py", "train_intensity.py", "bench_intensity.py",
+                                    "export_bank.py", "mix_bank.py", "bench_bank.py"])
 def test_help(script):
     result = run_script(script, "--help")
     assert result.returncode == 0 and result.stdout.startswith("usage:")
@@ -102,6 +103,15 @@ def test_bench_scan_quick(tmp_path):
     assert "| bvh windowed |" in (tmp_path / "scan.md").read_text()
     windowed = [row for row in results["rows"] if row["method"] == "bvh windowed"]
     assert windowed and all(row["false"] == row["missed"] == 0 and row["error_max_m"] < 1e-6 for row in windowed)
+
+
+def test_bench_bank_quick(tmp_path, shared_data):  # its trucks are the Chrono mesh
+    result = run_script("bench_bank.py", "--quick", "--out", tmp_path / "bank")
+    assert result.returncode == 0, result.stderr
+    results = json.loads((tmp_path / "bank.json").read_text())
+    rows = results["throughput"]
+    assert {row["workers"] for row in rows} >= {1} and all(row["kept"] > 0 and row["poses_per_s"] > 0 for row in rows)
+    assert "| chrono truck 11k |" in (tmp_path / "bank.md").read_text() and (tmp_path / "bank.png").stat().st_size > 0
 
 
 def test_bench_intensity_quick(tmp_path):

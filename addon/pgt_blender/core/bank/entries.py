@@ -22,8 +22,9 @@ BOX_TOLERANCE = 1e-3  # m: a return on the box's faces counts as inside despite 
 
 
 class TargetCache:
-    """ScanTargets of (object, size variant), built on first use; holds one object's
-    variants at a time (entries come object by object)."""
+    """ScanTargets of (object, size variant), built on first use (without Blender's BVH
+    for the Embree engine); holds one object's variants at a time (entries come object
+    by object)."""
 
     def __init__(self, objects: list, config: BankConfig):
         self.objects, self.config = objects, config
@@ -38,8 +39,8 @@ class TargetCache:
             dims = size_variants(self.config, object_index, obj.dims)[variant]
             scale = (dims / obj.dims).astype(np.float32)
             geometry = replace(obj.geometry, positions=obj.geometry.positions * scale)
-            self._targets[variant] = (target_from_reconstruction(geometry, self.config.radius_scale),
-                                      np.stack([-dims / 2, dims / 2]))
+            target = target_from_reconstruction(geometry, self.config.radius_scale, self.config.engine == "bvh")
+            self._targets[variant] = (target, np.stack([-dims / 2, dims / 2]))
         return self._targets[variant]
 
 
@@ -57,7 +58,7 @@ def scan_entry(cache: TargetCache, sensor, entry, config: BankConfig):
     grid.ENTRY_DTYPE row; ``scan.box`` is the (9,) box, sensor frame."""
     target, bounds = cache.get(int(entry["object"]), int(entry["variant"]))
     options = ScanOptions(range_noise=config.range_noise, max_incidence_deg=config.max_incidence_deg,
-                          drop_rate=config.drop_rate, seed=int(entry["noise_seed"]))
+                          drop_rate=config.drop_rate, seed=int(entry["noise_seed"]), engine=config.engine)
     scan = scan_sweeps(target, sensor, float(entry["x"]), float(entry["y"]), float(entry["heading"]),
                        Motion(float(entry["speed"]), float(entry["acceleration"])), sweeps_of(config),
                        options, bounds, box_margin=BOX_TOLERANCE)

@@ -23,6 +23,7 @@ import pickle
 import shutil
 import sys
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -55,8 +56,9 @@ class BankJob:
     out: Path
     class_names: list = field(default_factory=list)  # per object: the dataset's class name
 
-    @property
+    @cached_property
     def sensor(self):
+        """The bank's sensor, read once (its ray table is cached on it)."""
         return sensor_from_name(self.config.sensor or self.config.dataset)
 
     def entries(self) -> np.ndarray:
@@ -87,6 +89,11 @@ def new_job(objects: list, config: BankConfig, out) -> BankJob:
         raise InputError(config.sensor, f"is a {job.sensor.dataset} sensor, the bank is {config.dataset}")
     if config.intensity_checkpoint:
         _estimator(config)  # fails now, not in a worker
+    if config.engine == "embree":
+        try:
+            import embreex  # noqa: F401
+        except ImportError:
+            raise InputError(out, "the config asks for the embree engine: pip install embreex") from None
     return job
 
 

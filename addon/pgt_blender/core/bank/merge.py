@@ -80,7 +80,7 @@ def mix_databases(real_path, bank_path, out_path, ratio=(1.0, 1.0), seed=0, root
     if not root.is_dir():
         raise InputError(root, "the dataset root is not a folder")
 
-    real, bank = _load_infos(real_path), _load_infos(bank_path)
+    real, bank = load_infos(real_path), load_infos(bank_path)
     _check_compatible(real_path, real, bank_path, bank)
 
     rng = np.random.default_rng(seed)
@@ -137,7 +137,7 @@ def _output_path(path, bank_root: Path, root: Path) -> str:
     return file.relative_to(root).as_posix() if file.is_relative_to(root) else str(file)
 
 
-def _load_infos(path: Path) -> dict:
+def load_infos(path: Path) -> dict:
     """The info pickle at ``path``: a dict of class name -> list of info dicts, each
     with REQUIRED_KEYS; InputError otherwise."""
     if not path.is_file():

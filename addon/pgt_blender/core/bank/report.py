@@ -31,7 +31,7 @@ from ..files import atomic_output
 from ..scan.sensors import BIN_COLUMNS, INTENSITY_MAX
 from .config import DATASET_GRIDS, grid_values
 from .export import INTENSITY_BINS, WORK, chunk_record_path
-from .merge import _load_infos as load_infos
+from .merge import load_infos
 
 DISTANCE_RING = 10.0  # m: width of the distance bins
 QUANTILES = (0.5, 0.1, 0.9)  # median, p10, p90

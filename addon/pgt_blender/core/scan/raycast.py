@@ -27,6 +27,9 @@ from .sensors import Sensor
 from .targets import ScanTarget
 
 
+ENGINES = ("bvh", "embree")
+
+
 @dataclass(frozen=True)
 class ScanOptions:
     """Sensor effects beyond geometry, all off by default (the exact scan).
@@ -37,6 +40,9 @@ class ScanOptions:
     drop_rate:         drop each remaining return with this probability.
     seed:              the seed of the noise and the random drop.
     window:            cast only cells that can meet the box (False: full revolution).
+    engine:            "bvh" (Blender's BVHTree, one call per ray: exact, everywhere) or
+                       "embree" (embreex, one batched call per scan, about 20x faster on
+                       the rays; it may pick the other polygon at a shared edge).
     """
 
     range_noise: bool = False
@@ -45,8 +51,11 @@ class ScanOptions:
     drop_rate: float = 0.0
     seed: int = 0
     window: bool = True
+    engine: str = "bvh"
 
     def __post_init__(self):
+        if self.engine not in ENGINES:
+            raise ValueError(f"scan options: engine must be one of {', '.join(ENGINES)}")
         if not 0 < self.max_incidence_deg <= 90 or not 0 <= self.min_intensity <= 1 \
                 or not 0 <= self.drop_rate < 1:
             raise ValueError("scan options: max_incidence_deg in (0, 90], min_intensity in [0, 1], "
@@ -183,25 +192,52 @@ class Trace:
 
 
 def trace_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray, window: bool = True,
-               cast_bounds: np.ndarray | None = None) -> Trace:
-    """Cast the rays of ``target`` placed by ``sensor_from_object`` through its BVH; with
-    ``cast_bounds`` (2, 3, object frame) the window keeps only rays meeting that box
+               cast_bounds: np.ndarray | None = None, engine: str = "bvh") -> Trace:
+    """Cast the rays of ``target`` placed by ``sensor_from_object`` through ``engine``;
+    with ``cast_bounds`` (2, 3, object frame) the window keeps only rays meeting that box
     instead of the whole geometry's (a scan that wants part of the object)."""
-    from mathutils import Vector
-
     sensor.directions  # the cached ray table: built on first use, kept out of the timing
     start = time.perf_counter()
     cast_bounds = target.cast_bounds if cast_bounds is None else cast_bounds
     cells, origin, directions = rays_to_cast(sensor, cast_bounds, sensor_from_object, window)
-    results = map(target.bvh.ray_cast, repeat(Vector(origin), len(cells)), directions.tolist(),
-                  repeat(sensor.max_range, len(cells)))
-    # One pass over the results: (polygon, distance) per ray, polygon -1 for a miss.
-    found = np.fromiter(chain.from_iterable(_MISS if result[2] is None else result[2:] for result in results),
-                        np.float64, 2 * len(cells)).reshape(-1, 2)
-    hit = found[:, 0] >= 0
-    polygons, bvh_range = found[hit, 0].astype(np.int64), found[hit, 1]
+    cast = _embree_hits if engine == "embree" else _bvh_hits
+    polygons, bvh_range = cast(target, origin, directions, sensor.max_range)
+    hit = polygons >= 0
+    polygons, bvh_range = polygons[hit], bvh_range[hit]
     ranges, cos_incidence = _refined_ranges(target.planes[polygons], origin, directions[hit], bvh_range)
     return Trace(len(cells), cells[hit], ranges, cos_incidence, polygons, time.perf_counter() - start)
+
+
+def _bvh_hits(target: ScanTarget, origin: np.ndarray, directions: np.ndarray, far: float) -> tuple:
+    """(M,) int64 polygon hit by each ray (-1: none) and (M,) float64 its distance."""
+    from mathutils import Vector
+
+    results = map(target.bvh.ray_cast, repeat(Vector(origin), len(directions)), directions.tolist(),
+                  repeat(far, len(directions)))
+    # One pass over the results: (polygon, distance) per ray, polygon -1 for a miss.
+    found = np.fromiter(chain.from_iterable(_MISS if result[2] is None else result[2:] for result in results),
+                        np.float64, 2 * len(directions)).reshape(-1, 2)
+    return found[:, 0].astype(np.int64), found[:, 1]
+
+
+def _embree_hits(target: ScanTarget, origin: np.ndarray, directions: np.ndarray, far: float) -> tuple:
+    """As ``_bvh_hits``, in one batched Embree call on the target's triangles."""
+    if target.embree_scene is None:
+        try:
+            from embreex import rtcore_scene
+            from embreex.mesh_construction import TriangleMesh
+        except ImportError:
+            raise ImportError("the embree engine needs embreex (pip install embreex)") from None
+        target.embree_scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(target.embree_scene, target.triangle_vertices, target.triangle_faces)
+    if not len(directions):
+        return np.zeros(0, np.int64), np.zeros(0)
+    result = target.embree_scene.run(np.tile(origin.astype(np.float32), (len(directions), 1)),
+                                     directions.astype(np.float32), dists=np.full(len(directions), far, np.float32),
+                                     output=1)
+    triangle = result["primID"]
+    polygons = np.where(triangle >= 0, target.triangle_polygon[np.maximum(triangle, 0)], -1)
+    return polygons.astype(np.int64), result["tfar"].astype(np.float64)
 
 
 def cast_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray, options: ScanOptions,
@@ -210,7 +246,7 @@ def cast_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray
     """Scan ``target`` placed by ``sensor_from_object``: one row per return (returns.py).
     The Scan's box is ``bounds`` (2, 3, object frame; default the geometry's) placed.
     A ``trace`` of this very pose (``trace_rays``) is reused instead of casting again."""
-    trace = trace or trace_rays(target, sensor, sensor_from_object, options.window)
+    trace = trace or trace_rays(target, sensor, sensor_from_object, options.window, engine=options.engine)
     start = time.perf_counter()
     polygons = trace.polygons
     returns = build_returns(sensor, trace.cells, trace.ranges, target.reflectivity[polygons], trace.cos_incidence,

@@ -10,11 +10,12 @@ frame), and the object holds still during one sweep. Every return of sweep k get
 (vx, vy) = speed * (cos heading, sin heading).
 """
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from .raycast import ScanOptions, Trace, cast_rays, placement, trace_rays
+from .raycast import ScanOptions, Trace, build_returns, placed_box, placement, trace_rays
 from .returns import Scan
 from .sensors import Sensor
 from .targets import ScanTarget
@@ -70,9 +71,9 @@ def scan_sweeps(target: ScanTarget, sensor: Sensor, x: float, y: float, heading:
     if sweeps < 1:
         raise ValueError(f"sweeps must be at least 1, got {sweeps}")
     bounds = target.bounds if bounds is None else bounds
+    start = time.perf_counter()
     direction = np.array([np.cos(heading), np.sin(heading)])
-    velocity = motion.speed * direction
-    parts, traces = [], {}
+    parts, poses, traces, rays = [], [], {}, 0
     for sweep in range(sweeps):
         travelled = motion.displacement(-sweep * sensor.sweep_seconds)
         shift = travelled * direction
@@ -88,8 +89,11 @@ def scan_sweeps(target: ScanTarget, sensor: Sensor, x: float, y: float, heading:
             if cast_bounds is not None and np.any(cast_bounds[1] < cast_bounds[0]):
                 traces[key] = Trace(0, *(np.zeros(0, dtype) for dtype in ("i8", "f8", "f8", "i8")), 0.0)
             else:
-                traces[key] = trace_rays(target, sensor, pose, options.window, cast_bounds)
-        parts.append(cast_rays(target, sensor, pose, options, sweep, velocity, bounds, traces[key]))
-    return Scan(np.concatenate([part.returns for part in parts]), parts[0].box,
-                sum(part.rays for part in parts), sum(part.seconds for part in parts), sensor.dataset,
-                [part.poses[0] for part in parts])
+                traces[key] = trace_rays(target, sensor, pose, options.window, cast_bounds, options.engine)
+        trace = traces[key]
+        parts.append(build_returns(sensor, trace.cells, trace.ranges, target.reflectivity[trace.polygons],
+                                   trace.cos_incidence, target.source_index[trace.polygons], options, sweep))
+        poses.append(pose)
+        rays += trace.rays
+    box = placed_box(bounds, poses[0], motion.speed * direction)
+    return Scan(np.concatenate(parts), box, rays, time.perf_counter() - start, sensor.dataset, poses)

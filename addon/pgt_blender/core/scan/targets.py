@@ -38,7 +38,8 @@ def bvhtree_class():
 class ScanTarget:
     """One object ready to be scanned from any pose.
 
-    bvh:          mathutils BVHTree over the polygons (float32 inside).
+    bvh:          mathutils BVHTree over the polygons (float32 inside); None when the
+                  target was made for the Embree engine only (``with_bvh=False``).
     bounds:       (2, 3) float64 [min, max] corners of the object's box, object frame,
                   m: of the mesh's vertices or the cloud's points. Placement and the
                   output box use it.
@@ -50,6 +51,9 @@ class ScanTarget:
     source_index: (P,) int32: the mesh face (or point) each polygon came from; the
                   scan's ``face`` column.
     kind:         "mesh" or "surfels".
+    triangle_vertices (V, 3) float32, triangle_faces (T, 3) int32: the polygons as an
+                  indexed triangle mesh, and triangle_polygon (T,) int32 the polygon of
+                  each triangle: what the Embree engine casts on.
     """
 
     bvh: object
@@ -60,6 +64,10 @@ class ScanTarget:
     source_index: np.ndarray
     kind: str
     name: str = "object"
+    triangle_vertices: np.ndarray | None = None
+    triangle_faces: np.ndarray | None = None
+    triangle_polygon: np.ndarray | None = None
+    embree_scene: object = None  # built on the first Embree cast (raycast.trace_rays)
 
     @property
     def size(self) -> np.ndarray:
@@ -92,7 +100,7 @@ def _planes(normals: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
-                face_reflectivity: np.ndarray | None = None) -> ScanTarget:
+                face_reflectivity: np.ndarray | None = None, with_bvh: bool = True) -> ScanTarget:
     """A BVH over triangles. vertices (V, 3) object frame m; faces (F, 3) int.
     Faces of zero area (or with a repeated vertex) are dropped with a warning; an empty
     mesh or non-finite vertices are an InputError naming ``name``."""
@@ -122,10 +130,12 @@ def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
         reflectivity = np.clip(np.asarray(face_reflectivity, np.float32).reshape(-1), 0, 1)
         if len(reflectivity) != len(faces):
             raise InputError(name, f"{len(reflectivity)} face reflectivities for {len(faces)} faces")
-    bvh = bvhtree_class().FromPolygons(vertices.tolist(), used.tolist(), all_triangles=True, epsilon=0.0)
+    bvh = bvhtree_class().FromPolygons(vertices.tolist(), used.tolist(), all_triangles=True, epsilon=0.0) \
+        if with_bvh else None
     bounds = np.stack([vertices[used].reshape(-1, 3).min(0), vertices[used].reshape(-1, 3).max(0)])
     return ScanTarget(bvh, bounds, bounds, _planes(normals, corners[:, 0]), reflectivity[kept],
-                      kept.astype(np.int32), "mesh", name)
+                      kept.astype(np.int32), "mesh", name, vertices.astype(np.float32), used.astype(np.int32),
+                      np.arange(len(kept), dtype=np.int32))
 
 
 def local_frames(positions: np.ndarray, neighbours: int = 8):
@@ -154,7 +164,8 @@ def _quaternion_matrices(wxyz: np.ndarray) -> np.ndarray:
 
 def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarray | None = None,
                   radius_scale: float = 1.0, neighbours: int = 8,
-                  scales: np.ndarray | None = None, rotations: np.ndarray | None = None) -> ScanTarget:
+                  scales: np.ndarray | None = None, rotations: np.ndarray | None = None,
+                  with_bvh: bool = True) -> ScanTarget:
     """Oriented surfels for a point cloud, object frame (m).
 
     Point clouds: normal from local PCA over ``neighbours`` points, radius =
@@ -188,14 +199,17 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
     corners = positions[:, None, :] + np.einsum("sk,nk,nik->nsi", unit, semi_axes, tangents)
     polygons = np.arange(len(positions) * SURFEL_SIDES).reshape(-1, SURFEL_SIDES)
     bvh = bvhtree_class().FromPolygons(corners.reshape(-1, 3).tolist(), polygons.tolist(),
-                                       all_triangles=False, epsilon=0.0)
+                                       all_triangles=False, epsilon=0.0) if with_bvh else None
     reflectivity = (np.full(len(positions), DEFAULT_REFLECTIVITY, np.float32) if colors is None
                     else reflectivity_from_srgb(colors))
     flat = corners.reshape(-1, 3)
     normals = np.cross(tangents[:, :, 0], tangents[:, :, 1])
+    fan = np.array([[0, side, side + 1] for side in range(1, SURFEL_SIDES - 1)])  # a hexagon as 4 triangles
     return ScanTarget(bvh, np.stack([positions.min(0), positions.max(0)]), np.stack([flat.min(0), flat.max(0)]),
                       _planes(normals, positions), reflectivity,
-                      np.arange(len(positions), dtype=np.int32), "surfels", name)
+                      np.arange(len(positions), dtype=np.int32), "surfels", name,
+                      flat.astype(np.float32), polygons[:, fan].reshape(-1, 3).astype(np.int32),
+                      np.repeat(np.arange(len(positions), dtype=np.int32), len(fan)))
 
 
 def element_colors(reconstruction) -> np.ndarray | None:
@@ -207,16 +221,17 @@ def element_colors(reconstruction) -> np.ndarray | None:
     return colors[reconstruction.faces].mean(axis=1) if len(reconstruction.faces) else colors
 
 
-def target_from_reconstruction(reconstruction, radius_scale: float = 1.0) -> ScanTarget:
+def target_from_reconstruction(reconstruction, radius_scale: float = 1.0, with_bvh: bool = True) -> ScanTarget:
     """A mesh target when the reconstruction has faces, else surfels (splat-shaped when
-    it carries ``scale`` and ``rotation``). Positions must already be in the object frame."""
+    it carries ``scale`` and ``rotation``). Positions must already be in the object frame.
+    ``with_bvh=False`` skips Blender's BVH: the target serves the Embree engine only."""
     name = str(reconstruction.source)
     colors = reconstruction.colors
     if len(reconstruction.faces):
         face_reflectivity = None
         if colors is not None:
             face_reflectivity = reflectivity_from_srgb(colors)[reconstruction.faces].mean(axis=1)
-        return mesh_target(reconstruction.positions, reconstruction.faces, name, face_reflectivity)
+        return mesh_target(reconstruction.positions, reconstruction.faces, name, face_reflectivity, with_bvh)
     attributes = reconstruction.attributes
     return surfel_target(reconstruction.positions, name, colors, radius_scale,
-                         scales=attributes.get("scale"), rotations=attributes.get("rotation"))
+                         scales=attributes.get("scale"), rotations=attributes.get("rotation"), with_bvh=with_bvh)
