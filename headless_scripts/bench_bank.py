@@ -526,7 +526,8 @@ def memory_table(rows: list) -> str:
         lines.append(f"| {r['objects']} | {r['grid']} | {r['poses']:,} | {r['kept']:,} | {r['export_s']:.1f} "
                      f"| {r['kept'] / r['export_s']:.0f} | {mb(r['parent_max_rss'])} | {mb(r['workers_vmhwm_polled'])} "
                      f"| {mb(r['workers_max_rss'])} | {mb(r['rss_before_assembly'])} "
-                     f"| {r['assembly_growth'] / MIB:,.1f} | {r['disk'].get('info pickles', {}).get('bytes', 0) / MIB:,.1f} "
+                     f"| {r['assembly_growth'] / MIB:,.1f} "
+                     f"| {r['disk'].get('info pickles', {}).get('bytes', 0) / MIB:,.1f} "
                      f"| {sum(p['allocated'] for p in r['disk'].values()) / MIB:,.1f} |")
     return "\n".join(lines)
 
@@ -709,8 +710,9 @@ def main(argv: list) -> int:
                   f"ray engine {args.engine}",
         f"{grid} grid": f"headings {subset['headings_deg']}, x {subset['x']}, y {subset['y']}, chunk_size "
                         f"{subset['chunk_size']} (poses per object in the table)",
-        "full grid": "BankConfig() as is: headings -180..180 every 30 deg (13), x and y -50..50 every 5 m (21 x 21), "
-                     "minus the ego clearance; one run per object on all cores" if not args.quick else "not run (--quick)",
+        "full grid": ("BankConfig() as is: headings -180..180 every 30 deg (13), x and y -50..50 every 5 m "
+                      "(21 x 21), minus the ego clearance; one run per object on all cores")
+                     if not args.quick else "not run (--quick)",
         "runs": f"median of {repeats} run(s) per object and worker count, each a fresh process; timed: "
                 "export.run_local (scan + .bin writes + chunk records); planning (job.entries) and assembly apart",
         "workers": f"{workers}: 1 = in the parent process, {workers[-1]} = a fork pool of that many",

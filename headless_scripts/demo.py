@@ -92,8 +92,9 @@ def main(argv: list) -> int:
     dropped = sum(manifest["dropped_below_min_points"].values())
     print(f"\nbank: {manifest['entries']:,} entries [{counts}] in {seconds:.0f} s "
           f"({(manifest['entries'] + dropped) / seconds:.0f} poses/s), {dropped} poses dropped below "
-          f"{manifest['config']['min_points']} points; nuScenes HDL-32E, 10 sweeps, grid {DEMO_BANK.x} m, "
-          f"headings every {DEMO_BANK.headings_deg[2]:g} deg")
+          f"{manifest['config']['min_points']} points; nuScenes HDL-32E, 10 sweeps, x and y "
+          f"{DEMO_BANK.x[0]:g}..{DEMO_BANK.x[1]:g} m every {DEMO_BANK.x[2]:g} m, headings every "
+          f"{DEMO_BANK.headings_deg[2]:g} deg")
     print(f"\nsamples: {out / 'samples'}\nscene:   {blend}\nbank:    {bank} (report: {bank / 'report.md'})")
     return 0
 

@@ -81,7 +81,7 @@ def objects(prepared) -> list:
     return checked_objects(found, incomplete, False, prepared)
 
 
-@pytest.fixture(scope="module", params=["nuscenes", "kitti"])
+@pytest.fixture(scope="module", params=["nuscenes", "kitti", "lyft"])
 def bank(request, objects, tmp_path_factory):
     """(out folder, manifest) of a small bank of the three objects."""
     table = {**SMALL, "bank": {**SMALL["bank"], "dataset": request.param}}
@@ -176,7 +176,7 @@ def load_like_mmdet3d(root: Path, info: dict, columns: int) -> tuple:
 def test_every_entry_loads_through_both_frameworks(bank):
     out, manifest = bank
     dataset = manifest["config"]["dataset"]
-    columns = 5 if dataset == "nuscenes" else 4
+    columns = 4 if dataset == "kitti" else 5
     sensor = PRESETS[dataset]
     loaded = {}
     for fmt in ("openpcdet", "mmdet3d"):
@@ -194,19 +194,18 @@ def test_every_entry_loads_through_both_frameworks(bank):
                 # float32 storage of points and box: a few micrometres beyond the tolerance at 30 m
                 assert inside_box(points[:, :3].astype(np.float64), box, BOX_TOLERANCE + 1e-4).all()
                 assert abs(box[2] - box[5] / 2 + sensor.mounting_height) < 1e-4  # standing on the ground
-                if dataset == "nuscenes":
+                if dataset != "kitti":  # nuScenes and Lyft: 0..255 and a time lag (Lyft: one sweep)
                     assert np.array_equal(points[:, 3], np.round(points[:, 3])) and points[:, 3].max() <= 255
                     lags = points[:, 4] / sensor.sweep_seconds
                     np.testing.assert_allclose(lags, np.round(lags), atol=1e-4)
-                    assert lags.max() <= 9 + 1e-4
+                    assert lags.max() <= (9 if dataset == "nuscenes" else 0) + 1e-4
                 else:
                     assert 0 <= points[:, 3].min() and points[:, 3].max() <= 1
                     assert {"difficulty", "bbox", "score"} <= set(info) or fmt == "mmdet3d"
     assert set(loaded["openpcdet"]) == set(manifest["counts"])
     for name, count in manifest["counts"].items():
         assert len(loaded["openpcdet"][name]) == len(loaded["mmdet3d"][name]) == count
-    assert (set(manifest["counts"]) == {"truck", "bicycle"} if dataset == "nuscenes"
-            else set(manifest["counts"]) == {"Truck", "Cyclist"})
+    assert set(manifest["counts"]) == ({"Truck", "Cyclist"} if dataset == "kitti" else {"truck", "bicycle"})
 
 
 def test_manifest_checksums_every_file(bank):
@@ -226,7 +225,7 @@ def test_manifest_checksums_every_file(bank):
 def test_openpcdet_and_mmdet3d_hold_the_same_points(bank):
     out, manifest = bank
     dataset = manifest["config"]["dataset"]
-    columns = 5 if dataset == "nuscenes" else 4
+    columns = 4 if dataset == "kitti" else 5
     pcdet = pickle.loads((out / "openpcdet" / f"{dataset}_dbinfos_pgt.pkl").read_bytes())
     mmdet = pickle.loads((out / "mmdet3d" / f"{dataset}_dbinfos_pgt.pkl").read_bytes())
     for name in pcdet:
@@ -316,6 +315,15 @@ def test_output_folder_rules(reference, prepared, tmp_path):
     assert mismatch.returncode == 1 and "other objects or settings" in mismatch.stderr
     run_script("--objects", prepared, "--config", other, "--out", copy, "--overwrite")
     assert json.loads((copy / "manifest.json").read_text())["seed"] == 5
+
+
+def test_the_report_compares_with_a_real_database(prepared, tmp_path, shared_data):
+    real = shared_data / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl"
+    config = write_config(tmp_path / "kitti.toml", {**SMALL, "bank": {"chunk_size": 4, "dataset": "kitti"},
+                                                     "grid": {**SMALL["grid"], "x": [0, 40, 20]}})
+    result = run_script("--objects", prepared, "--config", config, "--out", tmp_path / "bank", "--real", real)
+    report = (tmp_path / "bank" / "report.md").read_text()
+    assert "report.md" in result.stdout and "kitti_dbinfos_train.pkl" in report and "| Pedestrian |" in report
 
 
 def test_incomplete_objects_are_listed_and_refused(prepared, tmp_path, reference):

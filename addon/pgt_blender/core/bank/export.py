@@ -91,7 +91,7 @@ def new_job(objects: list, config: BankConfig, out) -> BankJob:
         _estimator(config)  # fails now, not in a worker
     if config.engine == "embree":
         try:
-            import embreex  # noqa: F401
+            import embreex  # noqa: F401  (only whether it imports)
         except ImportError:
             raise InputError(out, "the config asks for the embree engine: pip install embreex") from None
     return job
@@ -410,7 +410,7 @@ def _python_path() -> list:
 
 
 def _ray_chunk(job: BankJob, chunk_id: int, entries: np.ndarray) -> int:
-    global _job, _cache
+    """One chunk as a Ray task: a worker process starts the job on its first task."""
     if _job is None or _job.out != job.out:
         start_worker(job)
     return run_chunk(chunk_id, entries)
