@@ -90,7 +90,7 @@ PROFILE_STAGES = {  # stage -> (file suffix, function): its cumulative seconds
     "  10 sweeps per pose (sweeps.scan_sweeps)": ("core/scan/sweeps.py", "scan_sweeps"),
     "    ray casting (raycast.trace_rays)": ("core/scan/raycast.py", "trace_rays"),
     "    returns, noise (raycast.build_returns)": ("core/scan/raycast.py", "build_returns"),
-    "  box filter (entries.inside_box)": ("core/bank/entries.py", "inside_box"),
+    "  box filter (boxes.inside_box)": ("core/boxes.py", "inside_box"),
     "  format records (formats.database_record)": ("core/bank/formats.py", "database_record"),
     "  file writes (export._write_bytes)": ("core/bank/export.py", "_write_bytes"),
 }

@@ -69,8 +69,6 @@ def learned_intensity(result, recon, bounds: np.ndarray, sensor, class_name: str
         return f"physical default: PyTorch ({TORCH_REQUIREMENT}) is not installed, so {checkpoint} was not used"
     estimator = IntensityEstimator.load(checkpoint, dataset=sensor.dataset)
     element_rgb = element_colors(recon)
-    if element_rgb is None:
-        element_rgb = np.full((len(recon.faces) or len(recon.positions), 3), 0.5, np.float32)  # grey
     rows, local = result.returns, result.box_frame_points(bounds)
     for sweep in range(len(result.poses)):  # each sweep is the object at another pose
         mine = rows["sweep"] == sweep

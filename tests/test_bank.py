@@ -19,7 +19,8 @@ import pytest
 from pgt_blender.core.authoring.prepare import prepare, write_prepared
 from pgt_blender.core.bank import export
 from pgt_blender.core.bank.config import BankConfig, config_from_table, grid_values, load_config
-from pgt_blender.core.bank.entries import BOX_TOLERANCE, inside_box
+from pgt_blender.core.bank.entries import BOX_TOLERANCE
+from pgt_blender.core.boxes import inside_box
 from pgt_blender.core.bank.formats import BOX_VALUES, kitti_image_box
 from pgt_blender.core.bank.grid import footprint_distance, object_entries
 from pgt_blender.core.bank.inputs import checked_objects, prepared_objects

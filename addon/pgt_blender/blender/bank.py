@@ -9,6 +9,7 @@ from the PLY, so the same objects by either route make the same bank.
 from pathlib import Path
 
 import bpy
+import numpy as np
 
 from ..core.bank.inputs import BankObject, incomplete_reason
 from ..core.reconstruction import Reconstruction
@@ -28,11 +29,9 @@ def scene_bank_objects(scene: bpy.types.Scene) -> tuple[list, list]:
             incomplete.append((obj.name, reason))
             continue
         mesh = obj.data
-        faces = mesh_triangles(mesh)[0] if len(mesh.polygons) else None
-        geometry = Reconstruction(mesh_vertices(mesh), "mesh" if faces is not None else "point_ply",
+        faces = mesh_triangles(mesh)[0] if len(mesh.polygons) else np.zeros((0, 3), np.int32)
+        geometry = Reconstruction(mesh_vertices(mesh), "mesh" if len(faces) else "point_ply",
                                   Path(bpy.data.filepath or "scene") / obj.name, obj.pgt.source_sha256,
-                                  colors=point_colors(mesh))
-        if faces is not None:
-            geometry.faces = faces
+                                  faces=faces, colors=point_colors(mesh))
         objects.append(BankObject(obj.name, obj.pgt.class_name, current_dims(obj), geometry))
     return objects, incomplete

@@ -11,9 +11,10 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..boxes import inside_box
 from ..scan.raycast import ScanOptions
 from ..scan.sweeps import Motion, scan_sweeps
-from ..scan.targets import target_from_reconstruction
+from ..scan.targets import element_colors, target_from_reconstruction
 from .config import BankConfig
 from .grid import size_variants, sweeps_of
 from .inputs import BankObject
@@ -28,12 +29,15 @@ class TargetCache:
 
     def __init__(self, objects: list, config: BankConfig):
         self.objects, self.config = objects, config
-        self._object, self._targets = None, {}
+        self._object, self._targets, self._rgb = None, {}, None
+
+    def _switch(self, object_index: int) -> None:
+        if object_index != self._object:
+            self._object, self._targets, self._rgb = object_index, {}, None
 
     def get(self, object_index: int, variant: int) -> tuple:
         """(ScanTarget, box bounds (2, 3)) of the variant, object frame, metres."""
-        if object_index != self._object:
-            self._object, self._targets = object_index, {}
+        self._switch(object_index)
         if variant not in self._targets:
             obj: BankObject = self.objects[object_index]
             dims = size_variants(self.config, object_index, obj.dims)[variant]
@@ -43,14 +47,13 @@ class TargetCache:
             self._targets[variant] = (target, np.stack([-dims / 2, dims / 2]))
         return self._targets[variant]
 
-
-def inside_box(xyz: np.ndarray, box: np.ndarray, tolerance: float = BOX_TOLERANCE) -> np.ndarray:
-    """(N,) bool: points (N, 3) inside the (>= 7,) box x y z dx dy dz heading (centre), m."""
-    cos, sin = np.cos(box[6]), np.sin(box[6])
-    offset = xyz - box[:3]
-    local = np.column_stack([offset[:, 0] * cos + offset[:, 1] * sin, -offset[:, 0] * sin + offset[:, 1] * cos,
-                             offset[:, 2]])
-    return np.all(np.abs(local) <= box[3:6] / 2 + tolerance, axis=1)
+    def element_rgb(self, object_index: int) -> np.ndarray:
+        """(E, 3) float32 sRGB of what a return's ``face`` indexes (targets.element_colors),
+        worked out once per object."""
+        self._switch(object_index)
+        if self._rgb is None:
+            self._rgb = element_colors(self.objects[object_index].geometry)
+        return self._rgb
 
 
 def scan_entry(cache: TargetCache, sensor, entry, config: BankConfig):
@@ -62,4 +65,4 @@ def scan_entry(cache: TargetCache, sensor, entry, config: BankConfig):
     scan = scan_sweeps(target, sensor, float(entry["x"]), float(entry["y"]), float(entry["heading"]),
                        Motion(float(entry["speed"]), float(entry["acceleration"])), sweeps_of(config),
                        options, bounds, box_margin=BOX_TOLERANCE)
-    return scan, inside_box(scan.xyz, scan.box)
+    return scan, inside_box(scan.xyz, scan.box, BOX_TOLERANCE)

@@ -32,7 +32,6 @@ from ..errors import InputError
 from ..files import atomic_output
 from ..scan.physical_intensity import dataset_intensity
 from ..scan.sensors import INTENSITY_MAX, sensor_from_name
-from ..scan.targets import element_colors
 from .config import BankConfig
 from .entries import TargetCache, scan_entry
 from .formats import DATABASE_FOLDER, class_name_for, database_record, entry_points
@@ -74,15 +73,13 @@ class BankJob:
 def new_job(objects: list, config: BankConfig, out) -> BankJob:
     """A job for ``objects`` (checked BankObjects); InputError for a class without a
     dataset name, an unusable sensor or intensity checkpoint."""
-    job = BankJob(objects, config, Path(out))
-    unnamed = sorted({obj.class_name for obj in objects if class_name_for(config.dataset, obj.class_name,
-                                                                          config.classes) is None})
+    names = [class_name_for(config.dataset, obj.class_name, config.classes) for obj in objects]
+    unnamed = sorted({obj.class_name for obj, name in zip(objects, names) if name is None})
     if unnamed:
         raise InputError(out, f"no {config.dataset} class for {', '.join(unnamed)}: name one in the config's "
                               f"[classes] table (\"\" skips the class)")
-    job.class_names = [class_name_for(config.dataset, obj.class_name, config.classes) for obj in objects]
-    job.objects = [obj for obj, name in zip(objects, job.class_names) if name]
-    job.class_names = [name for name in job.class_names if name]
+    job = BankJob([obj for obj, name in zip(objects, names) if name], config, Path(out),
+                  [name for name in names if name])
     if not job.objects:
         raise InputError(out, "every object's class is skipped by the config's [classes] table")
     if job.sensor.dataset != config.dataset:
@@ -264,9 +261,7 @@ def _learned_intensity(config: BankConfig, cache: TargetCache, entry, obj: BankO
 
     torch.set_num_threads(1)  # float sums in a fixed order: the same bytes on any machine load
     _, bounds = cache.get(int(entry["object"]), int(entry["variant"]))
-    colors = element_colors(obj.geometry)
-    rows = scan.returns[keep]
-    rgb = np.full((len(rows), 3), 0.5, np.float32) if colors is None else colors[rows["face"]]
+    rgb = cache.element_rgb(int(entry["object"]))[scan.returns["face"][keep]]
     relative = _estimator(config).predict(scan.box_frame_points(bounds)[keep], bounds[1] - bounds[0], rgb,
                                           obj.class_name, obj.name)
     return dataset_intensity(relative, config.dataset)

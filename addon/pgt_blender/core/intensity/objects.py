@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..boxes import box_frame
 from ..errors import InputError
 from ..scan.sensors import INTENSITY_MAX
 
@@ -57,14 +58,6 @@ class ObjectSet:
     classes: tuple
     names: list
     dataset: str
-
-
-def _box_frame(points: np.ndarray, centre: np.ndarray, heading: float) -> np.ndarray:
-    """(N, 3) sensor-frame points into the frame of a box at ``centre`` turned by ``heading``."""
-    cos, sin = np.cos(heading), np.sin(heading)
-    shifted = points - centre
-    return np.column_stack([shifted[:, 0] * cos + shifted[:, 1] * sin,
-                            -shifted[:, 0] * sin + shifted[:, 1] * cos, shifted[:, 2]])
 
 
 def _intensities(path, values: np.ndarray, dataset: str) -> np.ndarray:
@@ -148,7 +141,7 @@ def kitti_scan_objects(folder, min_points: int = 1) -> list:
             raise InputError(scan, f"{raw.size} floats do not split into x, y, z, intensity rows")
         rows = raw.reshape(-1, 4).astype(np.float64)
         for index, (kind, centre, dims, heading) in enumerate(kitti_label_boxes(label, calib)):
-            local = _box_frame(rows[:, :3], centre, heading)
+            local = box_frame(rows[:, :3], centre, heading)
             inside = (np.abs(local) <= dims / 2).all(axis=1)
             if inside.sum() >= max(min_points, 1):
                 values = _intensities(scan, rows[inside, 3], "kitti")

@@ -241,19 +241,21 @@ def _embree_hits(target: ScanTarget, origin: np.ndarray, directions: np.ndarray,
 
 
 def cast_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray, options: ScanOptions,
-              sweep: int = 0, velocity=(0.0, 0.0), bounds: np.ndarray | None = None,
-              trace: Trace | None = None) -> Scan:
-    """Scan ``target`` placed by ``sensor_from_object``: one row per return (returns.py).
-    The Scan's box is ``bounds`` (2, 3, object frame; default the geometry's) placed.
-    A ``trace`` of this very pose (``trace_rays``) is reused instead of casting again."""
-    trace = trace or trace_rays(target, sensor, sensor_from_object, options.window, engine=options.engine)
+              sweep: int = 0) -> Scan:
+    """Scan ``target`` placed by ``sensor_from_object``: one row per return (returns.py)."""
+    trace = trace_rays(target, sensor, sensor_from_object, options.window, engine=options.engine)
     start = time.perf_counter()
-    polygons = trace.polygons
-    returns = build_returns(sensor, trace.cells, trace.ranges, target.reflectivity[polygons], trace.cos_incidence,
-                            target.source_index[polygons], options, sweep)
-    box = placed_box(target.bounds if bounds is None else bounds, sensor_from_object, velocity)
+    returns = trace_returns(target, sensor, trace, options, sweep)
+    box = placed_box(target.bounds, sensor_from_object)
     return Scan(returns, box, trace.rays, trace.seconds + time.perf_counter() - start, sensor.dataset,
                 [sensor_from_object])
+
+
+def trace_returns(target: ScanTarget, sensor: Sensor, trace: Trace, options: ScanOptions, sweep: int = 0):
+    """RETURN_DTYPE rows of ``trace``'s hits after the sensor effects of ``options``."""
+    polygons = trace.polygons
+    return build_returns(sensor, trace.cells, trace.ranges, target.reflectivity[polygons], trace.cos_incidence,
+                         target.source_index[polygons], options, sweep)
 
 
 def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflectivity: np.ndarray,

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .raycast import ScanOptions, Trace, build_returns, placed_box, placement, trace_rays
+from .raycast import ScanOptions, Trace, placed_box, placement, trace_rays, trace_returns
 from .returns import Scan
 from .sensors import Sensor
 from .targets import ScanTarget
@@ -90,10 +90,8 @@ def scan_sweeps(target: ScanTarget, sensor: Sensor, x: float, y: float, heading:
                 traces[key] = Trace(0, *(np.zeros(0, dtype) for dtype in ("i8", "f8", "f8", "i8")), 0.0)
             else:
                 traces[key] = trace_rays(target, sensor, pose, options.window, cast_bounds, options.engine)
-        trace = traces[key]
-        parts.append(build_returns(sensor, trace.cells, trace.ranges, target.reflectivity[trace.polygons],
-                                   trace.cos_incidence, target.source_index[trace.polygons], options, sweep))
+        parts.append(trace_returns(target, sensor, traces[key], options, sweep))
         poses.append(pose)
-        rays += trace.rays
+        rays += traces[key].rays
     box = placed_box(bounds, poses[0], motion.speed * direction)
     return Scan(np.concatenate(parts), box, rays, time.perf_counter() - start, sensor.dataset, poses)

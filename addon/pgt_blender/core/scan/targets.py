@@ -212,11 +212,11 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
                       np.repeat(np.arange(len(positions), dtype=np.int32), len(fan)))
 
 
-def element_colors(reconstruction) -> np.ndarray | None:
+def element_colors(reconstruction) -> np.ndarray:
     """(E, 3) float32 sRGB of what a scan's ``face`` column indexes: per face (the mean of
-    its vertices' colours) for a mesh, per point otherwise; None without colours."""
+    its vertices' colours) for a mesh, per point otherwise; grey (0.5) without colours."""
     if reconstruction.colors is None:
-        return None
+        return np.full((len(reconstruction.faces) or len(reconstruction.positions), 3), 0.5, np.float32)
     colors = reconstruction.colors[:, :3]
     return colors[reconstruction.faces].mean(axis=1) if len(reconstruction.faces) else colors
 
