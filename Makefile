@@ -2,6 +2,10 @@
 PYTHON ?= python3
 VENV := .venv
 PIP := $(VENV)/bin/python -m pip install --disable-pip-version-check -q -c constraints.txt
+# mmdetection3d for the detector tests, in its own virtualenv: it needs numpy >= 2, bpy < 2.
+MMDET3D_VENV := .venv-mmdet3d
+MMDET3D_PIP := $(MMDET3D_VENV)/bin/python -m pip install --disable-pip-version-check -q \
+	-c tests/detectors/mmdet3d-constraints.txt
 
 .PHONY: demo test extension bench clean
 
@@ -20,7 +24,15 @@ $(VENV)/.dev-installed: $(VENV)/.run-installed
 demo: $(VENV)/.run-installed
 	$(VENV)/bin/python headless_scripts/demo.py --out demo_output
 
-test: $(VENV)/.dev-installed
+$(MMDET3D_VENV)/.installed: tests/detectors/mmdet3d-constraints.txt tests/detectors/mmcv_ext.py
+	rm -rf $(MMDET3D_VENV)
+	$(PYTHON) -m venv $(MMDET3D_VENV)
+	$(MMDET3D_PIP) torch numpy mmengine mmcv-lite mmdet numba pyquaternion
+	$(MMDET3D_PIP) --no-deps mmdet3d
+	cp tests/detectors/mmcv_ext.py "$$($(MMDET3D_VENV)/bin/python -c 'import mmcv, os; print(os.path.dirname(mmcv.__file__))')/_ext.py"
+	touch $@
+
+test: $(VENV)/.dev-installed $(MMDET3D_VENV)/.installed
 	$(VENV)/bin/python -m pytest
 
 extension: $(VENV)/.run-installed
@@ -35,4 +47,4 @@ bench: $(VENV)/.dev-installed
 	$(VENV)/bin/python headless_scripts/bench_bank.py
 
 clean:
-	rm -rf $(VENV) dist demo_output
+	rm -rf $(VENV) $(MMDET3D_VENV) dist demo_output

@@ -16,7 +16,9 @@ for a seed whatever the workers. A killed run continues with --resume. Cluster a
 jobs run --shard i/n each (into the same folder, or separate ones copied together
 with --assemble --from DIR ...), then one --assemble writes the info pickles and the
 manifest. The bank report (report.md + report.png in the folder) compares the bank with
-a real database given by --real. An output folder that is not empty is refused without
+a real database given by --real. --data-root makes the info paths relative to the
+dataset root the detector joins them to, so the bank loads beside the real database
+(also with --assemble, to move a finished bank). An output folder that is not empty is refused without
 --resume/--overwrite.
 Bad input: a one-line error and exit code 1; nothing half-written is left.
 """
@@ -92,7 +94,7 @@ def export_bank(args) -> int:
     if args.assemble:
         for shard in args.shard_dirs:
             export.copy_shard(shard, args.out)
-        return finish(args, export.assemble(args.out), 0.0)
+        return finish(args, export.assemble(args.out, args.data_root), 0.0)
     config = load_config(args.config) if args.config else BankConfig()
     objects, source = gather(args)
     plan = export.plan_bank(objects, config, args.out, args.resume, args.overwrite, args.shard)
@@ -105,7 +107,7 @@ def export_bank(args) -> int:
         print(f"shard {args.shard[0]}/{args.shard[1]} done in {seconds:.1f} s; "
               f"when every shard is done: export_bank.py --assemble --out {args.out}")
         return 0
-    return finish(args, export.assemble(args.out), seconds, plan.pending_entries)
+    return finish(args, export.assemble(args.out, args.data_root), seconds, plan.pending_entries)
 
 
 def _progress(finished, total: int) -> None:
@@ -156,6 +158,10 @@ def main(argv: list) -> int:
     parser.add_argument("--shard", type=shard_argument, help="i/n: export only chunk ids = i mod n")
     parser.add_argument("--assemble", action="store_true",
                         help="write the pickles and manifest of --out once all shards are done")
+    parser.add_argument("--data-root", type=Path,
+                        help="the dataset root the framework joins info paths to (OpenPCDet: DATA_PATH for KITTI, "
+                             "DATA_PATH/VERSION for nuScenes and Lyft; mmdet3d: data_root): paths are written "
+                             "relative to it (default: relative to each format folder)")
     parser.add_argument("--real", type=Path, help="a real *_dbinfos_*.pkl the bank report compares with")
     parser.add_argument("--from", dest="shard_dirs", type=Path, nargs="+", default=[],
                         help="with --assemble: shard folders to copy into --out first")

@@ -80,8 +80,9 @@ def test_every_preset_has_positive_sizes(dataset):
 def test_unknown_dataset_or_class():
     with pytest.raises(ValueError, match="unknown dataset 'waymo'"):
         sizing.class_dims("waymo", "truck")
-    with pytest.raises(ValueError, match="kitti has no class 'truck' \\(have: car, pedestrian, cyclist\\)"):
-        sizing.class_dims("kitti", "truck")
+    with pytest.raises(ValueError, match="kitti has no class 'bus' \\(have: car, pedestrian, cyclist, truck, van\\)"):
+        sizing.class_dims("kitti", "bus")
+    np.testing.assert_allclose(sizing.class_dims("kitti", "truck"), [10.14, 2.59, 3.25])  # KITTI's Truck labels
 
 
 def test_scale_to_anisotropic_and_uniform():
@@ -218,6 +219,16 @@ def test_prepare_objects_keep_size(sample_folder, tmp_path):
     assert np.linalg.det(np.array(sidecar["transform"])[:3, :3]) == pytest.approx(1.0)
 
 
+def test_prepare_objects_kitti_truck(sample_folder, tmp_path):
+    """KITTI labels trucks (its database has a Truck list): sized from KITTI's Truck mean."""
+    result = run_script("prepare_objects.py", "--in", sample_folder, "--class", "truck", "--dataset", "kitti",
+                        "--out", tmp_path, "--heading", "baseline", "--seed", "5")
+    assert result.returncode == 0, result.stderr
+    sidecar = json.loads((tmp_path / "truck_reconstruction.json").read_text())
+    assert sidecar["class"] == "truck"
+    np.testing.assert_allclose(sidecar["dims"], sizing.sample_dims("kitti", "truck", 6))  # second input: seed + 1
+
+
 def test_prepare_objects_bad_inputs(sample_folder, tmp_path):
     broken = tmp_path / "in"
     broken.mkdir()
@@ -231,9 +242,9 @@ def test_prepare_objects_bad_inputs(sample_folder, tmp_path):
                           (("--in", tmp_path), "no reconstructions found")]:
         result = run_script("prepare_objects.py", *args, "--class", "truck", "--out", out)
         assert result.returncode == 1 and message in result.stderr
-    result = run_script("prepare_objects.py", "--in", sample_folder, "--class", "truck", "--out", out,
+    result = run_script("prepare_objects.py", "--in", sample_folder, "--class", "bus", "--out", out,
                         "--dataset", "kitti")
-    assert result.returncode == 2 and "kitti has no class 'truck'" in result.stderr
+    assert result.returncode == 2 and "kitti has no class 'bus'" in result.stderr
     result = run_script("prepare_objects.py", "--in", sample_folder, "--class", "truck", "--out", out,
                         "--size", "4,2")
     assert result.returncode == 2 and "three positive sizes" in result.stderr

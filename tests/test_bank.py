@@ -21,7 +21,7 @@ from pgt_blender.core.bank import export
 from pgt_blender.core.bank.config import BankConfig, config_from_table, grid_values, load_config
 from pgt_blender.core.bank.entries import BOX_TOLERANCE
 from pgt_blender.core.boxes import inside_box
-from pgt_blender.core.bank.formats import BOX_VALUES, kitti_image_box
+from pgt_blender.core.bank.formats import BOX_VALUES, DATABASE_CLASSES, kitti_image_box
 from pgt_blender.core.bank.grid import footprint_distance, object_entries
 from pgt_blender.core.bank.inputs import checked_objects, prepared_objects
 from pgt_blender.core.errors import InputError
@@ -103,6 +103,10 @@ def test_default_config_is_the_papers_nuscenes_bank():
     assert (config.min_points, config.dataset, config.formats) == (16, "nuscenes", ("openpcdet", "mmdet3d"))
     assert BankConfig(dataset="kitti").x == (0.0, 70.0, 5.0) and BankConfig(dataset="kitti").y == (-40.0, 40.0, 5.0)
     assert BankConfig(dataset="lyft").x == (-80.0, 80.0, 5.0)
+    # Lyft's released files carry a constant 100, so its banks do; the others the model's.
+    assert BankConfig(dataset="lyft").constant_intensity == 100.0 and BankConfig().constant_intensity is None
+    assert BankConfig(dataset="lyft", intensity="model").constant_intensity is None
+    assert BankConfig(intensity=40).constant_intensity == 40.0
 
 
 @pytest.mark.parametrize("text, named", [
@@ -115,6 +119,9 @@ def test_default_config_is_the_papers_nuscenes_bank():
     ("[sensors]\nx = 1\n", "[sensors]"),
     ("[classes]\nbus = 3\n", "classes.bus"),
     ("[bank\n", "not a readable TOML"),
+    ("[bank]\nintensity = \"bright\"\n", "bank.intensity"),
+    ("[bank]\nintensity = 300\n", "above nuscenes's maximum 255"),
+    ("[bank]\ndataset = \"lyft\"\nintensity_checkpoint = \"m.pt\"\n", "set bank.intensity = \"model\""),
 ])
 def test_a_bad_config_names_the_bad_key(tmp_path, text, named):
     path = tmp_path / "bank.toml"
@@ -143,12 +150,6 @@ def test_grid_entries_are_jittered_filtered_and_reproducible():
     assert footprint_distance(np.array([0.0]), np.array([0.0]), np.array([0.3]), 4.0, 2.0)[0] == 0.0
 
 
-def test_kitti_image_box_and_difficulty():
-    near = np.array([10.0, 0.0, -0.9, 4.0, 1.8, 1.6, 0.0])
-    bbox, difficulty = kitti_image_box(near)
-    assert difficulty == 0 and 0 < bbox[0] < bbox[2] < 1242 and 0 < bbox[1] < bbox[3] <= 375
-    assert kitti_image_box(np.array([60.0, 0.0, -0.9, 4.0, 1.8, 1.0, 0.0]))[1] == 2  # ~12 px tall
-    assert kitti_image_box(np.array([-10.0, 0.0, -0.9, 4.0, 1.8, 1.6, 0.0]))[1] == -1  # behind the camera
 
 
 # --- the frameworks' loading contracts ----------------------------------------------
@@ -195,15 +196,18 @@ def test_every_entry_loads_through_both_frameworks(bank):
                 # float32 storage of points and box: a few micrometres beyond the tolerance at 30 m
                 assert inside_box(points[:, :3].astype(np.float64), box, BOX_TOLERANCE + 1e-4).all()
                 assert abs(box[2] - box[5] / 2 + sensor.mounting_height) < 1e-4  # standing on the ground
-                if dataset != "kitti":  # nuScenes and Lyft: 0..255 and a time lag (Lyft: one sweep)
+                if dataset != "kitti":  # nuScenes and Lyft: 0..255 and 10 sweeps' time lags
                     assert np.array_equal(points[:, 3], np.round(points[:, 3])) and points[:, 3].max() <= 255
-                    lags = points[:, 4] / sensor.sweep_seconds
+                    if dataset == "lyft":  # as the real Lyft files: a constant 100
+                        assert (points[:, 3] == 100).all()
+                    lags = points[:, 4] / (0.05 if dataset == "nuscenes" else 0.2)
                     np.testing.assert_allclose(lags, np.round(lags), atol=1e-4)
-                    assert lags.max() <= (9 if dataset == "nuscenes" else 0) + 1e-4
+                    assert lags.max() <= 9 + 1e-4
                 else:
                     assert 0 <= points[:, 3].min() and points[:, 3].max() <= 1
                     assert {"difficulty", "bbox", "score"} <= set(info) or fmt == "mmdet3d"
-    assert set(loaded["openpcdet"]) == set(manifest["counts"])
+    assert set(loaded["openpcdet"]) == set(DATABASE_CLASSES[dataset])  # every class, empty or not
+    assert {name for name, infos in loaded["openpcdet"].items() if infos} == set(manifest["counts"])
     for name, count in manifest["counts"].items():
         assert len(loaded["openpcdet"][name]) == len(loaded["mmdet3d"][name]) == count
     assert set(manifest["counts"]) == ({"Truck", "Cyclist"} if dataset == "kitti" else {"truck", "bicycle"})

@@ -140,6 +140,26 @@ def test_bank_paths_relative_to_root_and_resolvable(real, bank, tmp_path):
     assert load(tmp_path / "mixed2.pkl")["Car"][5]["path"].startswith("pgt_gt_database/")
 
 
+def test_a_bank_assembled_for_a_data_root_resolves_through_its_manifest(real, tmp_path):
+    """export_bank.py --data-root writes paths relative to the dataset root and records
+    it in OUT/manifest.json (relative to OUT); the mix resolves bank paths through it."""
+    out = tmp_path / "data" / "banks" / "pgt"
+    (out / "openpcdet").mkdir(parents=True)
+    bank = write_database(out / "openpcdet" / "kitti_dbinfos_pgt.pkl", BANK_COUNTS, "pgt_gt_database",
+                          bank=True)
+    infos = load(bank)
+    for entries in infos.values():
+        for info in entries:
+            info["path"] = f"banks/pgt/openpcdet/{info['path']}"
+    bank.write_bytes(pickle.dumps(infos | {"Van": []}))  # an empty class, as banks list every class
+    (out / "manifest.json").write_text('{"data_root": "../.."}')
+    summary = mix_databases(real, bank, tmp_path / "mixed.pkl")
+    assert summary["skipped"] == ["Bus"]  # a class the bank has no entry for is not "skipped"
+    for info in load(tmp_path / "mixed.pkl")["Car"][5:]:
+        assert info["path"].startswith("banks/pgt/openpcdet/pgt_gt_database/Car_")
+        assert (real.parent / info["path"]).is_file()
+
+
 def test_bank_outside_root_gets_absolute_paths(real, tmp_path):
     (tmp_path / "elsewhere").mkdir()
     bank = write_database(tmp_path / "elsewhere" / "bank.pkl", BANK_COUNTS, "pgt_gt_database", bank=True)

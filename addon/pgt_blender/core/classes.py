@@ -18,10 +18,13 @@ NUSCENES_SIZES = {
     "barrier": ((0.50, 2.52, 0.99), (0.17, 0.62, 0.15)),
 }
 
-# Mean sizes by dataset (KITTI and Lyft: OpenPCDet's anchor sizes; no std published).
+# Mean sizes by dataset (KITTI car, pedestrian, cyclist and Lyft: OpenPCDet's anchor
+# sizes; KITTI truck and van: the means of KITTI's training labels as tabulated by
+# Frustum PointNets, g_type_mean_size; no std published).
 CLASS_SIZES = {
     "nuscenes": {name: mean for name, (mean, _) in NUSCENES_SIZES.items()},
-    "kitti": {"car": (3.9, 1.6, 1.56), "pedestrian": (0.8, 0.6, 1.73), "cyclist": (1.76, 0.6, 1.73)},
+    "kitti": {"car": (3.9, 1.6, 1.56), "pedestrian": (0.8, 0.6, 1.73), "cyclist": (1.76, 0.6, 1.73),
+              "truck": (10.14, 2.59, 3.25), "van": (5.07, 1.90, 2.21)},
     "lyft": {
         "car": (4.75, 1.92, 1.71), "truck": (10.24, 2.84, 3.44), "bus": (12.70, 2.92, 3.42),
         "emergency_vehicle": (6.52, 2.42, 2.34), "other_vehicle": (8.17, 2.75, 3.20),

@@ -7,8 +7,11 @@
     seed = 0
     min_points = 16             # entries with fewer points in the box are dropped
     max_distance = 0.0          # m from the sensor to the box centre; 0 = no filter (paper option: 54)
-    sweeps = 0                  # merged sweeps per entry; 0 = the dataset's (nuScenes 10, others 1)
+    sweeps = 0                  # merged sweeps per entry; 0 = the dataset's (nuScenes, Lyft 10; KITTI 1)
     radius_scale = 1.0          # surfel radius / point spacing, for point objects
+    intensity = "auto"          # auto: as the dataset's files (Lyft: constant 100, others: "model");
+                                # "model": the learned (checkpoint) or else physical intensity;
+                                # a number: that constant, on the dataset's scale
     intensity_checkpoint = ""   # train_intensity.py output; "" = the physical intensity
     chunk_size = 64             # entries per unit of work (resume and sharding granularity)
 
@@ -44,8 +47,12 @@ import numpy as np
 from ..classes import DATASETS
 from ..errors import InputError
 from ..scan.raycast import ENGINES
+from ..scan.sensors import INTENSITY_MAX
 
 FORMATS = ("openpcdet", "mmdet3d")
+# Datasets whose released files carry no measured intensity: the lyft-dataset-sdk writes
+# a constant 100 in every point file (REFERENCE.md 2), so a bank matches it by default.
+DATASET_CONSTANT_INTENSITY = {"lyft": 100.0}
 
 # The paper's perception range per dataset (REFERENCE.md 4): x and y [start, stop, step] m.
 DATASET_GRIDS = {
@@ -67,6 +74,7 @@ class BankConfig:
     max_distance: float = 0.0
     sweeps: int = 0
     radius_scale: float = 1.0
+    intensity: str | float = "auto"
     intensity_checkpoint: str = ""
     chunk_size: int = 64
     headings_deg: tuple = (-180.0, 180.0, 30.0)
@@ -86,6 +94,15 @@ class BankConfig:
         grid_x, grid_y = DATASET_GRIDS.get(self.dataset, DATASET_GRIDS["nuscenes"])
         object.__setattr__(self, "x", tuple(self.x) or grid_x)
         object.__setattr__(self, "y", tuple(self.y) or grid_y)
+
+    @property
+    def constant_intensity(self) -> float | None:
+        """The value every return's intensity is set to, or None for the model's."""
+        if self.intensity == "model":
+            return None
+        if self.intensity == "auto":
+            return DATASET_CONSTANT_INTENSITY.get(self.dataset)
+        return float(self.intensity)
 
     def to_dict(self) -> dict:
         """Plain JSON values: what the manifest records and ``--resume`` compares."""
@@ -124,6 +141,8 @@ _KEYS = {
     "bank.sweeps": ("sweeps", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
                     "an integer >= 0 (0: the dataset's)"),
     "bank.radius_scale": ("radius_scale", lambda v: _number(v) and v > 0, "a number > 0"),
+    "bank.intensity": ("intensity", lambda v: v in ("auto", "model") or (_number(v) and v >= 0),
+                       '"auto", "model" or a number >= 0'),
     "bank.intensity_checkpoint": ("intensity_checkpoint", lambda v: isinstance(v, str), "a path"),
     "bank.chunk_size": ("chunk_size", _positive_int, "an integer >= 1"),
     "grid.headings_deg": ("headings_deg", _grid_range, "[start, stop, step] degrees, step > 0"),
@@ -178,7 +197,14 @@ def config_from_table(table: dict, path="bank config") -> BankConfig:
         value = values.get(attribute, "")
         if value.endswith((".toml", ".pt")) and not Path(value).is_absolute() and isinstance(path, Path):
             values[attribute] = str((path.parent / value).resolve())
-    return BankConfig(**values)
+    config = BankConfig(**values)
+    if config.constant_intensity is not None and config.constant_intensity > INTENSITY_MAX[config.dataset]:
+        raise InputError(path, f"bank.intensity = {config.intensity!r}: above {config.dataset}'s maximum "
+                               f"{INTENSITY_MAX[config.dataset]:g}")
+    if config.constant_intensity is not None and config.intensity_checkpoint:
+        raise InputError(path, f"bank.intensity_checkpoint is set but {config.dataset} intensities are the constant "
+                               f"{config.constant_intensity:g}; set bank.intensity = \"model\" to use the checkpoint")
+    return config
 
 
 def grid_values(start: float, stop: float, step: float) -> np.ndarray:

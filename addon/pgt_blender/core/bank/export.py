@@ -34,7 +34,7 @@ from ..scan.physical_intensity import dataset_intensity
 from ..scan.sensors import INTENSITY_MAX, sensor_from_name
 from .config import BankConfig
 from .entries import TargetCache, scan_entry
-from .formats import DATABASE_FOLDER, class_name_for, database_record, entry_points
+from .formats import DATABASE_CLASSES, DATABASE_FOLDER, class_name_for, database_record, entry_points
 from .grid import object_entries
 from .inputs import BankObject, safe_name
 
@@ -167,12 +167,14 @@ def run_plan(plan: Plan, workers: int = 1, executor: str = "local", address: str
     return run_local(plan.job, plan.chunks, plan.pending, workers)
 
 
-def export_bank(objects: list, config: BankConfig, out, workers: int = 1, overwrite: bool = False) -> dict:
-    """The whole export in one call (no progress bar): returns the manifest."""
+def export_bank(objects: list, config: BankConfig, out, workers: int = 1, overwrite: bool = False,
+                data_root=None) -> dict:
+    """The whole export in one call (no progress bar): returns the manifest. ``data_root``:
+    see ``assemble``."""
     plan = plan_bank(objects, config, out, overwrite=overwrite)
     for _ in run_plan(plan, workers):
         pass
-    return assemble(plan.job.out)
+    return assemble(plan.job.out, data_root)
 
 
 # One job per worker process, set by the pool's initializer (or before a fork).
@@ -210,12 +212,14 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
         row["kept"] = len(rows) >= config.min_points
         if not row["kept"]:
             continue
-        if config.intensity_checkpoint:
+        if config.constant_intensity is not None:
+            rows["intensity"] = config.constant_intensity
+        elif config.intensity_checkpoint:
             rows["intensity"] = _learned_intensity(config, cache, entry, obj, scan, keep)
         class_name = job.class_names[entry["object"]]
         name = f"{safe_name(obj.name)}_{class_name}_{int(entry['index']):05d}.bin"
-        shared = {"name": class_name, "path": f"{DATABASE_FOLDER}/{name}", "image_idx": f"pgt/{obj.name}",
-                  "gt_idx": int(entry["index"]), "group_id": _group_id(entry)}
+        shared = {"name": class_name, "path": f"{DATABASE_FOLDER}/{name}", "image_idx": _group_id(entry),
+                  "pgt_object": obj.name, "gt_idx": int(entry["index"])}
         points = entry_points(rows, config.dataset)
         for fmt in config.formats:
             data, info = database_record(fmt, config.dataset, points, scan.box, shared)
@@ -267,22 +271,32 @@ def _learned_intensity(config: BankConfig, cache: TargetCache, entry, obj: BankO
     return dataset_intensity(relative, config.dataset)
 
 
-def assemble(out: Path) -> dict:
+def assemble(out: Path, data_root=None) -> dict:
     """Write every format's info pickle and then the manifest from the chunk records
-    (all must exist: InputError names the missing ones). Returns the manifest."""
+    (all must exist: InputError names the missing ones). Returns the manifest.
+
+    Info paths: both frameworks join ``path`` to their dataset root (OpenPCDet
+    ``root_path / path``, where root_path is DATA_PATH for KITTI and DATA_PATH/VERSION
+    for nuScenes and Lyft; mmdet3d ``os.path.join(data_root, path)``). Without
+    ``data_root`` paths are relative to the format folder (``OUT/<format>``: give that
+    folder as the root); with it they are relative to ``data_root`` (``..`` where the
+    bank lies outside it), so the bank sits beside the real database. The manifest's
+    ``data_root`` records it relative to OUT (None: the format folders)."""
     ident = json.loads((out / WORK / "identity.json").read_text())
     config = ident["config"]
     missing = [i for i in range(ident["chunks"]) if not chunk_record_path(out, i).is_file()]
     if missing:
         raise InputError(out, f"{len(missing)} of {ident['chunks']} chunks not exported yet "
                               f"(first: {missing[0]}); run the missing shards or --resume")
-    infos = {fmt: {} for fmt in config["formats"]}
+    # A list for every class of the dataset: the samplers index the pickle by each class they sample.
+    infos = {fmt: {name: [] for name in DATABASE_CLASSES[config["dataset"]]} for fmt in config["formats"]}
+    prefixes = {fmt: _path_prefix(out / fmt, data_root) for fmt in config["formats"]}
     files, counts, dropped = {}, {}, {}
     for chunk_id in range(ident["chunks"]):
         record = pickle.loads(chunk_record_path(out, chunk_id).read_bytes())
         for fmt, entries in record["infos"].items():
             for info in entries:
-                infos[fmt].setdefault(info["name"], []).append(info)
+                infos[fmt].setdefault(info["name"], []).append(dict(info, path=prefixes[fmt] + info["path"]))
         files.update(record["files"])
         for row in record["stats"]:
             name = ident["class_names"][row["object"]]
@@ -296,6 +310,8 @@ def assemble(out: Path) -> dict:
         "pgt_blender": _version(), "config": config, "seed": config["seed"], "objects": ident["objects"],
         "versions": _library_versions(), "frames": FRAMES,
         "info_pickles": {fmt: f"{fmt}/{pickle_name}" for fmt in config["formats"]},
+        "data_root": None if data_root is None else Path(os.path.relpath(Path(data_root).absolute(),
+                                                                        out.absolute())).as_posix(),
         "entries": sum(counts.values()), "counts": dict(sorted(counts.items())),
         "dropped_below_min_points": dict(sorted(dropped.items())),
         "files": dict(sorted(files.items())),
@@ -303,6 +319,27 @@ def assemble(out: Path) -> dict:
     with atomic_output(out / MANIFEST) as stream:
         stream.write(json.dumps(manifest, indent=1).encode())
     return manifest
+
+
+def info_path_root(info_pickle: Path) -> Path:
+    """The folder a bank pickle's info paths are relative to: the data root its
+    manifest records (OUT/manifest.json beside OUT/<format>/), else the pickle's folder."""
+    manifest = Path(info_pickle).parent.parent / MANIFEST
+    try:
+        data_root = json.loads(manifest.read_text()).get("data_root")
+    except (OSError, ValueError, AttributeError):
+        data_root = None
+    return Path(info_pickle).parent if data_root is None else manifest.parent / data_root
+
+
+def _path_prefix(format_folder: Path, data_root) -> str:
+    """What goes before an info path relative to its format folder: "" without a
+    data root, else the format folder relative to the data root plus "/"."""
+    if data_root is None:
+        return ""
+    if not Path(data_root).is_dir():
+        raise InputError(data_root, "the dataset root is not a folder")
+    return Path(os.path.relpath(format_folder.absolute(), Path(data_root).absolute())).as_posix() + "/"
 
 
 FRAMES = ("sensor frame of the dataset's LiDAR (KITTI x forward, y left; nuScenes x right, y forward; z up); "

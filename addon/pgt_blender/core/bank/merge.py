@@ -13,7 +13,8 @@ config names the classes it samples, and those come from the real data.
 
 Paths: the framework joins an info's ``path`` to the dataset root (OpenPCDet
 ``root_path / path``, mmdet3d ``os.path.join(data_root, path)``). Real infos are kept
-as they are. Bank paths are relative to the bank pickle's folder; in the output they
+as they are. Bank paths are relative to the bank's data root (export.info_path_root:
+the pickle's folder unless the bank was assembled with one); in the output they
 are relative to ``root`` (default: the real pickle's folder) when the file lies under
 it, else absolute (joining an absolute path yields it, in both frameworks).
 
@@ -27,6 +28,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import atomic_output
+from .export import info_path_root
 
 REQUIRED_KEYS = ("name", "path", "image_idx", "gt_idx", "box3d_lidar", "num_points_in_gt")
 BOX_LAYOUTS = {7: "KITTI layout", 9: "nuScenes layout"}
@@ -92,7 +94,7 @@ def mix_databases(real_path, bank_path, out_path, ratio=(1.0, 1.0), seed=0, root
         chosen[name] = np.sort(rng.choice(available, size=min(requested, available), replace=False))
         classes[name] = _counts(len(real[name]), requested, available, len(chosen[name]))
 
-    merged = _merge(real, bank, chosen, bank_path.parent.resolve(), root.resolve())
+    merged = _merge(real, bank, chosen, info_path_root(bank_path).resolve(), root.resolve())
     out_path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_output(out_path) as stream:
         pickle.dump(merged, stream)
@@ -100,7 +102,8 @@ def mix_databases(real_path, bank_path, out_path, ratio=(1.0, 1.0), seed=0, root
     totals = [sum(counts[key] for counts in classes.values())
               for key in ("real", "requested", "bank_available", "bank_used")]
     return {"classes": {name: classes[name] for name in real}, "total": _counts(*totals),
-            "skipped": sorted(set(bank) - set(real)), "ratio": [gt, pgt], "seed": seed,
+            "skipped": sorted(name for name, infos in bank.items() if infos and name not in real),
+            "ratio": [gt, pgt], "seed": seed,
             "out": str(out_path)}
 
 

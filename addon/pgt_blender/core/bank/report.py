@@ -209,6 +209,8 @@ def real_statistics(info_pickle, root=None, *, dataset: str, grid=None) -> dict:
     edges = coverage_edges(*(grid or DATASET_GRIDS[dataset]))
     classes = {}
     for name, entries in infos.items():
+        if not entries:  # databases list every class of the dataset, also the ones they lack
+            continue
         counts = classes[name] = ClassCounts(edges)
         points = np.zeros(len(entries), np.int64)
         for index, info in enumerate(entries):

@@ -287,7 +287,7 @@ def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflect
     rows["time"] = sensor.cell_times(rings, columns)
     rows["range"] = noisy
     rows["face"] = faces[keep]
-    rows["time_lag"] = sweep * sensor.sweep_seconds
+    rows["time_lag"] = sweep * sensor.sweep_interval
     rows["sweep"] = sweep
     return rows
 

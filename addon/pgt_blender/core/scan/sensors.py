@@ -30,6 +30,10 @@ BIN_COLUMNS = {
     "kitti": ("x", "y", "z", "intensity"),
     "lyft": ("x", "y", "z", "intensity", "time_lag"),
 }
+# Seconds between the sweeps a dataset's files merge (its time_lag step): nuScenes
+# LIDAR_TOP sweeps at 20 Hz; Lyft's LiDAR files come at 5 Hz (real objects' lags are
+# multiples of 0.2 s); KITTI has one sweep per frame.
+SWEEP_INTERVAL_S = {"nuscenes": 0.05, "kitti": 0.1, "lyft": 0.2}
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,6 +77,11 @@ class Sensor:
     @property
     def sweep_seconds(self) -> float:
         return 1.0 / self.rate_hz
+
+    @property
+    def sweep_interval(self) -> float:
+        """Seconds between the merged sweeps of the sensor's dataset (SWEEP_INTERVAL_S)."""
+        return SWEEP_INTERVAL_S[self.dataset]
 
     @property
     def intensity_max(self) -> float:

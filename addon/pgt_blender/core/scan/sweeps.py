@@ -1,12 +1,12 @@
-"""Virtual object sweeps (paper sec. 3.3): nuScenes detectors train on 10 merged sweeps,
-so a moving object leaves a trail. Each sweep k (0 = current, k = k sweeps earlier, at
-t = -k / rate_hz) scans the object where a rigid-body motion model puts it then:
+"""Virtual object sweeps (paper sec. 3.3): nuScenes and Lyft detectors train on 10
+merged sweeps, so a moving object leaves a trail. Each sweep k (0 = current, k = k
+sweeps earlier, at t = -k * sensor.sweep_interval: the dataset's sweep spacing) scans the object where a rigid-body motion model puts it then:
 
     s(t) = speed * t + acceleration * t^2 / 2   along its heading (m, t in s, t <= 0)
 
 The ego vehicle is taken as static (past sweeps are already in the current sensor
 frame), and the object holds still during one sweep. Every return of sweep k gets
-``time_lag = k / rate_hz``; the box is the current one with velocity
+``time_lag = k * sensor.sweep_interval``; the box is the current one with velocity
 (vx, vy) = speed * (cos heading, sin heading).
 """
 
@@ -32,7 +32,10 @@ CLASS_MOTION = {
     "bicycle": (0.5, 4.0, 2.0, 1.0),
     "pedestrian": (0.3, 1.3, 0.4, 0.3),
 }
-SWEEPS_PER_SAMPLE = {"nuscenes": 10, "kitti": 1, "lyft": 1}
+# Sweeps merged per sample by the datasets' 10-sweep databases (OpenPCDet's
+# nuscenes_dbinfos_10sweeps_withvelo.pkl and lyft_dbinfos_10sweeps.pkl; mmdet3d's
+# nuScenes and Lyft pipelines load 10 sweeps); KITTI frames are single sweeps.
+SWEEPS_PER_SAMPLE = {"nuscenes": 10, "kitti": 1, "lyft": 10}
 
 
 @dataclass(frozen=True)
@@ -75,7 +78,7 @@ def scan_sweeps(target: ScanTarget, sensor: Sensor, x: float, y: float, heading:
     direction = np.array([np.cos(heading), np.sin(heading)])
     parts, poses, traces, rays = [], [], {}, 0
     for sweep in range(sweeps):
-        travelled = motion.displacement(-sweep * sensor.sweep_seconds)
+        travelled = motion.displacement(-sweep * sensor.sweep_interval)
         shift = travelled * direction
         pose = placement(bounds, sensor, x + shift[0], y + shift[1], heading)
         cast_bounds = None

@@ -1,0 +1,86 @@
+"""Run mmdetection3d 1.4.0's own ground-truth sampling (the ``ObjectSample`` transform
+and its ``DataBaseSampler``) on a scene, as its training pipeline does.
+
+    .venv-mmdet3d/bin/python tests/detectors/mmdet3d_sample.py REQUEST.json
+
+Runs in its own virtualenv (numpy >= 2; see mmdet3d-constraints.txt) and imports
+nothing of pgt_blender. The request (JSON):
+
+- ``config``: a config shipped with mmdet3d, relative to ``mmdet3d/.mim/configs``;
+- ``data_root``: the dataset root (the config's ``data_root``, here a test folder);
+- ``db_sampler``: keys set on the config's ``db_sampler`` dict (the documented change:
+  ``info_path``), plus ``data_root``; or, for configs without an ObjectSample step
+  (Lyft's), ``object_sample_code``: the step as Python (the README's), evaluated with
+  the config's ``class_names`` and ``data_root``, inserted after the step named by
+  ``object_sample_after``;
+- ``scene``: ``points_file`` (float32 .bin, the dataset's columns), ``boxes``
+  (gravity-centre LiDAR boxes x y z dx dy dz yaw [vx vy]), ``names``;
+- ``seed``, ``repeats``: numpy's global seed (the sampler shuffles with it) and how
+  many times the scene is sampled (the sampler's state carries over, as in training);
+- ``out``: an .npz to write.
+
+The scene's points go through the config's own loading steps before ObjectSample
+(LoadPointsFromFile, LoadPointsFromMultiSweeps with no sweep list), so they have the
+columns the pipeline gives the sampler. For repeat ``i`` the .npz holds ``points_i``
+(the transform's output, sampled points first), ``boxes_i`` (gravity-centre boxes,
+scene's first), ``names_i`` and ``scene_boxes`` (how many boxes were the scene's).
+Errors: one line on stderr, exit code 1.
+"""
+
+import copy
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def main(request_path: str) -> int:
+    import mmdet3d
+    import mmdet3d.datasets.transforms  # noqa: F401  (registers the transforms; register_all_modules
+    from mmdet3d.registry import TRANSFORMS  # would also import the evaluation devkits, not installed)
+    from mmdet3d.structures import LiDARInstance3DBoxes
+    from mmengine.config import Config
+    request = json.loads(Path(request_path).read_text())
+    config = Config.fromfile(str(Path(mmdet3d.__file__).parent / ".mim" / "configs" / request["config"]))
+    pipeline = copy.deepcopy(config.train_pipeline)
+    types = [step["type"] for step in pipeline]
+    data_root = request["data_root"]
+    if "ObjectSample" in types:
+        step = pipeline[types.index("ObjectSample")]
+        step["db_sampler"].update(request["db_sampler"], data_root=data_root)
+    else:
+        step = eval(request["object_sample_code"], {"dict": dict, "data_root": data_root,
+                                                    "class_names": config.class_names})
+        pipeline.insert(types.index(request["object_sample_after"]) + 1, step)
+    loading = [TRANSFORMS.build(s) for s in pipeline if s["type"] in ("LoadPointsFromFile", "LoadPointsFromMultiSweeps")]
+    object_sample = TRANSFORMS.build(step)
+    classes = list(object_sample.db_sampler.cat2label)
+
+    scene = request["scene"]
+    boxes = np.asarray(scene["boxes"], np.float32).reshape(-1, len(scene["boxes"][0]) if scene["boxes"] else 7)
+    labels = np.array([classes.index(name) for name in scene["names"]], np.int64)
+    np.random.seed(request["seed"])
+    arrays = {"scene_boxes": np.array(len(boxes))}
+    for repeat in range(request["repeats"]):
+        results = {"lidar_points": {"lidar_path": scene["points_file"]}, "timestamp": 0.0}
+        for transform in loading:
+            results = transform(results)
+        results["gt_bboxes_3d"] = LiDARInstance3DBoxes(boxes, box_dim=boxes.shape[1], origin=(0.5, 0.5, 0.5))
+        results["gt_labels_3d"] = labels.copy()
+        results = object_sample(results)
+        arrays[f"points_{repeat}"] = results["points"].tensor.numpy()
+        sampled = results["gt_bboxes_3d"]
+        arrays[f"boxes_{repeat}"] = np.concatenate([sampled.gravity_center.numpy(), sampled.tensor.numpy()[:, 3:]],
+                                                   axis=1)
+        arrays[f"names_{repeat}"] = np.array([classes[label] for label in results["gt_labels_3d"]])
+    np.savez(request["out"], **arrays)
+    return 0
+
+
+if __name__ == "__main__":
+    try:
+        sys.exit(main(sys.argv[1]))
+    except Exception as error:  # the test shows the sampler's own complaint, in one line
+        print(f"mmdet3d: {type(error).__name__}: {error}".replace("\n", " "), file=sys.stderr)
+        sys.exit(1)
