@@ -284,6 +284,45 @@ def run_script(*args, blender_style=False):
     return subprocess.run(command, capture_output=True, text=True, timeout=120)
 
 
+class CodeOnLoad:
+    """Unpickling this runs a shell command: what a crafted database can do to plain pickle."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+@pytest.mark.parametrize("crafted", ["real", "bank"])
+def test_a_crafted_database_runs_no_code(real, bank, tmp_path, crafted):
+    """Info pickles are read with an unpickler that builds only containers, numbers,
+    strings and numpy arrays (core/safe_pickle.py): a payload is refused, not run."""
+    marker = tmp_path / "code_ran"
+    target = real if crafted == "real" else bank
+    infos = load(target)
+    infos["Car"][0]["score"] = CodeOnLoad(marker)  # hidden inside an otherwise valid database
+    target.write_bytes(pickle.dumps(infos))
+    out = tmp_path / "mixed.pkl"
+    result = run_script("--real", real, "--bank", bank, "--out", out)
+    assert result.returncode == 1 and not marker.exists() and not out.exists()
+    assert result.stderr.strip() == f"error: {target}: not a readable pickle (UnpicklingError: refused to load " \
+                                    f"posix.system: only containers, numbers, strings and numpy arrays may be in it)"
+
+
+def test_gt_database_readers_run_no_code(tmp_path):
+    from pgt_blender.core.authoring.heading_classifier import read_gt_database
+    from pgt_blender.core.bank.report import real_statistics
+
+    marker = tmp_path / "code_ran"
+    crafted = tmp_path / "kitti_dbinfos_train.pkl"
+    crafted.write_bytes(pickle.dumps({"Car": [CodeOnLoad(marker)]}))
+    for read in (lambda: read_gt_database(crafted, "mmdet3d"), lambda: real_statistics(crafted, dataset="kitti")):
+        with pytest.raises(InputError, match="refused to load posix.system"):
+            read()
+    assert not marker.exists()
+
+
 def test_cli(real, bank, tmp_path):
     out = tmp_path / "mixed.pkl"
     result = run_script("--real", real, "--bank", bank, "--out", out, "--ratio", "2:1", "--seed", "4")

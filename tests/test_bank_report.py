@@ -195,7 +195,7 @@ def garble_chunk(out: Path) -> Path:
 
 @pytest.mark.parametrize("damage, message", [(break_identity, "no .work/identity.json"),
                                              (break_chunk, "1 of 9 chunk records missing"),
-                                             (garble_chunk, "not a readable chunk record")])
+                                             (garble_chunk, "a damaged chunk record; export_bank.py --resume redoes it")])
 def test_a_broken_bank_raises_and_writes_nothing(bank_copy, damage, message):
     named = damage(bank_copy)
     with pytest.raises(InputError) as caught:

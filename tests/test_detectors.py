@@ -116,7 +116,7 @@ def pcdet(tmp_path_factory, shared_data):
 
 
 def test_the_harness_ports_of_openpcdets_compiled_functions():
-    """The numpy/shapely stand-ins for iou3d_cpu.cpp and roiaware_pool3d.cpp, on boxes
+    """The numpy stand-ins for iou3d_cpu.cpp and roiaware_pool3d.cpp, on boxes
     whose answers are known by hand."""
     unit = [0.0, 0.0, 0.0, 2.0, 2.0, 2.0, 0.0]
     shifted = [1.0, 0.0, 0.0, 2.0, 2.0, 2.0, 0.0]  # overlap 2, union 6
@@ -129,6 +129,21 @@ def test_the_harness_ports_of_openpcdets_compiled_functions():
                        [1.0, 2.0, 1.0], [1.0, 2.0, 1.001]])
     # 1 cm margin across, none in height (|z - cz| <= dz / 2)
     assert openpcdet.points_in_boxes(box, points).tolist() == [[1, 1, 0, 1, 1, 0]]
+    # iou3d_cpu.cpp counts corners up to 1 cm outside the other box: 5 mm apart still overlap
+    apart = [2.005, 0.0, 0.0, 2.0, 2.0, 2.0, 0.0]
+    assert 0 < openpcdet.bev_iou(np.array([unit]), np.array([apart]))[0, 0] < 0.01
+
+
+def test_the_nuscenes_sample_boxes_head_where_their_objects_drive(shared_data):
+    """The shared nus_info.pkl keeps mmdet3d's pre-1.0 boxes (w, l, yaw = -heading - pi/2):
+    converted, every object moving faster than 1 m/s heads along its velocity."""
+    scene = openpcdet.nuscenes_scene(shared_data / "nuscenes_format_sample")
+    boxes = scene["gt_boxes"]
+    speed = np.hypot(boxes[:, 7], boxes[:, 8])
+    moving = boxes[speed > 1.0]
+    assert len(moving) >= 5
+    error = np.angle(np.exp(1j * (np.arctan2(moving[:, 8], moving[:, 7]) - moving[:, 6])))
+    assert np.abs(error).max() < 0.3
 
 
 @pytest.fixture(scope="module")
@@ -229,9 +244,10 @@ def check_pasted(points: np.ndarray, boxes: np.ndarray, names: np.ndarray, scene
     ends = np.cumsum([info["num_points_in_gt"] for info in infos])
     starts = ends - [info["num_points_in_gt"] for info in infos]
     for box, start, end, info in zip(pasted, starts, ends, infos):
-        # A bank point lies within 1 mm of its box (float32 storage: 2 mm); the real KITTI
-        # entries were cut with OpenPCDet's own test, 1 cm wide in x and y.
-        tolerance = 2e-3 if "pgt_object" in info else 1.1e-2
+        # A bank point is kept where its ray hit the box, then moved by range noise (sigma
+        # 2 cm: within 12 cm); the real KITTI entries were cut with OpenPCDet's own test,
+        # 1 cm wide in x and y.
+        tolerance = 0.12 if "pgt_object" in info else 1.1e-2
         assert inside_box(points[start:end, :3].astype(np.float64), box.astype(np.float64), tolerance).all()
     scene = points[ends[-1] if len(ends) else 0:, :3].astype(np.float64)
     for box in pasted:

@@ -169,7 +169,7 @@ def test_gt_database_reader_undoes_the_box_pose(tmp_path, convention):
 def test_gt_database_reader_rejects_a_bad_pickle(tmp_path):
     bad = tmp_path / "bad.pkl"
     bad.write_bytes(b"not a pickle")
-    with pytest.raises(InputError, match="not a ground-truth database pickle") as error:
+    with pytest.raises(InputError, match="not a readable pickle") as error:
         hc.read_gt_database(bad, "mmdet3d")
     assert error.value.path == bad
 

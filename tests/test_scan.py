@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from pgt_blender.core.boxes import box_frame
 from pgt_blender.core.errors import InputError
 from pgt_blender.core.importing.ply import read_vertices
 from pgt_blender.core.samples import sample_vehicle
@@ -389,6 +390,30 @@ def test_sweeps_move_the_object_back_along_its_heading(sample_truck):
                          placement(sample_truck.bounds, NUSCENES, 15.0 - back * np.cos(heading),
                                    3.0 - back * np.sin(heading), heading), ScanOptions(), sweep=7)
     assert merged.returns[merged.returns["sweep"] == 7].tobytes() == expected.returns.tobytes()
+
+
+def test_a_moving_ego_sees_a_still_object_anew_each_sweep_motion_compensated():
+    """Sweep k is cast from where the sensor was k sweeps ago (nuScenes: forward = +y)
+    and its returns are moved into the key frame: every noiseless return still lies on
+    the still box's surface there, and the sweeps hit different points."""
+    dims = np.array([6.0, 2.5, 3.0])
+    mesh = trimesh.creation.box(dims)
+    target = mesh_target(mesh.vertices, mesh.faces, name="box")
+    ego = Motion(speed=12.0, acceleration=0.5)
+    scan = scan_sweeps(target, NUSCENES, 8.0, 10.0, 0.3, Motion(), 10, ScanOptions(range_noise=True, seed=3),
+                       ego=ego)
+    lag = 0.45  # sweep 9: the sensor was 12 * 0.45 - 0.25 * 0.45^2 m back along +y
+    np.testing.assert_allclose(scan.origins[9], [0.0, -(12.0 * lag - 0.25 * lag**2), 0.0])
+    assert all(np.array_equal(pose, scan.poses[0]) for pose in scan.poses)  # the object stood still
+    local = box_frame(scan.true_xyz, scan.box[:3], scan.box[6])
+    on_a_face = np.abs(np.abs(local) - dims / 2).min(axis=1)
+    assert np.abs(local).max(axis=0).max() <= dims.max() / 2 + 1e-6 and on_a_face.max() < 1e-6
+    first, last = (scan.returns[scan.returns["sweep"] == k] for k in (0, 9))
+    assert len(first) > 100 and len(last) > 100
+    assert not np.array_equal(first[["ring", "column"]], last[["ring", "column"]])
+    # A still ego: every sweep is the same cast (noise aside), as before.
+    still = scan_sweeps(target, NUSCENES, 8.0, 10.0, 0.3, Motion(), 3)
+    assert np.array_equal(*(still.returns[still.returns["sweep"] == k][["ring", "column"]] for k in (0, 2)))
 
 
 def test_motion_draws_are_seeded():

@@ -7,8 +7,8 @@ keep them from importing as shipped, and this harness supplies exactly those:
    the copy made here replaces that one file with an empty module. OpenPCDet's
    ``setup.py`` also generates ``pcdet/version.py``, absent from the copy: written here.
 2. ``iou3d_nms_utils.boxes_bev_iou_cpu`` calls the compiled ``iou3d_nms_cuda``:
-   ``iou3d_nms_cuda.boxes_iou_bev_cpu`` below ports ``src/iou3d_cpu.cpp`` (rotated
-   rectangle overlap / union, with shapely's polygon intersection).
+   ``iou3d_nms_cuda.boxes_iou_bev_cpu`` below ports ``src/iou3d_cpu.cpp`` line by line
+   (its polygon clipping with the 1 cm corner margin, float32).
 3. ``roiaware_pool3d_utils.points_in_boxes_cpu`` calls the compiled
    ``roiaware_pool3d_cuda``: ``roiaware_pool3d_cuda.points_in_boxes_cpu`` below ports
    ``src/roiaware_pool3d.cpp`` (float32, |z - cz| <= dz/2, |local x, y| < d/2 + 1 cm).
@@ -53,30 +53,101 @@ DATASET_CONFIGS = {name: CONFIGS / "dataset_configs" / f"{name}_dataset.yaml" fo
 # --- numpy ports of the compiled CPU functions ---------------------------------------
 
 
-def _rectangles(boxes: np.ndarray) -> list:
-    """Shapely polygons of (N, >= 7) boxes' bird's-eye footprints (float32, as the C++)."""
-    from shapely.geometry import Polygon
+MARGIN = np.float32(1e-2)  # both C++ files: const float MARGIN = 1e-2
+EPS = np.float32(1e-8)  # iou3d_cpu.cpp: const float EPS = 1e-8
 
-    boxes = np.asarray(boxes, np.float32)
-    corners = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]], np.float32)
-    polygons = []
-    for x, y, dx, dy, heading in boxes[:, [0, 1, 3, 4, 6]]:
-        cos, sin = np.cos(heading), np.sin(heading)
-        local = corners * [dx, dy]
-        polygons.append(Polygon(np.column_stack([x + local[:, 0] * cos - local[:, 1] * sin,
-                                                 y + local[:, 0] * sin + local[:, 1] * cos])))
-    return polygons
+
+def _cross(p1, p2, p0):
+    """iou3d_cpu.cpp cross(p1, p2, p0) on (..., 2) arrays: (p1 - p0) x (p2 - p0)."""
+    return (p1[..., 0] - p0[..., 0]) * (p2[..., 1] - p0[..., 1]) - (p2[..., 0] - p0[..., 0]) * (p1[..., 1] - p0[..., 1])
+
+
+def _corners(boxes: np.ndarray) -> np.ndarray:
+    """(N, 5, 2) float32 footprint corners in box_overlap's order (x1y1, x2y1, x2y2, x1y2,
+    then the first again), rotated about the centre by +heading."""
+    x, y, dx, dy, heading = (boxes[:, k, None] for k in (0, 1, 3, 4, 6))
+    cx = np.concatenate([x - dx / 2, x + dx / 2, x + dx / 2, x - dx / 2], axis=1) - x
+    cy = np.concatenate([y - dy / 2, y - dy / 2, y + dy / 2, y + dy / 2], axis=1) - y
+    cos, sin = np.cos(heading), np.sin(heading)
+    corners = np.stack([cx * cos + cy * -sin + x, cx * sin + cy * cos + y], axis=-1)
+    return np.concatenate([corners, corners[:, :1]], axis=1)
+
+
+def _in_box2d(x, y, dx, dy, heading, px, py):
+    """check_in_box2d: the point in the footprint, strictly, with the 1 cm margin (float32)."""
+    cos, sin = np.cos(-heading), np.sin(-heading)
+    rot_x = (px - x) * cos + (py - y) * -sin
+    rot_y = (px - x) * sin + (py - y) * cos
+    return (np.abs(rot_x) < dx / 2 + MARGIN) & (np.abs(rot_y) < dy / 2 + MARGIN)
+
+
+def _edge_crossings(ca: np.ndarray, cb: np.ndarray):
+    """intersection() of edge i of every a with edge j of every b, i-major as box_overlap
+    loops: (N, M, 16, 2) points and (N, M, 16) flags (proper crossings only: s1*s2 > 0 and
+    s3*s4 > 0, so touching or collinear edges give none)."""
+    p0, p1 = ca[:, None, :4, None], ca[:, None, 1:, None]  # (N, 1, 4, 1, 2)
+    q0, q1 = cb[None, :, None, :4], cb[None, :, None, 1:]  # (1, M, 1, 4, 2)
+    rect = np.ones((), bool)
+    for k in (0, 1):  # check_rect_cross
+        rect = rect & (np.minimum(p0[..., k], p1[..., k]) <= np.maximum(q0[..., k], q1[..., k])) \
+            & (np.minimum(q0[..., k], q1[..., k]) <= np.maximum(p0[..., k], p1[..., k]))
+    s1, s2 = _cross(q0, p1, p0), _cross(p1, q1, p0)
+    s3, s4 = _cross(p0, q1, q0), _cross(q1, p1, q0)
+    found = rect & (s1 * s2 > 0) & (s3 * s4 > 0)
+    s5 = _cross(q1, p1, p0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        general = (s5[..., None] * q0 - s1[..., None] * q1) / (s5 - s1)[..., None]
+        a0, b0 = p0[..., 1] - p1[..., 1], p1[..., 0] - p0[..., 0]
+        c0 = p0[..., 0] * p1[..., 1] - p1[..., 0] * p0[..., 1]
+        a1, b1 = q0[..., 1] - q1[..., 1], q1[..., 0] - q0[..., 0]
+        c1 = q0[..., 0] * q1[..., 1] - q1[..., 0] * q0[..., 1]
+        d = a0 * b1 - a1 * b0
+        parallel = np.stack([(b0 * c1 - b1 * c0) / d, (a1 * c0 - a0 * c1) / d], axis=-1)
+    points = np.where((np.abs(s5 - s1) > EPS)[..., None], general, parallel)
+    n, m = len(ca), len(cb)
+    return points.reshape(n, m, 16, 2), found.reshape(n, m, 16)
+
+
+def _overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """box_overlap for every pair: (N, M) float32 footprint intersection area, m^2."""
+    n, m = len(a), len(b)
+    ca, cb = _corners(a), _corners(b)
+    crossings, crossing_found = _edge_crossings(ca, cb)
+    box_a = [a[:, k, None, None] for k in (0, 1, 3, 4, 6)]  # (N, 1, 1)
+    box_b = [b[None, :, k, None] for k in (0, 1, 3, 4, 6)]  # (1, M, 1)
+    b_in_a = _in_box2d(*box_a, cb[None, :, :4, 0], cb[None, :, :4, 1])  # (N, M, 4)
+    a_in_b = _in_box2d(*box_b, ca[:, None, :4, 0], ca[:, None, :4, 1])
+    # "check corners": for each k, b's corner k (if in a), then a's corner k (if in b)
+    corners = np.stack([np.broadcast_to(cb[None, :, :4], (n, m, 4, 2)),
+                        np.broadcast_to(ca[:, None, :4], (n, m, 4, 2))], axis=3).reshape(n, m, 8, 2)
+    found = np.concatenate([crossing_found, np.stack([b_in_a, a_in_b], axis=3).reshape(n, m, 8)], axis=2)
+    points = np.where(found[..., None], np.concatenate([crossings, corners], axis=2), np.float32(0))
+    count = found.sum(axis=2)
+    centre = points.sum(axis=2) / np.maximum(count, 1)[..., None].astype(np.float32)
+    # the bubble sort by atan2 about the centre is a stable ascending sort; unfound points last
+    angle = np.arctan2(points[..., 1] - centre[..., None, 1], points[..., 0] - centre[..., None, 0])
+    order = np.argsort(np.where(found, angle, np.float32(np.inf)), axis=2, kind="stable")
+    ring = np.take_along_axis(points, order[..., None], axis=2)
+    d = ring - ring[:, :, :1]
+    fan = d[..., :-1, 0] * d[..., 1:, 1] - d[..., :-1, 1] * d[..., 1:, 0]  # cross(p_k - p_0, p_k+1 - p_0)
+    fan = np.where(np.arange(1, points.shape[2]) < count[..., None], fan, np.float32(0))
+    return np.abs(fan.sum(axis=2)) / 2
 
 
 def bev_iou(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
-    """(N, M) float32 bird's-eye IoU: iou3d_cpu.cpp's iou_bev, overlap / max(union, 1e-8)."""
-    first, second = _rectangles(boxes_a), _rectangles(boxes_b)
-    iou = np.zeros((len(first), len(second)), np.float32)
-    for i, a in enumerate(first):
-        for j, b in enumerate(second):
-            overlap = a.intersection(b).area
-            iou[i, j] = overlap / max(a.area + b.area - overlap, 1e-8)
-    return iou
+    """(N, M) float32 bird's-eye IoU of (N, >= 7) and (M, >= 7) centre boxes, as
+    iou3d_cpu.cpp's boxes_iou_bev_cpu: its polygon clipping (edge crossings plus corners
+    within the other box + 1 cm, fan area about the first angle-sorted point) in float32,
+    overlap / max(area_a + area_b - overlap, 1e-8). The margin makes footprints less than
+    1 cm apart overlap a little."""
+    a = np.asarray(boxes_a, np.float32).reshape(-1, np.shape(boxes_a)[-1])[:, :7]
+    b = np.asarray(boxes_b, np.float32).reshape(-1, np.shape(boxes_b)[-1])[:, :7]
+    overlap = np.zeros((len(a), len(b)), np.float32)
+    step = max(1, 4096 // max(len(b), 1))  # pairs per chunk bound the (N, M, 24, 2) temporaries
+    for start in range(0, len(a), step):
+        overlap[start:start + step] = _overlap(a[start:start + step], b)
+    union = (a[:, 3] * a[:, 4])[:, None] + (b[:, 3] * b[:, 4])[None, :] - overlap
+    return overlap / np.maximum(union, EPS)
 
 
 def points_in_boxes(boxes: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -221,18 +292,30 @@ def fit_road_plane(points: np.ndarray, calib, seed: int = 0) -> np.ndarray:
     return -plane if plane[1] > 0 else plane
 
 
+def nuscenes_boxes(instances: list) -> np.ndarray:
+    """(N, 9) float64 OpenPCDet boxes [x, y, z, dx, dy, dz, heading, vx, vy] from the shared
+    nus_info.pkl's instances. Their bbox_3d is mmdet3d's pre-1.0 LiDAR convention
+    [x, y, z_centre, w, l, h, yaw_old] with yaw_old = -heading - pi/2 (the file's headings
+    agree with the velocity directions only that way; its car boxes' bottoms z - h/2 lie on
+    the ground about 1.84 m under the sensor, so z is the gravity centre, as OpenPCDet wants)."""
+    box = np.array([obj["bbox_3d"] for obj in instances], np.float64).reshape(-1, 7)
+    velocity = np.array([obj["velocity"] for obj in instances], np.float64).reshape(-1, 2)
+    heading = -box[:, 6] - np.pi / 2
+    heading = (heading + np.pi) % (2 * np.pi) - np.pi
+    return np.column_stack([box[:, :3], box[:, 4], box[:, 3], box[:, 5], heading, velocity])
+
+
 def nuscenes_scene(sample_folder: Path, index: int = 0, class_names: list = CLASS_NAMES["nuscenes"]) -> dict:
     """A nuScenes sample as NuScenesDataset.__getitem__ gives it (key frame only, as the
     shared sample has no sweep list): points x y z intensity time_lag (0), boxes with
-    at least one LiDAR point (FILTER_MIN_POINTS_IN_GT: 1), velocity NaN -> 0. The
-    sample's info is mmdet3d's (bbox_3d = gravity-centre box, as OpenPCDet's gt_boxes)."""
+    at least one LiDAR point (FILTER_MIN_POINTS_IN_GT: 1), velocity NaN -> 0."""
     infos = pickle.loads((sample_folder / "nus_info.pkl").read_bytes())
     classes, sample = infos["metainfo"]["CLASSES"], infos["data_list"][index]
     raw = np.fromfile(sample_folder / "samples" / "LIDAR_TOP" / sample["lidar_points"]["lidar_path"], np.float32)
     points = raw.reshape(-1, 5).copy()
     points[:, 4] = 0.0  # the ring column becomes the key frame's time lag
     kept = [obj for obj in sample["instances"] if obj["num_lidar_pts"] > 0 and obj["bbox_label_3d"] >= 0]
-    boxes = np.array([[*obj["bbox_3d"], *obj["velocity"]] for obj in kept], np.float32).reshape(-1, 9)
+    boxes = nuscenes_boxes(kept).astype(np.float32)
     boxes[np.isnan(boxes)] = 0.0
     names = np.array([classes[obj["bbox_label_3d"]] for obj in kept])
     return {"points": points, "gt_boxes": boxes, "gt_names": names,

@@ -23,7 +23,6 @@ without it; without it they raise :class:`InputError` with a one-line reason.
 
 import hashlib
 import io
-import pickle
 import platform
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +32,7 @@ import numpy as np
 from .. import learning
 from ..errors import InputError
 from ..files import atomic_output
+from ..safe_pickle import load_pickle
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[2] / "models" / "heading_pointnet.pt"
 FORMAT = "pgt_blender.heading_pointnet/1"
@@ -134,19 +134,17 @@ def read_gt_database(path, convention: str, min_points: int = 5) -> list:
     Both tools store points translated by the box (never rotated): OpenPCDet by the box
     centre, mmdetection3d (``convention="mmdet3d"``) by its bottom centre. Points are
     rotated by -heading about z (so the heading is +x) and shifted to the box centre.
-    Objects with fewer than ``min_points`` points are skipped. A pickle can run code
-    while loading: read only databases you trust.
+    Objects with fewer than ``min_points`` points are skipped. The pickle is read
+    without running code (safe_pickle).
     """
     if convention not in ("mmdet3d", "openpcdet"):
         raise ValueError(f"unknown ground-truth database convention '{convention}' (mmdet3d, openpcdet)")
     path = Path(path)
     try:
         data = path.read_bytes()
-        infos = pickle.loads(data)
     except OSError as error:
         raise InputError(path, f"cannot read the ground-truth database ({error.strerror})") from None
-    except Exception as error:  # unpickling raises many types
-        raise InputError(path, f"not a ground-truth database pickle ({type(error).__name__}: {error})") from None
+    infos = load_pickle(path, data)
     if not isinstance(infos, dict) or not all(isinstance(v, list) for v in infos.values()):
         raise InputError(path, "not a ground-truth database pickle (expected {class name: [info, ...]})")
     source = f"gt_database:{path.name} ({convention}) sha256:{_sha256(data)}"

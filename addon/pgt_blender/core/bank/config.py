@@ -31,6 +31,11 @@
     drop_rate = 0.0
     max_incidence_deg = 90.0
     engine = "bvh"              # bvh (Blender's BVHTree) or embree (embreex: about 2x the entries/s)
+    ego_motion = true           # multi-sweep entries seen from a moving ego vehicle (sweeps.EGO_MOTION)
+
+    [ground]                    # the ground under each pose (ground.py); 0 and 0: flat at -mounting height
+    grade_deg = 0.69            # road grade sigma: ground under the box at distance * tan(N(0, grade))
+    slope_deg = 1.32            # local slope sigma: the object's pitch and roll
 
     [classes]                   # object class = dataset class name; "" skips that class
     bus = "Misc"
@@ -38,6 +43,7 @@
 Unknown keys and wrong types raise InputError naming the file and the key.
 """
 
+import re
 import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -88,6 +94,9 @@ class BankConfig:
     drop_rate: float = 0.0
     max_incidence_deg: float = 90.0
     engine: str = "bvh"
+    ego_motion: bool = True
+    grade_deg: float = 0.69
+    slope_deg: float = 1.32
     classes: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -156,8 +165,11 @@ _KEYS = {
     "scan.drop_rate": ("drop_rate", lambda v: _number(v) and 0 <= v < 1, "a fraction in [0, 1)"),
     "scan.max_incidence_deg": ("max_incidence_deg", lambda v: _number(v) and 0 < v <= 90, "degrees in (0, 90]"),
     "scan.engine": ("engine", lambda v: v in ENGINES, f"one of {', '.join(ENGINES)}"),
+    "scan.ego_motion": ("ego_motion", lambda v: isinstance(v, bool), "true or false"),
+    "ground.grade_deg": ("grade_deg", lambda v: _number(v) and 0 <= v <= 10, "degrees in [0, 10]"),
+    "ground.slope_deg": ("slope_deg", lambda v: _number(v) and 0 <= v <= 10, "degrees in [0, 10]"),
 }
-_SECTIONS = {"bank", "grid", "jitter", "scan", "classes"}
+_SECTIONS = {"bank", "grid", "jitter", "scan", "ground", "classes"}
 
 
 def load_config(path) -> BankConfig:
@@ -179,9 +191,11 @@ def config_from_table(table: dict, path="bank config") -> BankConfig:
         if not isinstance(entries, dict):
             raise InputError(path, f"{section} must be a [{section}] table")
         if section == "classes":
-            bad = [key for key, name in entries.items() if not isinstance(name, str)]
+            bad = [key for key, name in entries.items()
+                   if not (isinstance(name, str) and re.fullmatch(r"[A-Za-z0-9_-]*", name))]
             if bad:
-                raise InputError(path, f"classes.{bad[0]}: expected a dataset class name (a string)")
+                raise InputError(path, f"classes.{bad[0]} = {entries[bad[0]]!r}: expected a dataset class name "
+                                       f"(letters, digits, '_' and '-'; \"\" skips the class)")
             values["classes"] = dict(entries)
             continue
         for key, value in entries.items():

@@ -3,6 +3,11 @@ keep the returns inside its box, as the datasets' database builders do (OpenPCDe
 mmdet3d keep a ground-truth box's points; a moving object's older sweeps that fall
 behind the current box are not in the database either).
 
+Box membership is decided on where each ray hit, before range noise: the object's own
+returns all stay (a surface on the box's face would otherwise lose half its returns to
+noise, while a real annotated box has room around the object), so kept points may lie
+outside the box by the range noise (sigma 2 cm on the presets).
+
 The target (BVH) of each size variant is built once per worker and reused for every
 pose: ``TargetCache``.
 """
@@ -12,7 +17,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..boxes import inside_box
-from ..scan.raycast import ScanOptions
+from ..scan.raycast import Ground, ScanOptions
 from ..scan.sweeps import Motion, scan_sweeps
 from ..scan.targets import element_colors, target_from_reconstruction
 from .config import BankConfig
@@ -64,5 +69,7 @@ def scan_entry(cache: TargetCache, sensor, entry, config: BankConfig):
                           drop_rate=config.drop_rate, seed=int(entry["noise_seed"]), engine=config.engine)
     scan = scan_sweeps(target, sensor, float(entry["x"]), float(entry["y"]), float(entry["heading"]),
                        Motion(float(entry["speed"]), float(entry["acceleration"])), sweeps_of(config),
-                       options, bounds, box_margin=BOX_TOLERANCE)
-    return scan, inside_box(scan.xyz, scan.box, BOX_TOLERANCE)
+                       options, bounds, box_margin=BOX_TOLERANCE,
+                       ego=Motion(float(entry["ego_speed"]), float(entry["ego_acceleration"])),
+                       ground=Ground(float(entry["ground_height"]), float(entry["pitch"]), float(entry["roll"])))
+    return scan, inside_box(scan.true_xyz, scan.box, BOX_TOLERANCE)

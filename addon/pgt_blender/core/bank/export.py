@@ -30,6 +30,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import atomic_output
+from ..safe_pickle import load_pickle
 from ..scan.physical_intensity import dataset_intensity
 from ..scan.sensors import INTENSITY_MAX, sensor_from_name
 from .config import BankConfig
@@ -117,7 +118,7 @@ def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared
         elif resume or shared:
             if not marker.is_file():
                 raise InputError(out, "holds no unfinished bank to resume (no .work/identity.json)")
-            if json.loads(marker.read_text()) != ident:
+            if read_identity(out) != ident:
                 raise InputError(out, "holds a bank of other objects or settings; use --overwrite or another --out")
             return
         else:
@@ -127,14 +128,50 @@ def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared
         stream.write(json.dumps(ident, indent=1).encode())
 
 
+def read_identity(out: Path) -> dict:
+    """OUT/.work/identity.json; InputError naming the file when it is missing or damaged."""
+    path = out / WORK / "identity.json"
+    if not path.is_file():
+        raise InputError(out, f"is not a bank folder: no {WORK}/identity.json")
+    try:
+        ident = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise InputError(path, f"damaged ({type(error).__name__}: {error}); --overwrite starts the bank "
+                               f"anew") from None
+    if not (isinstance(ident, dict) and {"config", "objects", "class_names", "chunks"} <= ident.keys()):
+        raise InputError(path, "not a bank identity (config, objects, class_names, chunks); --overwrite starts "
+                               "the bank anew")
+    return ident
+
+
 def chunk_record_path(out: Path, chunk_id: int) -> Path:
     return out / WORK / "chunks" / f"{chunk_id:06d}.pkl"
 
 
+def chunk_record(out: Path, chunk_id: int, path: Path | None = None) -> dict | None:
+    """The record of chunk ``chunk_id`` (read from ``path``, default its place in OUT),
+    or None when it is missing or damaged: such a chunk is not done and is redone. Read
+    without running code (safe_pickle) and checked field by field."""
+    path = chunk_record_path(out, chunk_id) if path is None else path
+    if not path.is_file():
+        return None
+    try:
+        record = load_pickle(path)
+    except InputError:
+        return None
+    fields = {"chunk": int, "infos": dict, "files": dict, "stats": np.ndarray, "intensity": dict}
+    whole = isinstance(record, dict) and all(isinstance(record.get(key), kind) for key, kind in fields.items()) \
+        and record["chunk"] == chunk_id and record["stats"].dtype == STATS_DTYPE \
+        and all(isinstance(infos, list) and all(isinstance(info, dict) for info in infos)
+                for infos in record["infos"].values()) \
+        and all(isinstance(name, str) and isinstance(digest, str) for name, digest in record["files"].items())
+    return record if whole else None
+
+
 def pending_chunks(out: Path, chunk_count: int, shard=(0, 1)) -> list:
-    """The chunk ids of this shard (id % count == index) that have no record yet."""
+    """The chunk ids of this shard (id % count == index) without a whole record."""
     index, count = shard
-    return [i for i in range(index, chunk_count, count) if not chunk_record_path(out, i).is_file()]
+    return [i for i in range(index, chunk_count, count) if chunk_record(out, i) is None]
 
 
 @dataclass
@@ -217,7 +254,7 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
         elif config.intensity_checkpoint:
             rows["intensity"] = _learned_intensity(config, cache, entry, obj, scan, keep)
         class_name = job.class_names[entry["object"]]
-        name = f"{safe_name(obj.name)}_{class_name}_{int(entry['index']):05d}.bin"
+        name = f"{safe_name(obj.name)}_{safe_name(class_name)}_{int(entry['index']):05d}.bin"
         shared = {"name": class_name, "path": f"{DATABASE_FOLDER}/{name}", "image_idx": _group_id(entry),
                   "pgt_object": obj.name, "gt_idx": int(entry["index"])}
         points = entry_points(rows, config.dataset)
@@ -282,18 +319,22 @@ def assemble(out: Path, data_root=None) -> dict:
     folder as the root); with it they are relative to ``data_root`` (``..`` where the
     bank lies outside it), so the bank sits beside the real database. The manifest's
     ``data_root`` records it relative to OUT (None: the format folders)."""
-    ident = json.loads((out / WORK / "identity.json").read_text())
+    ident = read_identity(out)
     config = ident["config"]
     missing = [i for i in range(ident["chunks"]) if not chunk_record_path(out, i).is_file()]
     if missing:
         raise InputError(out, f"{len(missing)} of {ident['chunks']} chunks not exported yet "
                               f"(first: {missing[0]}); run the missing shards or --resume")
+    damaged = [i for i in range(ident["chunks"]) if chunk_record(out, i) is None]
+    if damaged:
+        raise InputError(chunk_record_path(out, damaged[0]), f"damaged ({len(damaged)} chunk record(s)); "
+                                                             f"--resume redoes them")
     # A list for every class of the dataset: the samplers index the pickle by each class they sample.
     infos = {fmt: {name: [] for name in DATABASE_CLASSES[config["dataset"]]} for fmt in config["formats"]}
     prefixes = {fmt: _path_prefix(out / fmt, data_root) for fmt in config["formats"]}
     files, counts, dropped = {}, {}, {}
     for chunk_id in range(ident["chunks"]):
-        record = pickle.loads(chunk_record_path(out, chunk_id).read_bytes())
+        record = chunk_record(out, chunk_id)
         for fmt, entries in record["infos"].items():
             for info in entries:
                 infos[fmt].setdefault(info["name"], []).append(dict(info, path=prefixes[fmt] + info["path"]))
@@ -371,21 +412,23 @@ def _library_versions() -> dict:
 
 
 def copy_shard(source: Path, out: Path) -> int:
-    """Copy a shard folder's chunk records and database files into ``out`` (same
-    identity required); returns the records copied."""
-    ident = json.loads((out / WORK / "identity.json").read_text())
-    marker = source / WORK / "identity.json"
-    if not marker.is_file() or json.loads(marker.read_text()) != ident:
-        raise InputError(source, "is not a shard of this bank (its .work/identity.json differs or is missing)")
-    records = sorted((source / WORK / "chunks").glob("*.pkl"))
-    for record_path in records:
-        record = pickle.loads(record_path.read_bytes())
+    """Copy a shard folder's whole chunk records and their database files into ``out``
+    (same identity required); returns the records copied. Damaged records are left:
+    their chunks stay to do."""
+    if read_identity(source) != read_identity(out):
+        raise InputError(source, "is not a shard of this bank (its .work/identity.json differs)")
+    copied = 0
+    for record_path in sorted((source / WORK / "chunks").glob("*.pkl")):
+        record = chunk_record(source, int(record_path.stem), record_path) if record_path.stem.isdigit() else None
+        if record is None:
+            continue  # damaged: the chunk stays to do
         for relative in record["files"]:
             target = out / relative
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(source / relative, target)
         shutil.copyfile(record_path, out / WORK / "chunks" / record_path.name)  # last: the chunk counts once here
-    return len(records)
+        copied += 1
+    return copied
 
 
 def run_local(job: BankJob, chunks: list, pending: list, workers: int):

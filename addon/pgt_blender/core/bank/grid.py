@@ -1,11 +1,11 @@
 """The bank's poses: per object, every heading x every (x, y) of the grid (paper sec. 4),
-each jittered, with its size variant, motion and noise seed drawn.
+each jittered, with its size variant, motion, noise seed, ego motion and ground drawn.
 
 Every random draw of entry ``index`` of object ``object`` comes from its own generator
 ``default_rng([seed, ENTRY_STREAM, object, index])``, so an entry is the same whatever the chunking,
 worker count, shard or resume. Poses are filtered after the jitter: the box centre
 beyond ``max_distance`` m (when set) or the box footprint within ``ego_clearance`` m of
-the sensor (the ego vehicle stands there) drops the entry.
+the sensor in any sweep (the ego vehicle stands there, or drove there) drops the entry.
 
 Sensor frame throughout: (x, y) the box centre in metres, heading in radians from +x
 counter-clockwise (OpenPCDet's box3d_lidar convention).
@@ -13,13 +13,16 @@ counter-clockwise (OpenPCDet's box3d_lidar convention).
 
 import numpy as np
 
-from ..scan.sweeps import SWEEPS_PER_SAMPLE, sample_motion
+from ..scan.sensors import FORWARD, SWEEP_INTERVAL_S
+from ..scan.sweeps import SWEEPS_PER_SAMPLE, sample_ego_motion, sample_motion
 from .config import BankConfig, grid_values
+from .ground import sample_ground
 
 ENTRY_STREAM, SIZE_STREAM = 0, 1  # seed-sequence keys: entry draws and size variants never share a stream
 ENTRY_DTYPE = np.dtype([
     ("object", "i4"), ("index", "i4"), ("heading", "f8"), ("x", "f8"), ("y", "f8"),
     ("variant", "i2"), ("speed", "f8"), ("acceleration", "f8"), ("noise_seed", "u4"),
+    ("ego_speed", "f8"), ("ego_acceleration", "f8"), ("ground_height", "f8"), ("pitch", "f8"), ("roll", "f8"),
 ])
 
 
@@ -60,9 +63,23 @@ def object_entries(config: BankConfig, object_index: int, class_name: str, dims:
             motion = sample_motion(class_name, rng)
             entry["speed"], entry["acceleration"] = motion.speed, motion.acceleration
         entry["noise_seed"] = rng.integers(2**32)
+        if moving and config.ego_motion:  # drawn last: the entry's other draws stay as they were
+            ego = sample_ego_motion(config.dataset, rng)
+            entry["ego_speed"], entry["ego_acceleration"] = ego.speed, ego.acceleration
+        if config.grade_deg or config.slope_deg:
+            ground = sample_ground(entry["x"], entry["y"], config.grade_deg, config.slope_deg, rng)
+            entry["ground_height"], entry["pitch"], entry["roll"] = ground.height, ground.pitch, ground.roll
     variants = size_variants(config, object_index, dims)[entries["variant"]]
-    keep = footprint_distance(entries["x"], entries["y"], entries["heading"], variants[:, 0], variants[:, 1]) \
-        > config.ego_clearance
+    keep = np.ones(len(entries), bool)
+    forward, interval = np.array(FORWARD[config.dataset]), SWEEP_INTERVAL_S[config.dataset]
+    direction = np.column_stack([np.cos(entries["heading"]), np.sin(entries["heading"])])
+    for sweep in range(sweeps_of(config)):  # the ego never drives through the object, in any sweep
+        t = -sweep * interval
+        travelled = entries["speed"] * t + entries["acceleration"] * t**2 / 2
+        ego = (entries["ego_speed"] * t + entries["ego_acceleration"] * t**2 / 2)[:, None] * forward
+        centre = np.column_stack([entries["x"], entries["y"]]) + travelled[:, None] * direction - ego
+        keep &= footprint_distance(centre[:, 0], centre[:, 1], entries["heading"], variants[:, 0], variants[:, 1]) \
+            > config.ego_clearance
     if config.max_distance:
         keep &= np.hypot(entries["x"], entries["y"]) <= config.max_distance
     return entries[keep]

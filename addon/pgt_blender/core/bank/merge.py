@@ -28,6 +28,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import atomic_output
+from ..safe_pickle import load_pickle
 from .export import info_path_root
 
 REQUIRED_KEYS = ("name", "path", "image_idx", "gt_idx", "box3d_lidar", "num_points_in_gt")
@@ -145,11 +146,7 @@ def load_infos(path: Path) -> dict:
     with REQUIRED_KEYS; InputError otherwise."""
     if not path.is_file():
         raise InputError(path, "no such file")
-    try:
-        with open(path, "rb") as stream:
-            infos = pickle.load(stream)
-    except Exception as error:  # unpickling garbage can raise nearly any exception type
-        raise InputError(path, f"not a readable pickle ({type(error).__name__}: {error})") from None
+    infos = load_pickle(path)
     if not (isinstance(infos, dict) and all(isinstance(name, str) and isinstance(entries, list)
                                             for name, entries in infos.items())):
         raise InputError(path, "not an info database: expected a dict of class name -> list of infos")

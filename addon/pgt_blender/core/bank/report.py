@@ -30,7 +30,7 @@ from ..errors import InputError
 from ..files import atomic_output
 from ..scan.sensors import BIN_COLUMNS, INTENSITY_MAX
 from .config import DATASET_GRIDS, grid_values
-from .export import INTENSITY_BINS, WORK, chunk_record_path
+from .export import INTENSITY_BINS, WORK, chunk_record, chunk_record_path, read_identity
 from .merge import load_infos
 
 DISTANCE_RING = 10.0  # m: width of the distance bins
@@ -140,7 +140,7 @@ def bank_statistics(out) -> dict:
     sorted by name. InputError when ``out`` holds no identity or misses chunk records.
     """
     out = Path(out)
-    ident = _identity(out)
+    ident = read_identity(out)
     config = ident["config"]
     class_of_object = np.asarray(ident["class_names"])
     edges = coverage_edges(config["x"], config["y"])
@@ -158,36 +158,18 @@ def bank_statistics(out) -> dict:
     return _statistics(out, config["dataset"], config, edges, classes)
 
 
-def _identity(out: Path) -> dict:
-    """OUT/.work/identity.json; InputError when it is missing or not an export's."""
-    path = out / WORK / "identity.json"
-    if not path.is_file():
-        raise InputError(out, f"is not a bank folder: no {WORK}/identity.json (the report reads the export's "
-                              f"chunk records, which a bank keeps in {WORK})")
-    try:
-        ident = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise InputError(path, f"not a readable bank identity ({type(error).__name__}: {error})") from None
-    if not (isinstance(ident, dict) and {"config", "class_names", "chunks"} <= ident.keys()):
-        raise InputError(path, "not a bank identity: expected config, class_names and chunks")
-    return ident
-
-
 def _chunk_records(out: Path, chunk_count: int):
     """Yield the chunk records of ``out`` in chunk order, one at a time; InputError
-    when any is missing (checked before the first) or unreadable."""
+    when any is missing (checked before the first) or damaged."""
     paths = [chunk_record_path(out, chunk_id) for chunk_id in range(chunk_count)]
     missing = [path for path in paths if not path.is_file()]
     if missing:
         raise InputError(out, f"{len(missing)} of {chunk_count} chunk records missing under {WORK}/chunks "
                               f"(first: {missing[0].name}); finish the export (--resume) first")
-    for path in paths:
-        try:
-            record = pickle.loads(path.read_bytes())
-        except Exception as error:  # unpickling garbage can raise nearly any exception type
-            raise InputError(path, f"not a readable chunk record ({type(error).__name__}: {error})") from None
-        if not (isinstance(record, dict) and {"stats", "intensity"} <= record.keys()):
-            raise InputError(path, "not a chunk record: expected stats and intensity")
+    for chunk_id, path in enumerate(paths):
+        record = chunk_record(out, chunk_id)
+        if record is None:
+            raise InputError(path, "a damaged chunk record; export_bank.py --resume redoes it")
         yield record
 
 

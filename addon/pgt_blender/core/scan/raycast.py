@@ -62,14 +62,41 @@ class ScanOptions:
                              "drop_rate in [0, 1)")
 
 
-def placement(bounds: np.ndarray, sensor: Sensor, x: float, y: float, heading: float) -> np.ndarray:
+@dataclass(frozen=True)
+class Ground:
+    """The ground under an object: ``height`` (m) of the ground under it above the flat
+    plane z = -mounting_height, and the ``pitch`` (rad, nose up > 0) and ``roll`` (rad,
+    left side up > 0) it stands at. The default is the flat plane."""
+
+    height: float = 0.0
+    pitch: float = 0.0
+    roll: float = 0.0
+
+    @property
+    def flat(self) -> bool:
+        return self.height == 0.0 and self.pitch == 0.0 and self.roll == 0.0
+
+
+def placement(bounds: np.ndarray, sensor: Sensor, x: float, y: float, heading: float,
+              ground: Ground = Ground()) -> np.ndarray:
     """(4, 4) sensor_from_object: the object-frame origin at (x, y) (m, sensor frame),
     turned by ``heading`` (rad, counter-clockwise from +x), its lowest point on the
-    ground z = -mounting_height."""
+    ground z = -mounting_height (+ ``ground.height``); on sloped ground the object is
+    tilted by pitch and roll about the bottom centre of ``bounds``' z axis."""
     cos, sin = np.cos(heading), np.sin(heading)
     matrix = np.eye(4)
     matrix[:2, :2] = [[cos, -sin], [sin, cos]]
     matrix[:3, 3] = [x, y, -sensor.mounting_height - bounds[0, 2]]
+    if ground.flat:
+        return matrix
+    cp, sp, cr, sr = np.cos(ground.pitch), np.sin(ground.pitch), np.cos(ground.roll), np.sin(ground.roll)
+    # Nose up: +x rises (a rotation by -pitch about y); left side up: +y rises (+roll about x).
+    tilt = np.array([[cp, 0.0, -sp], [0.0, 1.0, 0.0], [sp, 0.0, cp]]) @ np.array([[1.0, 0.0, 0.0],
+                                                                                [0.0, cr, -sr], [0.0, sr, cr]])
+    rotation = matrix[:3, :3] @ tilt
+    pivot = np.array([0.0, 0.0, bounds[0, 2]])  # object frame; it lands on the ground at (x, y)
+    matrix[:3, :3] = rotation
+    matrix[:3, 3] = np.array([x, y, -sensor.mounting_height + ground.height]) - rotation @ pivot
     return matrix
 
 
@@ -286,6 +313,7 @@ def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflect
     rows["azimuth"] = sensor.cell_azimuths.ravel()[cells]
     rows["time"] = sensor.cell_times(rings, columns)
     rows["range"] = noisy
+    rows["true_range"] = ranges[keep]
     rows["face"] = faces[keep]
     rows["time_lag"] = sweep * sensor.sweep_interval
     rows["sweep"] = sweep

@@ -11,6 +11,7 @@ Columns (sensor frame, see sensors.py):
 | azimuth   | float32 | rad     | the cell's centre azimuth (phi'), from +x counter-clockwise |
 | time      | float32 | s       | firing time after the start of its sweep                    |
 | range     | float64 | m       | distance from the sensor origin                             |
+| true_range| float64 | m       | the hit's distance before range noise (= range without it)  |
 | face      | int32   | -       | the mesh face (or surfel / input point) that returned it    |
 | time_lag  | float32 | s       | age of its sweep: 0 for the current one (nuScenes time_lag) |
 | sweep     | int16   | -       | 0 = current sweep, k = k sweeps earlier                     |
@@ -26,7 +27,8 @@ from .sensors import BIN_COLUMNS
 
 RETURN_DTYPE = np.dtype([
     ("x", "f8"), ("y", "f8"), ("z", "f8"), ("intensity", "f4"), ("ring", "i2"), ("column", "i4"),
-    ("azimuth", "f4"), ("time", "f4"), ("range", "f8"), ("face", "i4"), ("time_lag", "f4"), ("sweep", "i2"),
+    ("azimuth", "f4"), ("time", "f4"), ("range", "f8"), ("true_range", "f8"), ("face", "i4"), ("time_lag", "f4"),
+    ("sweep", "i2"),
 ])
 BOX_FIELDS = ("x", "y", "z", "dx", "dy", "dz", "heading", "vx", "vy")
 OUTPUT_SUFFIXES = (".bin", ".ply", ".npy")
@@ -42,7 +44,10 @@ class Scan:
              sensor frame, for the current sweep (OpenPCDet's box3d_lidar layout).
     rays:    rays cast (ray-cast modes) or points projected (range view).
     seconds: wall time of the scan.
-    poses:   (4, 4) float64 sensor_from_object of each sweep, sweep 0 first.
+    poses:   (4, 4) float64 sensor_from_object of each sweep, sweep 0 first: where the
+             object stood then, in the key frame (the current sweep's sensor frame).
+    origins: (3,) float64 per sweep: where the (moving) sensor fired that sweep from, key
+             frame; returns are motion-compensated into the key frame. Empty: all at 0.
     """
 
     returns: np.ndarray
@@ -51,6 +56,7 @@ class Scan:
     seconds: float
     dataset: str = "nuscenes"
     poses: list = field(default_factory=list)
+    origins: list = field(default_factory=list)
 
     @property
     def hits(self) -> int:
@@ -64,6 +70,15 @@ class Scan:
     @property
     def xyz(self) -> np.ndarray:
         return np.column_stack([self.returns["x"], self.returns["y"], self.returns["z"]])
+
+    @property
+    def true_xyz(self) -> np.ndarray:
+        """(N, 3) float64 sensor frame: each return where its ray hit, before range noise
+        (along the ray from its sweep's origin)."""
+        origin = np.asarray(self.origins, np.float64)[self.returns["sweep"]] if self.origins else np.zeros(3)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.where(self.returns["range"] > 0, self.returns["true_range"] / self.returns["range"], 1.0)
+        return origin + (self.xyz - origin) * scale[:, None]
 
     def box_frame_points(self, bounds: np.ndarray) -> np.ndarray:
         """(N, 3) float64: each return in the frame of the object's box ``bounds`` (2, 3,

@@ -34,6 +34,9 @@ BIN_COLUMNS = {
 # LIDAR_TOP sweeps at 20 Hz; Lyft's LiDAR files come at 5 Hz (real objects' lags are
 # multiples of 0.2 s); KITTI has one sweep per frame.
 SWEEP_INTERVAL_S = {"nuscenes": 0.05, "kitti": 0.1, "lyft": 0.2}
+# The ego vehicle's forward direction (x, y) in the dataset's LiDAR frame: nuScenes'
+# LIDAR_TOP faces +y; KITTI's Velodyne and Lyft's roof LiDAR +x.
+FORWARD = {"nuscenes": (0.0, 1.0), "kitti": (1.0, 0.0), "lyft": (1.0, 0.0)}
 
 
 @dataclass(frozen=True, eq=False)
@@ -82,6 +85,11 @@ class Sensor:
     def sweep_interval(self) -> float:
         """Seconds between the merged sweeps of the sensor's dataset (SWEEP_INTERVAL_S)."""
         return SWEEP_INTERVAL_S[self.dataset]
+
+    @property
+    def forward(self) -> np.ndarray:
+        """(2,) the ego vehicle's forward direction (x, y) in this sensor's frame (FORWARD)."""
+        return np.array(FORWARD[self.dataset])
 
     @property
     def intensity_max(self) -> float:
