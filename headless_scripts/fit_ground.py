@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 
-from pgt_blender.cli import script_argv  # noqa: E402
+from pgt_blender.cli import run_main, script_argv  # noqa: E402
 from pgt_blender.core.bank.ground import MIN_GROUND_POINTS, fit_kitti_frames  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
 
@@ -53,4 +53,4 @@ def main(argv: list) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(script_argv()))
+    sys.exit(run_main(main, script_argv()))

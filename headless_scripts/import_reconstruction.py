@@ -18,6 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 import bpy  # noqa: E402
 
 from pgt_blender.blender import headless, objects  # noqa: E402
+from pgt_blender.cli import run_main  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
 from pgt_blender.core.importing import load_reconstruction  # noqa: E402
 
@@ -36,10 +37,15 @@ def main(argv: list) -> int:
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 1
+    if args.out and args.out.is_dir():
+        raise InputError(args.out, "is a folder; --out is the .blend file to write")
     obj = objects.add_reconstruction(bpy.context.scene, recon, not args.no_cameras)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        bpy.ops.wm.save_as_mainfile(filepath=str(args.out.resolve()))
+        try:
+            bpy.ops.wm.save_as_mainfile(filepath=str(args.out.resolve()))
+        except RuntimeError as error:  # Blender reports a failed write as a RuntimeError
+            raise InputError(args.out, f"cannot write the .blend: {str(error).strip().splitlines()[-1]}") from None
     summary = headless.object_summary(obj)
     if args.json:
         print(json.dumps(summary))
@@ -51,4 +57,4 @@ def main(argv: list) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(headless.script_argv()))
+    sys.exit(run_main(main, headless.script_argv()))

@@ -20,7 +20,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 
-from pgt_blender.cli import script_argv  # noqa: E402
+from pgt_blender.cli import run_main, script_argv  # noqa: E402
 from pgt_blender.core.authoring.heading import best_available_method  # noqa: E402
 from pgt_blender.core.authoring.prepare import UP_CHOICES, prepare, write_prepared  # noqa: E402
 from pgt_blender.core.classes import CLASS_SIZES  # noqa: E402
@@ -116,4 +116,4 @@ def main(argv: list) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(script_argv()))
+    sys.exit(run_main(main, script_argv()))

@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 
 import numpy as np  # noqa: E402
 
-from pgt_blender.cli import script_argv  # noqa: E402
+from pgt_blender.cli import run_main, script_argv  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
 from pgt_blender.core.importing import load_reconstruction  # noqa: E402
 from pgt_blender.core.learning import TORCH_REQUIREMENT  # noqa: E402
@@ -114,24 +114,35 @@ def ray_cast(args, recon, sensor, heading: float, class_name: str, options):
     return scan_sweeps(target, sensor, args.x, args.y, heading, motion, args.sweeps, options), target.bounds
 
 
+def finite(text: str) -> float:
+    """A finite number, as an argparse type (NaN and infinities are refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got '{text}'")
+    return value
+
+
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="scan_object.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--object", type=Path, required=True, help="mesh, point or splat file, object frame")
     parser.add_argument("--sensor", default="nuscenes", help=f"{', '.join(PRESETS)} or a .toml file")
-    parser.add_argument("--x", type=float, required=True, help="object position, sensor frame (m)")
-    parser.add_argument("--y", type=float, required=True, help="object position, sensor frame (m)")
-    parser.add_argument("--heading", type=float, default=0.0, help="deg, counter-clockwise from +x")
+    parser.add_argument("--x", type=finite, required=True, help="object position, sensor frame (m)")
+    parser.add_argument("--y", type=finite, required=True, help="object position, sensor frame (m)")
+    parser.add_argument("--heading", type=finite, default=0.0, help="deg, counter-clockwise from +x")
     parser.add_argument("--sweeps", type=int, default=1, help="merged sweeps of a moving object (nuScenes: 10)")
     parser.add_argument("--class", dest="class_name", help="class for the motion model (default: sidecar JSON)")
-    parser.add_argument("--speed", type=float, help="m/s along the heading, instead of the class's draw")
-    parser.add_argument("--acceleration", type=float, default=0.0, help="m/s^2, with --speed")
+    parser.add_argument("--speed", type=finite, help="m/s along the heading, instead of the class's draw")
+    parser.add_argument("--acceleration", type=finite, default=0.0, help="m/s^2, with --speed")
     parser.add_argument("--surface", choices=("auto", "mesh", "surfels", "range-view"), default="auto",
                         help="auto: mesh when the file has faces, else surfels")
-    parser.add_argument("--radius-scale", type=float, default=1.0, help="surfel radius / local point spacing")
+    parser.add_argument("--radius-scale", type=finite, default=1.0, help="surfel radius / local point spacing")
     parser.add_argument("--intensity-checkpoint", type=Path,
                         help="intensity.pt of train_intensity.py: learned intensities instead of the physical default")
     parser.add_argument("--noise", action="store_true", help="add the sensor's range noise")
-    parser.add_argument("--drop-rate", type=float, default=0.0, help="random ray drop probability")
+    parser.add_argument("--drop-rate", type=finite, default=0.0, help="random ray drop probability")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, required=True, help=f"output file ({', '.join(OUTPUT_SUFFIXES)})")
     args = parser.parse_args(argv)
@@ -141,6 +152,9 @@ def main(argv: list) -> int:
         parser.error("--sweeps must be >= 1 and --drop-rate in [0, 1)")
     try:
         result, sensor, intensity_note = scan(args)
+        if not result.hits:
+            raise InputError(args.object, f"no returns at x = {args.x:g} m, y = {args.y:g} m: the object is out of "
+                                         f"the {sensor.name} sensor's range or view there; nothing written")
         write_scan(result, args.out)
     except (InputError, OSError) as error:
         print(f"error: {error}", file=sys.stderr)
@@ -154,4 +168,4 @@ def main(argv: list) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(script_argv()))
+    sys.exit(run_main(main, script_argv()))

@@ -25,6 +25,7 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from pgt_blender.blender import headless  # noqa: E402
+from pgt_blender.cli import run_main  # noqa: E402
 from pgt_blender.core.authoring import heading_classifier as hc  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
 
@@ -110,4 +111,4 @@ def main(argv: list) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(headless.script_argv()))
+    sys.exit(run_main(main, headless.script_argv()))

@@ -32,7 +32,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "addon"))
 
-from pgt_blender.cli import script_argv  # noqa: E402
+from pgt_blender.cli import run_main, script_argv  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
 from pgt_blender.core.intensity import model  # noqa: E402
 from pgt_blender.core.intensity.estimator import IntensityEstimator  # noqa: E402
@@ -120,4 +120,4 @@ def main(argv: list) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(script_argv()))
+    sys.exit(run_main(main, script_argv()))

@@ -426,6 +426,19 @@ def test_a_damaged_identity_names_the_fix_and_overwrite_replaces_it(reference, p
     assert bank_bytes(copy) == bank_bytes(out)
 
 
+@pytest.mark.parametrize("table, problem", [
+    ({"grid": {"x": [0, 0, 1], "y": [0, 0, 1]}}, "the grid leaves no pose"),
+    ({"grid": {"x": [60, 60, 1], "y": [0, 0, 1], "headings_deg": [0, 0, 1]}, "bank": {"min_points": 100000}},
+     "no entry kept: all 3 poses had fewer than 100000 points"),  # one pose of each of the 3 objects
+])
+def test_an_empty_bank_is_an_error_not_an_empty_database(prepared, tmp_path, table, problem):
+    config = write_config(tmp_path / "bank.toml", table)
+    out = tmp_path / "bank"
+    result = run_script("--objects", prepared, "--config", config, "--out", out, "--workers", 1, check=False)
+    assert result.returncode == 1 and problem in last_line(result)
+    assert not (out / "manifest.json").exists() and not list(out.glob("*/*_dbinfos_pgt.pkl"))
+
+
 def test_class_names_cannot_lead_files_out_of_the_bank(tmp_path):
     for name in ("../../../../elsewhere/anywhere", "sub/dir", "/abs", "a b"):
         with pytest.raises(InputError, match="classes.truck = .*expected a dataset class name"):

@@ -310,6 +310,20 @@ def test_a_crafted_database_runs_no_code(real, bank, tmp_path, crafted):
                                     f"posix.system: only containers, numbers, strings and numpy arrays may be in it)"
 
 
+@pytest.mark.parametrize("key, value, problem", [
+    ("box3d_lidar", np.array([0, 0, np.nan, 1, 1, 1, 0], np.float32), "box3d_lidar must be 7 or more finite numbers"),
+    ("box3d_lidar", "big", "box3d_lidar must be 7 or more finite numbers"),
+    ("num_points_in_gt", -3, "num_points_in_gt must be a count >= 0, got -3"),
+])
+def test_garbage_infos_are_refused_not_copied(real, bank, tmp_path, key, value, problem):
+    infos = load(bank)
+    infos["Car"][2][key] = value
+    bank.write_bytes(pickle.dumps(infos))
+    with pytest.raises(InputError, match=f"info 2 of 'Car': {problem}"):
+        mix_databases(real, bank, tmp_path / "never.pkl")
+    assert not (tmp_path / "never.pkl").exists()
+
+
 def test_gt_database_readers_run_no_code(tmp_path):
     from pgt_blender.core.authoring.heading_classifier import read_gt_database
     from pgt_blender.core.bank.report import real_statistics

@@ -329,6 +329,21 @@ def test_bad_input_is_reported_and_changes_nothing(scene, tmp_path, setup):
     assert scene.pgt_scan.stats == stats
 
 
+def test_a_scan_with_no_returns_is_a_warning_and_changes_nothing(scene):
+    """Out of range (500 m): legal but empty; the operator says why and cancels."""
+    from pgt_blender.blender.operators import OBJECT_OT_pgt_scan
+
+    mesh_object(scene, "Box", *box_geometry())
+    scene.pgt_scan.distance = 500.0
+    counts = datablock_counts(bpy)
+    reports = []
+    self = SimpleNamespace(report=lambda kind, text: reports.append((kind, text)))
+    assert OBJECT_OT_pgt_scan.execute(self, bpy.context) == {"CANCELLED"}
+    assert reports == [({"WARNING"}, "Box: no returns at this pose, out of the nuscenes sensor's range or view; "
+                                     "no scan preview made")]
+    assert datablock_counts(bpy) == counts and not result_objects("Box")
+
+
 def test_zero_area_faces_are_a_warning(scene, capfd):
     vertices, faces = box_geometry()
     vertices = np.vstack([vertices, [[0, 0, 5], [1, 0, 5], [2, 0, 5]]])

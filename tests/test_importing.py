@@ -174,6 +174,24 @@ def test_splat_with_wrong_sh_count(donut, tmp_path):
         load_reconstruction(tmp_path / "sh.ply")
 
 
+@pytest.mark.parametrize("field, value", [("scale_1", np.nan), ("opacity", np.inf), ("f_dc_0", -np.inf)])
+def test_splats_with_nan_or_inf_fields_are_refused(donut, tmp_path, field, value):
+    columns = {name: values[:10].copy() for name, values in read_vertices(donut).items()}
+    columns[field][3] = value
+    write_ply(tmp_path / "splat.ply", columns)
+    with pytest.raises(InputError, match=rf"1 of 10 splats have NaN or Inf values in {field} \(1\)"):
+        load_reconstruction(tmp_path / "splat.ply")
+
+
+def test_ascii_colours_out_of_their_type_are_refused(tmp_path):
+    path = tmp_path / "colours.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+                    "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+                    "0 0 0 300 0 0\n1 1 1 0 0 0\n")
+    with pytest.raises(InputError, match=r"property red \(uint8\) holds 300 in row 1: not a uint8 value"):
+        load_reconstruction(path)  # it wrapped to 44 before
+
+
 def test_kind_mismatch(donut):
     with pytest.raises(InputError, match="expected a gaussian splat input but this is a point ply"):
         load_reconstruction(donut.with_name("color.ply"), kind="gaussian_splat")
@@ -188,10 +206,36 @@ def test_colmap_missing_file(statue_copy, missing):
         load_reconstruction(statue_copy)
 
 
-def test_colmap_truncated_file(statue_copy):
-    break_truncate(statue_copy / "points3D.bin")
-    with pytest.raises(InputError, match=f"{statue_copy}: COLMAP model could not be read"):
+def _cut(fraction):
+    def damage(path):
+        path.write_bytes(path.read_bytes()[:int(path.stat().st_size * fraction)])
+    return damage
+
+
+def _huge_track(path):  # the first point's track length (after id, xyz, rgb, error) says 2**40
+    data = bytearray(path.read_bytes())
+    data[8 + 8 + 24 + 3 + 8:8 + 8 + 24 + 3 + 8 + 8] = (2**40).to_bytes(8, "little")
+    path.write_bytes(bytes(data))
+
+
+def _trailing(path):
+    path.write_bytes(path.read_bytes() + b"\0" * 5)
+
+
+@pytest.mark.parametrize("name, damage, problem", [
+    ("points3D.bin", _cut(0.5), "claims 1,816 points but only"),  # was a 17 GB allocation in pycolmap
+    ("points3D.bin", _cut(0.9), "truncated"),
+    ("points3D.bin", _huge_track, "claims 1,099,511,627,776 track elements"),
+    ("images.bin", _cut(0.7), "truncated"),
+    ("cameras.bin", _trailing, "5 bytes after the last record"),
+])
+def test_colmap_damaged_binaries_are_refused_before_pycolmap_reads_them(statue_copy, name, damage, problem):
+    for text in statue_copy.glob("*.txt"):
+        text.unlink()
+    damage(statue_copy / name)
+    with pytest.raises(InputError) as caught:
         load_reconstruction(statue_copy)
+    assert caught.value.path == statue_copy / name and problem in str(caught.value)
 
 
 def test_colmap_folder_without_model(statue, tmp_path):

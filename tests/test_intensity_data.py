@@ -125,6 +125,11 @@ def test_training_sets_from_the_shared_data(kitti, gt_database):
     assert real.dataset == "kitti" and abs(real.values.mean() - 0.15) < 0.02
     with pytest.raises(InputError, match="too few objects with at least 256 points"):
         training_sets([kitti], [], "kitti")
+    from pgt_blender.core.intensity.objects import paired_classes
+
+    with pytest.raises(InputError, match=r"\(need 1 per class in each domain\): no class has any \(real: 0 objects, "
+                                         r"rgb: 0 objects\)$"):
+        paired_classes([], [], 256)  # the message used to end in a dangling ":"
 
 
 def test_material_colours_of_a_real_mesh(chrono_meshes):

@@ -86,6 +86,12 @@ def test_paper_ablation_settings_are_expressible(tmp_path):
     ("azimuth_offsets_deg = [1.0]", "azimuth_offsets_deg has 1 entries for 32 beams"),
     ("colums = 1080", "unknown sensor keys colums"),
     ("columns = ", "not a readable TOML file"),
+    ('rate_hz = "fast"', "rate_hz must be a finite number, got 'fast'"),
+    ("mounting_height = inf", "mounting_height must be a finite number"),
+    ("columns = 1000000000", "exceeds 16,777,216 rays per revolution"),  # not a MemoryError
+    ("columns = 1e9", "columns must be a positive integer"),
+    ('elevations_deg = "12"', "elevations_deg must be a list of numbers"),
+    ('firing_us = [0, "a"]', "firing_us must be a list of numbers"),
 ])
 def test_bad_sensor_files_name_the_file_and_the_problem(tmp_path, body, problem):
     path = tmp_path / "bad.toml"

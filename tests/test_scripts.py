@@ -190,6 +190,42 @@ def test_scan_object_usage_errors_exit_2(truck_sample, tmp_path):
     result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"], "--x", 1, "--y", 1,
                         "--out", tmp_path / "scan.txt")
     assert result.returncode == 2 and "--out must end in" in result.stderr
+    for flag, value in (("--x", "nan"), ("--heading", "inf"), ("--y", "-inf")):
+        args = {"--x": "10", "--y": "0", "--heading": "0", flag: value}
+        result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"],
+                            *[f"{key}={item}" for key, item in args.items()], "--out", tmp_path / "s.bin")
+        assert result.returncode == 2 and f"argument {flag}: expected a finite number, got '{value}'" in result.stderr
+    assert not (tmp_path / "s.bin").exists()
+
+
+def test_an_out_path_that_cannot_be_written_is_one_line_and_exit_1(truck_sample, statue, tmp_path):
+    """--out under a file, or a folder where a file goes: one line naming it, exit 1."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    folder = tmp_path / "a_folder"
+    folder.mkdir()
+    cases = [
+        ("prepare_objects.py", ["--in", truck_sample["reconstruction.ply"].parent, "--class", "truck",
+                                "--heading", "baseline", "--out", blocker / "prepared"]),
+        ("mix_bank.py", ["--real", ROOT.parent / "shared" / "data" / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl",
+                         "--bank", ROOT.parent / "shared" / "data" / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl",
+                         "--out", blocker / "mixed.pkl"]),
+        ("import_reconstruction.py", [statue, "--out", folder]),
+    ]
+    for script, args in cases:
+        result = run_script(script, *args)
+        lines = result.stderr.strip().splitlines()
+        assert result.returncode == 1 and len(lines) == 1 and lines[0].startswith("error: "), (script, result.stderr)
+        assert str(blocker) in lines[0] or str(folder) in lines[0], (script, lines[0])
+    assert blocker.read_text() == "x" and not any(folder.iterdir())
+
+
+def test_scan_object_with_no_returns_says_why_and_writes_nothing(truck_sample, tmp_path):
+    out = tmp_path / "scan.bin"
+    result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"], "--x", 500, "--y", 0, "--out", out)
+    assert result.returncode == 1 and not out.exists()
+    assert result.stderr.strip() == f"error: {truck_sample['mesh.ply']}: no returns at x = 500 m, y = 0 m: the " \
+                                    f"object is out of the nuscenes sensor's range or view there; nothing written"
 
 
 def test_train_intensity_end_to_end_on_the_shared_data(shared_data, truck_sample, tmp_path):

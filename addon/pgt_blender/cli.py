@@ -14,6 +14,21 @@ def script_argv() -> list:
     return sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
 
 
+def run_main(main, argv: list) -> int:
+    """``main(argv)``'s exit code, with a bad input (InputError) or a failed read or write
+    (OSError: a folder where a file should be, a full disk, no permission) printed as the
+    one line ``error: <file>: <problem>`` and exit code 1 instead of a traceback."""
+    from .core.errors import InputError
+
+    try:
+        return main(argv)
+    except InputError as error:
+        print(f"error: {error}", file=sys.stderr)
+    except OSError as error:
+        print(f"error: {error.filename or '-'}: {error.strerror or error}", file=sys.stderr)
+    return 1
+
+
 def machine(**details) -> dict:
     """The benchmark machine: CPU model, core count, Python version, then ``details``
     (library versions, settings)."""

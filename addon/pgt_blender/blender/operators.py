@@ -237,6 +237,10 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
             return {"CANCELLED"}
         for warning in caught:
             self.report({"WARNING"}, str(warning.message))
+        if not result.hits:  # legal but empty: say why, and leave the scene as it was
+            self.report({"WARNING"}, f"{obj.name}: no returns at this pose, out of the {sensor.name} sensor's "
+                                     f"range or view; no scan preview made")
+            return {"CANCELLED"}
         scanning.show_scan(context.scene, obj, result, sensor, sensor_from_object, settings)
         settings.stats = scanning.stats_text(result)
         self.report({"INFO"}, f"{obj.name}: {settings.stats}")

@@ -192,7 +192,11 @@ def plan_bank(objects: list, config: BankConfig, out, resume: bool = False, over
     """Check the inputs, ready the output folder (see ``prepare_folder``) and list the
     chunks to do; ``shard`` (i, n) keeps chunk ids = i mod n."""
     job = new_job(objects, config, out)
-    chunks = job.chunks(job.entries())
+    entries = job.entries()
+    if not len(entries):
+        raise InputError(out, "the grid leaves no pose: every position is beyond max_distance or within "
+                              "ego_clearance of the sensor; widen [grid] or relax those")
+    chunks = job.chunks(entries)
     prepare_folder(job.out, identity(job, len(chunks)), resume, overwrite, shared=shard is not None)
     return Plan(job, chunks, pending_chunks(job.out, len(chunks), shard or (0, 1)))
 
@@ -343,6 +347,10 @@ def assemble(out: Path, data_root=None) -> dict:
             name = ident["class_names"][row["object"]]
             bucket = counts if row["kept"] else dropped
             bucket[name] = bucket.get(name, 0) + 1
+    if not counts:
+        raise InputError(out, f"no entry kept: all {sum(dropped.values()):,} poses had fewer than "
+                              f"{config['min_points']} points in their box; lower bank.min_points or bring the "
+                              f"grid closer")
     pickle_name = f"{config['dataset']}_dbinfos_pgt.pkl"
     for fmt, by_class in infos.items():
         relative = f"{fmt}/{pickle_name}"

@@ -157,6 +157,14 @@ def load_infos(path: Path) -> dict:
             missing = [key for key in REQUIRED_KEYS if key not in info]
             if missing:
                 raise InputError(path, f"info {index} of '{name}' lacks {', '.join(missing)}")
+            box = np.asarray(info["box3d_lidar"])
+            if box.dtype.kind not in "fiu" or box.ndim != 1 or box.size < 7 or not np.isfinite(box).all():
+                raise InputError(path, f"info {index} of '{name}': box3d_lidar must be 7 or more finite numbers, "
+                                       f"got {info['box3d_lidar']!r}")
+            count = info["num_points_in_gt"]
+            if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 0:
+                raise InputError(path, f"info {index} of '{name}': num_points_in_gt must be a count >= 0, "
+                                       f"got {count!r}")
     return infos
 
 

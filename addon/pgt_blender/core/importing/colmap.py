@@ -1,5 +1,11 @@
-"""COLMAP sparse model folder -> Reconstruction, through pycolmap."""
+"""COLMAP sparse model folder -> Reconstruction, through pycolmap.
 
+Binary models are walked first (``check_binary_model``): pycolmap trusts the counts in
+the files and allocates what they claim, so a truncated or damaged file could ask for
+gigabytes. Every count is checked against the bytes left before anything is read.
+"""
+
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +43,8 @@ def load_colmap(folder: Path, with_cameras: bool = True) -> Reconstruction:
 
     folder = Path(folder)
     files = model_files(folder)
+    if files[0].suffix == ".bin":
+        check_binary_model(files)
     try:
         model = pycolmap.Reconstruction(str(folder))
     except Exception as error:  # pycolmap raises bare RuntimeError/ValueError for bad files
@@ -74,3 +82,71 @@ def _camera_view(image) -> CameraView:
 def _first_line(error: Exception) -> str:
     text = str(error).strip() or type(error).__name__
     return text.splitlines()[-1] if "\n" in text else text
+
+
+# COLMAP's camera models (src/colmap/sensor/models.h): model id -> number of parameters.
+CAMERA_PARAMS = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12, 11: 16}
+
+
+class _Reader:
+    """Little-endian reads from one file's bytes that never pass its end."""
+
+    def __init__(self, path: Path):
+        self.path, self.data, self.at = path, path.read_bytes(), 0
+
+    def take(self, layout: str) -> tuple:
+        size = struct.calcsize("<" + layout)
+        if self.at + size > len(self.data):
+            raise InputError(self.path, f"truncated: ends at byte {len(self.data):,} inside a record")
+        values = struct.unpack_from("<" + layout, self.data, self.at)
+        self.at += size
+        return values
+
+    def skip(self, count: int, record: int, what: str) -> None:
+        """Skip ``count`` records of ``record`` bytes, refusing a count the file cannot hold."""
+        if count * record > len(self.data) - self.at:
+            raise InputError(self.path, f"claims {count:,} {what} but only {len(self.data) - self.at:,} bytes follow "
+                                        f"(damaged or truncated)")
+        self.at += count * record
+
+    def string(self) -> None:
+        end = self.data.find(b"\0", self.at)
+        if end < 0:
+            raise InputError(self.path, "truncated: an image name has no end")
+        self.at = end + 1
+
+    def count(self, what: str, smallest_record: int) -> int:
+        (number,) = self.take("Q")
+        if number * smallest_record > len(self.data) - self.at:
+            raise InputError(self.path, f"claims {number:,} {what} but only {len(self.data) - self.at:,} bytes "
+                                        f"follow (damaged or truncated)")
+        return number
+
+    def done(self) -> None:
+        if self.at != len(self.data):
+            raise InputError(self.path, f"{len(self.data) - self.at:,} bytes after the last record (damaged)")
+
+
+def check_binary_model(files: list) -> None:
+    """Walk cameras.bin, images.bin and points3D.bin (COLMAP's binary layout); InputError
+    naming the file at the first count or size that does not fit. No allocation depends
+    on a number read from a file."""
+    cameras = _Reader(files[0])
+    for _ in range(cameras.count("cameras", 24)):
+        _, model, _, _ = cameras.take("iiQQ")
+        if model not in CAMERA_PARAMS:
+            raise InputError(files[0], f"unknown camera model id {model}")
+        cameras.skip(CAMERA_PARAMS[model], 8, "camera parameters")
+    cameras.done()
+    images = _Reader(files[1])
+    for _ in range(images.count("images", 73)):
+        images.take("I7dI")
+        images.string()
+        (points,) = images.take("Q")
+        images.skip(points, 24, "image points")
+    images.done()
+    points = _Reader(files[2])
+    for _ in range(points.count("points", 51)):
+        *_, track = points.take("Q3d3BdQ")
+        points.skip(track, 8, "track elements")
+    points.done()

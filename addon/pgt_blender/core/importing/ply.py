@@ -176,6 +176,16 @@ def _read_ascii_vertices(path, header, vertex):
     if values.size != vertex.count * columns:
         raise InputError(path, f"vertex rows must hold {columns} values each; some rows differ")
     table = values.reshape(vertex.count, columns)
+    for index, (name, code) in enumerate(vertex.properties):
+        kind = np.dtype(code)
+        if kind.kind in "iu":  # an integer property must hold whole numbers its type can store
+            column = table[:, index]
+            info = np.iinfo(kind)
+            bad = (column != np.round(column)) | (column < info.min) | (column > info.max)
+            if bad.any():
+                raise InputError(path, f"property {name} ({kind.name}) holds {column[bad][0]:g} in row "
+                                       f"{int(np.argmax(bad)) + 1}: not a {kind.name} value "
+                                       f"({info.min}..{info.max})")
     return {name: np.ascontiguousarray(table[:, index], dtype=code)
             for index, (name, code) in enumerate(vertex.properties)}
 

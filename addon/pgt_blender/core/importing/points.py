@@ -35,6 +35,7 @@ def load_point_ply(path: Path, header: PlyHeader) -> Reconstruction:
     if set(_NORMAL) <= names:
         attributes["normal"] = _stack(data, _NORMAL)
     colors = None
+    _require_finite(path, data, [name for name in _RGB + ("alpha",) + _NORMAL if name in names], "points")
     if set(_RGB) <= names:
         channels = _RGB + (("alpha",) if "alpha" in names else ())
         colors = np.ones((len(data["x"]), 4), np.float32)
@@ -66,6 +67,7 @@ def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
             path, f"{len(rest)} f_rest_* fields; spherical harmonics of degree 1, 2 or 3 "
             "need 9, 24 or 45 numbered from f_rest_0"
         )
+    _require_finite(path, data, SPLAT_FIELDS + tuple(rest), "splats")
     rotation = _stack(data, ("rot_0", "rot_1", "rot_2", "rot_3")).astype(np.float64)
     length = np.linalg.norm(rotation, axis=1)
     if not (length > 0).all():
@@ -81,6 +83,16 @@ def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
         kind="gaussian_splat", source=Path(path), sha256=sha256_of_files([path]),
         colors=colors, attributes=attributes,
     )
+
+
+def _require_finite(path, data: dict, names, what: str) -> None:
+    """InputError naming the properties where some values are NaN or infinite."""
+    bad = {name: int((~np.isfinite(data[name])).sum()) for name in names if data[name].dtype.kind == "f"}
+    bad = {name: count for name, count in bad.items() if count}
+    if bad:
+        listed = ", ".join(f"{name} ({count})" for name, count in bad.items())
+        raise InputError(path, f"{max(bad.values())} of {len(data[names[0]])} {what} have NaN or Inf values in "
+                               f"{listed}")
 
 
 def _require(path, names, required, what):

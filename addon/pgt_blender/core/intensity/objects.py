@@ -192,7 +192,8 @@ def paired_classes(real: list, rgb: list, min_points: int, min_objects: int = 1,
     usable = [c for c in wanted if min(real_counts.get(c, 0), rgb_counts.get(c, 0)) >= min_objects]
     short = [c for c in wanted if c not in usable]
     if classes and short or not usable:
-        detail = "; ".join(f"{c}: {real_counts.get(c, 0)} real, {rgb_counts.get(c, 0)} rgb" for c in short)
+        detail = "; ".join(f"{c}: {real_counts.get(c, 0)} real, {rgb_counts.get(c, 0)} rgb" for c in short) \
+            or f"no class has any (real: {len(real)} objects, rgb: {len(rgb)} objects)"
         raise InputError("training data", f"too few objects with at least {min_points} points "
                                           f"(need {min_objects} per class in each domain): {detail}")
     return tuple(usable)

@@ -60,13 +60,16 @@ class Sensor:
     note: str = field(default="", compare=False)
 
     def __post_init__(self):
-        beams = len(self.elevations_deg)
-        if not self.azimuth_offsets_deg:
-            object.__setattr__(self, "azimuth_offsets_deg", (0.0,) * beams)
-        if not self.firing_us:
-            object.__setattr__(self, "firing_us", (0.0,) * beams)
         for name in ("elevations_deg", "azimuth_offsets_deg", "firing_us"):
-            object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
+            try:
+                if isinstance(getattr(self, name), (str, bytes)):
+                    raise TypeError
+                values = tuple(float(v) for v in getattr(self, name))
+            except (TypeError, ValueError):
+                raise ValueError(f"sensor {self.name!r}: {name} must be a list of numbers, got "
+                                 f"{getattr(self, name)!r}") from None
+            object.__setattr__(self, name, values or ((0.0,) * len(self.elevations_deg) if name != "elevations_deg"
+                                                      else ()))
         validate(self)
 
     @property
@@ -129,9 +132,22 @@ class Sensor:
         return replace(self, columns=int(columns), name=f"{self.name}@{columns}")
 
 
+MAX_CELLS = 2**24  # beams x columns: the ray table (24 bytes a cell) stays within 400 MB
+
+
 def validate(sensor: Sensor) -> None:
-    """Raise ValueError naming the first field that is not a usable sensor."""
-    elevations = np.asarray(sensor.elevations_deg, np.float64)
+    """Raise ValueError naming the fields that do not make a usable sensor."""
+    scalars = ("rate_hz", "min_range", "max_range", "mounting_height", "range_noise_sigma", "start_azimuth_deg")
+    wrong = [name for name in scalars if isinstance(getattr(sensor, name), bool)
+             or not isinstance(getattr(sensor, name), (int, float, np.integer, np.floating))
+             or not np.isfinite(getattr(sensor, name))]
+    if wrong:  # the checks below compare numbers: stop here with the keys named
+        raise ValueError(f"sensor {sensor.name!r}: " + "; ".join(
+            f"{name} must be a finite number, got {getattr(sensor, name)!r}" for name in wrong))
+    try:
+        elevations = np.asarray(sensor.elevations_deg, np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"sensor {sensor.name!r}: elevations_deg must be a list of numbers") from None
     problems = []
     if elevations.size == 0:
         problems.append("elevations_deg is empty")
@@ -148,8 +164,12 @@ def validate(sensor: Sensor) -> None:
     if len(sensor.azimuth_offsets_deg) == len(elevations) and elevations.size and \
             np.abs(sensor.azimuth_offsets_deg).max() >= 180:
         problems.append("azimuth_offsets_deg must lie strictly between -180 and 180")
-    if not (isinstance(sensor.columns, int | np.integer) and sensor.columns > 0):
+    if not (isinstance(sensor.columns, int | np.integer) and not isinstance(sensor.columns, bool)
+            and sensor.columns > 0):
         problems.append(f"columns must be a positive integer, got {sensor.columns!r}")
+    elif sensor.columns * max(len(elevations), 1) > MAX_CELLS:
+        problems.append(f"columns x beams = {sensor.columns * len(elevations):,} exceeds {MAX_CELLS:,} rays per "
+                        f"revolution")
     for name in ("rate_hz", "max_range"):
         if not getattr(sensor, name) > 0:
             problems.append(f"{name} must be positive, got {getattr(sensor, name)!r}")
