@@ -49,7 +49,7 @@ def test_import_bad_input_exits_non_zero_and_writes_nothing(tmp_path):
 
 @pytest.mark.parametrize("script", ["import_reconstruction.py", "demo.py", "bench_import.py", "build_extension.py",
                                     "scan_object.py", "bench_scan.py", "train_intensity.py", "bench_intensity.py",
-                                    "export_bank.py", "mix_bank.py", "bench_bank.py"])
+                                    "export_bank.py", "mix_bank.py", "bench_bank.py", "fit_ground.py"])
 def test_help(script):
     result = run_script(script, "--help")
     assert result.returncode == 0 and result.stdout.startswith("usage:")
@@ -218,6 +218,15 @@ def test_an_out_path_that_cannot_be_written_is_one_line_and_exit_1(truck_sample,
         assert result.returncode == 1 and len(lines) == 1 and lines[0].startswith("error: "), (script, result.stderr)
         assert str(blocker) in lines[0] or str(folder) in lines[0], (script, lines[0])
     assert blocker.read_text() == "x" and not any(folder.iterdir())
+
+
+def test_fit_ground_prints_the_banks_ground_model(shared_data, tmp_path):
+    result = run_script("fit_ground.py", shared_data / "kitti_scans", "--json")
+    fit = json.loads(result.stdout)
+    assert result.returncode == 0 and fit["used"] == 4 and len(fit["boxes"]) == 6
+    result = run_script("fit_ground.py", tmp_path)
+    assert result.returncode == 1 and result.stderr.strip() == \
+        f"error: {tmp_path}: no velodyne/*.bin scans (expected a KITTI folder with velodyne, label_2, calib)"
 
 
 def test_scan_object_with_no_returns_says_why_and_writes_nothing(truck_sample, tmp_path):

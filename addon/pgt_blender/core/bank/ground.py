@@ -68,22 +68,11 @@ def fit_kitti_frames(folder, mounting_height: float) -> dict:
     Returns {"boxes": [{"frame", "type", "distance" (m), "offset" (ground height +
     mounting_height, m), "grade" (degrees: atan(offset / distance)), and fit_ground's
     keys}], "grade_deg", "slope_deg", "used": boxes with >= MIN_GROUND_POINTS returns}."""
-    from pathlib import Path
+    from ..intensity.objects import kitti_frames
 
-    from ..errors import InputError
-    from ..intensity.objects import kitti_label_boxes
-
-    folder = Path(folder)
-    scans = sorted((folder / "velodyne").glob("*.bin"))
-    if not scans:
-        raise InputError(folder, "no velodyne/*.bin scans (expected a KITTI folder with velodyne, label_2, calib)")
     boxes = []
-    for scan in scans:
-        raw = np.fromfile(scan, np.float32)
-        if raw.size % 4:
-            raise InputError(scan, f"{raw.size} floats do not split into x, y, z, intensity rows")
-        points = raw.reshape(-1, 4)[:, :3].astype(np.float64)
-        labels = kitti_label_boxes(folder / "label_2" / f"{scan.stem}.txt", folder / "calib" / f"{scan.stem}.txt")
+    for scan, rows, labels in kitti_frames(folder):
+        points = rows[:, :3]
         for kind, centre, dims, heading in labels:
             fit = fit_ground(points, centre, dims, heading)
             distance = float(np.hypot(*centre[:2]))

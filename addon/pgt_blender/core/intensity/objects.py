@@ -123,15 +123,14 @@ def kitti_label_boxes(label_path: Path, calib_path: Path) -> list:
     return boxes
 
 
-def kitti_scan_objects(folder, min_points: int = 1) -> list:
-    """Real objects cut from raw KITTI scans: every ``velodyne/*.bin`` (float32 x y z
-    intensity) with ``label_2`` and ``calib`` files of the same name; the points inside
-    each labelled box, in its box frame."""
+def kitti_frames(folder):
+    """Yield (scan path, (N, 4) float64 rows x y z intensity, kitti_label_boxes) of every
+    ``velodyne/*.bin`` in a KITTI ``folder`` with ``label_2`` and ``calib`` files of the
+    same name; InputError naming what is missing or damaged."""
     folder = Path(folder)
     scans = sorted((folder / "velodyne").glob("*.bin"))
     if not scans:
         raise InputError(folder, "no velodyne/*.bin scans (expected a KITTI folder with velodyne, label_2, calib)")
-    objects = []
     for scan in scans:
         label, calib = folder / "label_2" / f"{scan.stem}.txt", folder / "calib" / f"{scan.stem}.txt"
         if not label.is_file() or not calib.is_file():
@@ -139,8 +138,15 @@ def kitti_scan_objects(folder, min_points: int = 1) -> list:
         raw = np.fromfile(scan, np.float32)
         if raw.size % 4:
             raise InputError(scan, f"{raw.size} floats do not split into x, y, z, intensity rows")
-        rows = raw.reshape(-1, 4).astype(np.float64)
-        for index, (kind, centre, dims, heading) in enumerate(kitti_label_boxes(label, calib)):
+        yield scan, raw.reshape(-1, 4).astype(np.float64), kitti_label_boxes(label, calib)
+
+
+def kitti_scan_objects(folder, min_points: int = 1) -> list:
+    """Real objects cut from raw KITTI scans (``kitti_frames``): the points inside each
+    labelled box, in its box frame."""
+    objects = []
+    for scan, rows, labels in kitti_frames(folder):
+        for index, (kind, centre, dims, heading) in enumerate(labels):
             local = box_frame(rows[:, :3], centre, heading)
             inside = (np.abs(local) <= dims / 2).all(axis=1)
             if inside.sum() >= max(min_points, 1):
