@@ -22,7 +22,6 @@ one-line error and exit code 1.
 """
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -31,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 import numpy as np  # noqa: E402
 
 from pgt_blender.cli import run_main, script_argv  # noqa: E402
+from pgt_blender.core.authoring.prepare import read_sidecar  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
 from pgt_blender.core.importing import load_reconstruction  # noqa: E402
 from pgt_blender.core.learning import TORCH_REQUIREMENT  # noqa: E402
@@ -48,10 +48,7 @@ def sidecar_class(path: Path) -> str | None:
     sidecar = path.with_suffix(".json")
     if not sidecar.is_file():
         return None
-    try:
-        return json.loads(sidecar.read_text()).get("class")
-    except (json.JSONDecodeError, AttributeError):
-        raise InputError(sidecar, "sidecar is not a JSON object") from None
+    return read_sidecar(sidecar).get("class")
 
 
 def learned_intensity(result, recon, bounds: np.ndarray, sensor, class_name: str, checkpoint: Path) -> str:

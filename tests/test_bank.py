@@ -19,9 +19,8 @@ import pytest
 from pgt_blender.core.authoring.prepare import prepare, write_prepared
 from pgt_blender.core.bank import export
 from pgt_blender.core.bank.config import BankConfig, config_from_table, grid_values, load_config
-from pgt_blender.core.bank.entries import BOX_TOLERANCE
 from pgt_blender.core.boxes import inside_box
-from pgt_blender.core.bank.formats import BOX_VALUES, DATABASE_CLASSES, kitti_image_box
+from pgt_blender.core.bank.formats import BOX_VALUES, DATABASE_CLASSES
 from pgt_blender.core.bank.grid import footprint_distance, object_entries
 from pgt_blender.core.bank.inputs import checked_objects, prepared_objects
 from pgt_blender.core.errors import InputError
@@ -472,6 +471,31 @@ def test_incomplete_objects_are_listed_and_refused(prepared, tmp_path, reference
     run_script("--objects", folder, "--config", config, "--out", tmp_path / "bank", "--skip-incomplete")
     manifest = json.loads((tmp_path / "bank" / "manifest.json").read_text())
     assert [obj["name"] for obj in manifest["objects"]] == ["truck_reconstruction"]
+
+
+@pytest.mark.parametrize("damage, problem", [
+    (lambda record: json.dumps({**record, "dims": "big"}).encode(), "dims must be three positive lengths"),
+    (lambda record: json.dumps({**record, "dims": [4, 2, -1]}).encode(), "dims must be three positive lengths"),
+    (lambda record: json.dumps({**record, "class": 7}).encode(), "class must be a string, got 7"),
+    (lambda record: json.dumps([record]).encode(), "expected a JSON object"),
+    (lambda record: "\N{LATIN SMALL LETTER E WITH ACUTE}".encode("latin-1") + b"{}", "UnicodeDecodeError"),
+])
+def test_a_damaged_sidecar_is_one_line_in_both_scripts(prepared, tmp_path, reference, damage, problem):
+    """One sidecar reader (authoring.prepare.read_sidecar) for export_bank.py and scan_object.py."""
+    _, config = reference
+    folder = tmp_path / "objects"
+    folder.mkdir()
+    (folder / "truck.ply").write_bytes((prepared / "truck_reconstruction.ply").read_bytes())
+    record = json.loads((prepared / "truck_reconstruction.json").read_text())
+    (folder / "truck.json").write_bytes(damage(record))
+    result = run_script("--objects", folder, "--config", config, "--out", tmp_path / "bank", check=False)
+    assert result.returncode == 1 and last_line(result).startswith(f"error: {folder / 'truck.json'}: ")
+    assert problem in last_line(result) and not (tmp_path / "bank").exists()
+    scan = subprocess.run([sys.executable, str(ROOT / "headless_scripts" / "scan_object.py"), "--object",
+                           str(folder / "truck.ply"), "--x", "10", "--y", "0", "--sweeps", "2", "--out",
+                           str(tmp_path / "scan.bin")], capture_output=True, text=True)
+    assert scan.returncode == 1 and scan.stderr.strip().startswith(f"error: {folder / 'truck.json'}: ")
+    assert not (tmp_path / "scan.bin").exists()
 
 
 def test_a_class_without_a_dataset_name_is_refused(objects, tmp_path):

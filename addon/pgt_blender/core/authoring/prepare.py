@@ -7,6 +7,7 @@ UI and ``prepare_objects.py`` give identical points, boxes and transforms.
 """
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -189,6 +190,29 @@ def write_prepared(authored: AuthoredObject, class_name: str, dataset: str, dire
     with atomic_output(paths[".json"]) as stream:
         stream.write(text.encode())
     return paths
+
+
+def read_sidecar(path) -> dict:
+    """The sidecar ``<name>.json`` that write_prepared wrote, checked: a JSON object whose
+    ``class`` (when present) is a string, ``dims`` three positive finite metres and
+    ``steps`` a list of objects. InputError naming the file and the field otherwise."""
+    path = Path(path)
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise InputError(path, f"not a prepared-object sidecar ({type(error).__name__}: {error})") from None
+    if not isinstance(record, dict):
+        raise InputError(path, "not a prepared-object sidecar: expected a JSON object")
+    if not isinstance(record.get("class", ""), str):
+        raise InputError(path, f"class must be a string, got {record['class']!r}")
+    dims = record.get("dims")
+    if dims is not None and not (isinstance(dims, list) and len(dims) == 3 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in dims)):
+        raise InputError(path, f"dims must be three positive lengths [l, w, h] in metres, got {dims!r}")
+    steps = record.get("steps", [])
+    if not (isinstance(steps, list) and all(isinstance(step, dict) for step in steps)):
+        raise InputError(path, "steps must be a list of objects")
+    return record
 
 
 def _point_columns(authored: AuthoredObject) -> dict:

@@ -8,7 +8,6 @@ centred on the origin: not the geometry's bounds, which may hold floaters.
 """
 
 import hashlib
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -63,6 +62,7 @@ def prepared_objects(folder) -> tuple[list, list]:
     """The prepared objects of ``folder`` (prepare_objects.py output: <name>.ply + <name>.json
     sidecar), sorted by name, and the incomplete ones as (path, reason): no sidecar, or a
     sidecar without class or size step. InputError for an unreadable sidecar or file."""
+    from ..authoring.prepare import read_sidecar
     from ..importing import load_reconstruction
 
     folder = Path(folder)
@@ -74,12 +74,9 @@ def prepared_objects(folder) -> tuple[list, list]:
         if not sidecar.is_file():
             incomplete.append((path, "no sidecar JSON (prepare it with prepare_objects.py)"))
             continue
-        try:
-            record = json.loads(sidecar.read_text())
-            class_name, dims = record.get("class", ""), record.get("dims")
-            sized = any(step.get("step") == "size" for step in record.get("steps", []))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError) as error:
-            raise InputError(sidecar, f"not a prepared-object sidecar: {error}") from None
+        record = read_sidecar(sidecar)
+        class_name, dims = record.get("class", ""), record.get("dims")
+        sized = any(step.get("step") == "size" for step in record.get("steps", []))
         reason = incomplete_reason(class_name, sized and dims is not None)
         if reason:
             incomplete.append((path, reason))

@@ -20,8 +20,6 @@ real database is counted from its info pickle and .bin files, one file at a time
 """
 
 import io
-import json
-import pickle
 from pathlib import Path
 
 import numpy as np
