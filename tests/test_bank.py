@@ -438,6 +438,16 @@ def test_an_empty_bank_is_an_error_not_an_empty_database(prepared, tmp_path, tab
     assert not (out / "manifest.json").exists() and not list(out.glob("*/*_dbinfos_pgt.pkl"))
 
 
+@pytest.mark.parametrize("flags", [(), ("--resume",), ("--overwrite",)])
+def test_a_start_cut_short_before_its_identity_does_not_block_the_folder(reference, prepared, tmp_path, flags):
+    """A full disk right at the start leaves only .work/chunks: any run continues there."""
+    out, config = reference
+    cut = tmp_path / "bank"
+    (cut / ".work" / "chunks").mkdir(parents=True)
+    run_script("--objects", prepared, "--config", config, "--out", cut, *flags)
+    assert bank_bytes(cut) == bank_bytes(out)
+
+
 def test_class_names_cannot_lead_files_out_of_the_bank(tmp_path):
     for name in ("../../../../elsewhere/anywhere", "sub/dir", "/abs", "a b"):
         with pytest.raises(InputError, match="classes.truck = .*expected a dataset class name"):

@@ -108,6 +108,8 @@ def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared
     marker = out / WORK / "identity.json"
     if out.exists() and not out.is_dir():
         raise InputError(out, "is a file, not an output folder")
+    if _cut_short(out):
+        shutil.rmtree(out / WORK)
     if out.is_dir() and any(out.iterdir()):
         is_bank = marker.is_file() or (out / MANIFEST).is_file()
         if overwrite:
@@ -126,6 +128,15 @@ def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared
     (out / WORK / "chunks").mkdir(parents=True, exist_ok=True)
     with atomic_output(marker) as stream:
         stream.write(json.dumps(ident, indent=1).encode())
+
+
+def _cut_short(out: Path) -> bool:
+    """True for a folder holding only the empty .work/chunks an export makes before its
+    identity: a start cut short (a full disk), with nothing in it to keep."""
+    def names(folder: Path) -> list:
+        return sorted(child.name for child in folder.iterdir()) if folder.is_dir() else []
+
+    return names(out) == [WORK] and names(out / WORK) == ["chunks"] and not names(out / WORK / "chunks")
 
 
 def read_identity(out: Path) -> dict:
