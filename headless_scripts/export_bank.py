@@ -92,10 +92,12 @@ def _blend_objects(path: Path, open_it: bool) -> tuple:
 
 def export_bank(args) -> int:
     if args.assemble:
+        reference = real_reference(args, export.read_identity(args.out)["config"])
         for shard in args.shard_dirs:
             export.copy_shard(shard, args.out)
-        return finish(args, export.assemble(args.out, args.data_root), 0.0)
+        return finish(args, export.assemble(args.out, args.data_root), reference, 0.0)
     config = load_config(args.config) if args.config else BankConfig()
+    reference = real_reference(args, config.to_dict())
     objects, source = gather(args)
     plan = export.plan_bank(objects, config, args.out, args.resume, args.overwrite, args.shard)
     print(f"{len(plan.job.objects)} object(s) from {source}: {sum(map(len, plan.chunks)):,} poses in "
@@ -107,7 +109,7 @@ def export_bank(args) -> int:
         print(f"shard {args.shard[0]}/{args.shard[1]} done in {seconds:.1f} s; "
               f"when every shard is done: export_bank.py --assemble --out {args.out}")
         return 0
-    return finish(args, export.assemble(args.out, args.data_root), seconds, plan.pending_entries)
+    return finish(args, export.assemble(args.out, args.data_root), reference, seconds, plan.pending_entries)
 
 
 def _progress(finished, total: int) -> None:
@@ -126,12 +128,20 @@ def _progress(finished, total: int) -> None:
             bar.update(count)
 
 
-def finish(args, manifest: dict, seconds: float, poses: int = 0) -> int:
-    """Write the bank report (against --real when given) and print the headline numbers."""
+def real_reference(args, config: dict):
+    """The --real database's statistics, read before any bank file is written (a bad
+    database leaves nothing behind); None without --real."""
+    from pgt_blender.core.bank import report
+
+    return report.real_reference(args.real, config) if args.real else None
+
+
+def finish(args, manifest: dict, reference, seconds: float, poses: int = 0) -> int:
+    """Write the bank report (beside ``reference`` when given) and print the headline numbers."""
     try:
         from pgt_blender.core.bank.report import write_report
 
-        report = f"report: {write_report(args.out, args.real)[0]}"
+        report = f"report: {write_report(args.out, reference)[0]}"
     except ImportError as error:  # matplotlib is not in Blender's own Python
         report = f"no report ({error.name} is not installed)"
     counts = ", ".join(f"{name} {count:,}" for name, count in manifest["counts"].items())

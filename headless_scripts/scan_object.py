@@ -38,7 +38,7 @@ from pgt_blender.core.scan.range_view import range_view_scan  # noqa: E402
 from pgt_blender.core.scan.raycast import ScanOptions, placement  # noqa: E402
 from pgt_blender.core.scan.returns import OUTPUT_SUFFIXES, write_scan  # noqa: E402
 from pgt_blender.core.scan.sensors import PRESETS, sensor_from_name  # noqa: E402
-from pgt_blender.core.scan.sweeps import Motion, sample_motion, scan_sweeps  # noqa: E402
+from pgt_blender.core.scan.sweeps import CLASS_MOTION, Motion, motion_class, sample_motion, scan_sweeps  # noqa: E402
 from pgt_blender.core.scan.targets import (element_colors, reflectivity_from_srgb,  # noqa: E402
                                            target_from_reconstruction)
 
@@ -104,11 +104,23 @@ def ray_cast(args, recon, sensor, heading: float, class_name: str, options):
     if args.surface == "surfels":
         recon.faces = recon.faces[:0]
     target = target_from_reconstruction(recon, args.radius_scale)
+    motion = Motion()
     if args.speed is not None:
         motion = Motion(args.speed, args.acceleration)
-    else:
-        motion = sample_motion(class_name, np.random.default_rng(args.seed)) if class_name else Motion()
+    elif class_name and args.sweeps > 1:
+        motion = sample_motion(moving_class(args, class_name), np.random.default_rng(args.seed))
     return scan_sweeps(target, sensor, args.x, args.y, heading, motion, args.sweeps, options), target.bounds
+
+
+def moving_class(args, class_name: str) -> str:
+    """``class_name``'s motion model (sweeps.CLASS_MOTION); InputError naming where the
+    class came from when it has none."""
+    known = motion_class(class_name)
+    if known is None:
+        source = "--class" if args.class_name else args.object.with_suffix(".json")
+        raise InputError(source, f"class '{class_name}' has no motion model (known: {', '.join(CLASS_MOTION)}); "
+                                 f"give --speed to set the motion")
+    return known
 
 
 def finite(text: str) -> float:

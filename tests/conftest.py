@@ -1,5 +1,6 @@
 """Shared fixtures. Core tests never import bpy; Blender tests ask for ``scene``."""
 
+import os
 import shutil
 from pathlib import Path
 
@@ -63,3 +64,14 @@ def datablock_counts(bpy) -> dict:
     half-imported may stay)."""
     return {"objects": len(bpy.data.objects), "meshes": len(bpy.data.meshes),
             "cameras": len(bpy.data.cameras), "node_groups": len(bpy.data.node_groups)}
+
+
+class CodeOnLoad:
+    """Unpickling this runs a shell command that creates ``marker``: what a crafted
+    database can do to a plain ``pickle.load``."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)

@@ -23,10 +23,13 @@ from pgt_blender.core.boxes import inside_box
 from pgt_blender.core.bank.formats import BOX_VALUES, DATABASE_CLASSES
 from pgt_blender.core.bank.grid import footprint_distance, object_entries
 from pgt_blender.core.bank.inputs import checked_objects, prepared_objects
+from pgt_blender.core.bank.records import read_record
 from pgt_blender.core.errors import InputError
 from pgt_blender.core.importing import load_reconstruction
 from pgt_blender.core.samples import write_sample
 from pgt_blender.core.scan.sensors import PRESETS
+
+from .conftest import CodeOnLoad
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "headless_scripts" / "export_bank.py"
@@ -338,11 +341,11 @@ def test_a_killed_run_resumes_to_the_same_bank(reference, prepared, tmp_path):
                                stderr=subprocess.DEVNULL, start_new_session=True)
     chunks = target / ".work" / "chunks"
     deadline = time.monotonic() + 120
-    while len(list(chunks.glob("*.pkl"))) < 5 and time.monotonic() < deadline and process.poll() is None:
+    while len(list(chunks.glob("*.json"))) < 5 and time.monotonic() < deadline and process.poll() is None:
         time.sleep(0.05)
     os.killpg(process.pid, signal.SIGKILL)  # the whole run, workers too, mid-way
     process.wait()
-    done = len(list(chunks.glob("*.pkl")))
+    done = len(list(chunks.glob("*.json")))
     total = json.loads((target / ".work" / "identity.json").read_text())["chunks"]
     assert 0 < done < total and not (target / "manifest.json").exists()
     refused = run_script("--objects", prepared, "--config", config, "--out", target, check=False)
@@ -381,16 +384,6 @@ def test_output_folder_rules(reference, prepared, tmp_path):
     assert json.loads((copy / "manifest.json").read_text())["seed"] == 5
 
 
-class CodeOnLoad:
-    """Unpickling this runs a shell command: what a crafted data file can do to plain pickle."""
-
-    def __init__(self, marker: Path):
-        self.marker = marker
-
-    def __reduce__(self):
-        return os.system, (f"touch {self.marker}",)
-
-
 def test_damaged_or_crafted_chunk_records_are_redone_never_run(reference, prepared, tmp_path):
     out, config = reference
     copy = tmp_path / "bank"
@@ -398,12 +391,15 @@ def test_damaged_or_crafted_chunk_records_are_redone_never_run(reference, prepar
 
     shutil.copytree(out, copy)
     marker = tmp_path / "code_ran"
-    records = sorted((copy / ".work" / "chunks").glob("*.pkl"))
+    records = sorted((copy / ".work" / "chunks").glob("*.json"))
     records[1].write_bytes(pickle.dumps({"chunk": 1, "infos": {"x": [CodeOnLoad(marker)]}}))
     records[2].write_bytes(records[2].read_bytes()[:100])  # truncated
+    crafted = json.loads(records[3].read_text())
+    crafted["stats"] = {"numpy": "|O", "shape": [1], "bytes": "AAAAAAAAAAA="}  # an object array
+    records[3].write_text(json.dumps(crafted))
     result = run_script("--assemble", "--out", copy, check=False)
     assert result.returncode == 1 and not marker.exists()
-    assert last_line(result) == f"error: {records[1]}: damaged (2 chunk record(s)); --resume redoes them"
+    assert last_line(result) == f"error: {records[1]}: damaged (3 chunk record(s)); --resume redoes them"
     run_script("--objects", prepared, "--config", config, "--out", copy, "--resume")
     assert not marker.exists() and bank_bytes(copy) == bank_bytes(out)
 
@@ -558,8 +554,8 @@ def test_write_errors_end_cleanly(reference, prepared, tmp_path):
     assert result.returncode == 1 and "File too large" in last_line(result) and str(full) in last_line(result)
     assert not (full / "manifest.json").exists() and not list(full.rglob("*dbinfos*"))
     assert not [path for path in full.rglob("*") if path.name.endswith(".partial")]
-    for record in (full / ".work" / "chunks").glob("*.pkl"):
-        pickle.loads(record.read_bytes())  # the chunks that finished are whole
+    for record in (full / ".work" / "chunks").glob("*.json"):
+        assert isinstance(read_record(record), dict)  # the chunks that finished are whole
     run_script("--objects", prepared, "--config", config, "--out", full, "--resume")
     for name in ("manifest.json", "openpcdet/nuscenes_dbinfos_pgt.pkl", "mmdet3d/nuscenes_dbinfos_pgt.pkl"):
         (full / name).unlink()

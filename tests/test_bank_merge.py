@@ -14,6 +14,8 @@ import pytest
 from pgt_blender.core.bank.merge import mix_databases, parse_ratio
 from pgt_blender.core.errors import InputError
 
+from .conftest import CodeOnLoad
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # Pedestrian (2 in the bank) and Truck (none) are short at 1:1; Bus is not in the real database.
@@ -282,16 +284,6 @@ def run_script(*args, blender_style=False):
     else:
         command = [sys.executable, script, *map(str, args)]
     return subprocess.run(command, capture_output=True, text=True, timeout=120)
-
-
-class CodeOnLoad:
-    """Unpickling this runs a shell command: what a crafted database can do to plain pickle."""
-
-    def __init__(self, marker):
-        self.marker = marker
-
-    def __reduce__(self):
-        return os.system, (f"touch {self.marker}",)
 
 
 @pytest.mark.parametrize("crafted", ["real", "bank"])

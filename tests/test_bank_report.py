@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from pgt_blender.core.bank.export import INTENSITY_BINS
-from pgt_blender.core.bank.report import (REPORT_MD, REPORT_PNG, _quantiles, bank_statistics, real_statistics,
-                                          write_report)
+from pgt_blender.core.bank.report import (REPORT_MD, REPORT_PNG, _quantiles, bank_statistics, real_reference,
+                                          real_statistics, write_report)
 from pgt_blender.core.errors import InputError
 from pgt_blender.core.samples import write_sample
 
@@ -170,7 +170,7 @@ def test_write_report(bank_copy):
 
 def test_write_report_beside_a_real_database(bank_copy, shared_data):
     real = shared_data / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl"
-    text = write_report(bank_copy, real)[0].read_text()
+    text = write_report(bank_copy, real_reference(real, manifest(bank_copy)["config"]))[0].read_text()
     assert "`kitti_dbinfos_train.pkl` (kitti, entries: 1)" in text
     assert "| Pedestrian | – | – | 1 |" in text  # classes matched by name: the bank has no Pedestrian
     assert "| Pedestrian | real | 377 (1) |" in text
@@ -183,13 +183,13 @@ def break_identity(out: Path) -> Path:
 
 
 def break_chunk(out: Path) -> Path:
-    (out / ".work" / "chunks" / "000003.pkl").unlink()
+    (out / ".work" / "chunks" / "000003.json").unlink()
     return out
 
 
 def garble_chunk(out: Path) -> Path:
-    record = out / ".work" / "chunks" / "000002.pkl"
-    record.write_bytes(b"not a pickle")
+    record = out / ".work" / "chunks" / "000002.json"
+    record.write_bytes(b"not a record")
     return record
 
 
@@ -214,14 +214,14 @@ def test_a_bad_real_database_raises_and_writes_nothing(bank_copy, tmp_path):
     garbage = tmp_path / "garbage_dbinfos.pkl"
     garbage.write_bytes(b"\x80\x04 not a pickle")
     with pytest.raises(InputError) as caught:
-        write_report(bank_copy, garbage)
+        write_report(bank_copy, real_reference(garbage, manifest(bank_copy)["config"]))
     assert caught.value.path == garbage and "not a readable pickle" in str(caught.value)
     assert_no_report(bank_copy)
     real = bank_copy / "mmdet3d" / "kitti_dbinfos_pgt.pkl"
     missing = bank_copy / "mmdet3d" / infos(bank_copy)["Truck"][0]["path"]
     missing.unlink()
     with pytest.raises(InputError) as caught:
-        write_report(bank_copy, real)
+        write_report(bank_copy, real_reference(real, manifest(bank_copy)["config"]))
     assert caught.value.path == missing
     assert_no_report(bank_copy)
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pgt_blender.core.importing import load_reconstruction
-from pgt_blender.core.importing.ply import write_ply
+from pgt_blender.core.importing.ply import read_vertices, write_ply
 from pgt_blender.core.samples import sample_vehicle
 
 from .conftest import datablock_counts
@@ -149,7 +149,16 @@ def broken_inputs(tmp_path, statue, donut):
     unsupported.write_bytes(b"LASF")
     corrupt = tmp_path / "corrupt.stl"
     corrupt.write_bytes(b"solid x\nfacet normal 0 0 nan\nendsolid\n")
+    clashes = {}
+    for name in ("position", "sharp_face"):  # Blender's own attribute names: refused, not renamed .001
+        clashes[name] = tmp_path / f"{name}.ply"
+        write_ply(clashes[name], {axis: np.zeros(2, np.float32) for axis in ("x", "y", "z", name)})
+    no_opacity = tmp_path / "no_opacity.ply"
+    write_ply(no_opacity, {name: values[:5] for name, values in read_vertices(donut).items() if name != "opacity"})
     return [
+        *[("pgt_point_cloud", {"filepath": str(path)}, path, f"property '{name}' has the name")
+          for name, path in clashes.items()],
+        ("pgt_gaussian_splat", {"filepath": str(no_opacity)}, no_opacity, "missing vertex properties opacity"),
         ("pgt_point_cloud", {"filepath": str(nan)}, nan, "NaN/Inf coordinates"),
         ("pgt_gaussian_splat", {"filepath": str(truncated)}, truncated, "truncated"),
         ("pgt_point_cloud", {"filepath": str(mismatched)}, mismatched, "declares 3 data rows"),

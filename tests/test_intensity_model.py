@@ -266,6 +266,14 @@ def test_resume_refuses_another_run_and_a_corrupt_checkpoint(sets, trained, tmp_
     from pgt_blender.core.intensity.training import TrainConfig, train
 
     folder = Path(shutil.copytree(trained, tmp_path / "copy"))
+    config = TrainConfig(**{**SMALL, "steps": 40, "checkpoint_every": 10})
+    losses = (folder / "losses.csv").read_bytes()
+    for garbage, problem in ((b"\xff\xfe\x00", "codec"), (b"step,loss\n1,2\n", "the header is not step,generator"),
+                             (losses + b"31,0.5\n", "line 32 has 2 values"), (losses + b"x" * 9 + losses[-20:], "")):
+        (folder / "losses.csv").write_bytes(garbage)
+        with pytest.raises(InputError, match=rf"losses.csv: damaged \(.*{problem}.*\); delete it to resume"):
+            train(*sets, config, folder, resume=True, progress=False)
+    (folder / "losses.csv").write_bytes(losses)
     with pytest.raises(InputError, match=r"checkpoint.pt: was written by a different run \(seed: 0 there, 1 now\)"):
         train(*sets, TrainConfig(**{**SMALL, "steps": 40, "checkpoint_every": 10, "seed": 1}), folder,
               resume=True, progress=False)

@@ -430,6 +430,16 @@ def test_motion_draws_are_seeded():
     assert all(0 <= d.speed <= 16 for d in draws)
 
 
+def test_every_database_class_has_a_motion_model_and_user_classes_take_their_mapping():
+    from pgt_blender.core.bank.formats import DATABASE_CLASSES
+    from pgt_blender.core.scan.sweeps import motion_class
+
+    assert all(motion_class(name) for names in DATABASE_CLASSES.values() for name in names)
+    assert motion_class("semi", "Truck") == "truck"  # [classes] semi = "Truck": moves like a truck, not still
+    assert motion_class("semi", "Semi") is None
+    assert all(sample_motion("traffic_cone", np.random.default_rng(seed)).speed == 0 for seed in range(20))
+
+
 def test_scan_files_hold_the_dataset_columns(sample_truck, tmp_path):
     for dataset, sensor, width in (("nuscenes", NUSCENES, 5), ("kitti", PRESETS["kitti"], 4)):
         scan = scan_sweeps(sample_truck, sensor, 10.0, 5.0, 1.0, Motion(5.0), 2)

@@ -36,17 +36,6 @@ def test_import_splat_json(donut):
     assert {"opacity", "scale", "rotation"} <= set(summary["attributes"])
 
 
-def test_import_bad_input_exits_non_zero_and_writes_nothing(tmp_path):
-    bad = tmp_path / "bad.ply"
-    bad.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1\n")
-    blend = tmp_path / "out.blend"
-    result = run_script("import_reconstruction.py", bad, "--out", blend, "--json")
-    assert result.returncode == 1
-    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
-    assert errors == [f"error: {bad}: the header declares 2 data rows (2 vertex) but the body has 1"]
-    assert not blend.exists() and "{" not in result.stdout
-
-
 @pytest.mark.parametrize("script", ["import_reconstruction.py", "demo.py", "bench_import.py", "build_extension.py",
                                     "scan_object.py", "bench_scan.py", "train_intensity.py", "bench_intensity.py",
                                     "export_bank.py", "mix_bank.py", "bench_bank.py", "fit_ground.py"])
@@ -165,59 +154,10 @@ def test_scan_object_point_clouds(truck_sample, tmp_path, surface, suffix):
         assert np.load(out)["intensity"].max() <= 1.0  # KITTI intensities
 
 
-@pytest.mark.parametrize("args, problem", [
-    (["--object", "missing.obj"], "missing.obj"),
-    (["--sensor", "BAD_TOML"], "not a readable TOML file"),
-    (["--surface", "mesh", "--object", "POINTS"], "has no faces to scan as a mesh"),
-    (["--sensor", "velodyne128"], "not a sensor preset"),
-])
-def test_scan_object_bad_input_exits_non_zero_and_writes_nothing(truck_sample, tmp_path, args, problem):
-    bad_toml = tmp_path / "broken.toml"
-    bad_toml.write_text("columns = \n")
-    replacements = {"BAD_TOML": bad_toml, "POINTS": truck_sample["reconstruction.ply"]}
-    args = [replacements.get(a, a) for a in args]
-    if "--object" not in args:
-        args += ["--object", truck_sample["mesh.ply"]]
-    out = tmp_path / "scan.bin"
-    result = run_script("scan_object.py", *args, "--x", 10, "--y", 0, "--out", out, cwd=tmp_path)
-    assert result.returncode == 1
-    errors = result.stderr.strip().splitlines()
-    assert len(errors) == 1 and errors[0].startswith("error: ") and problem in errors[0]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.toml"]
-
-
 def test_scan_object_usage_errors_exit_2(truck_sample, tmp_path):
     result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"], "--x", 1, "--y", 1,
                         "--out", tmp_path / "scan.txt")
     assert result.returncode == 2 and "--out must end in" in result.stderr
-    for flag, value in (("--x", "nan"), ("--heading", "inf"), ("--y", "-inf")):
-        args = {"--x": "10", "--y": "0", "--heading": "0", flag: value}
-        result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"],
-                            *[f"{key}={item}" for key, item in args.items()], "--out", tmp_path / "s.bin")
-        assert result.returncode == 2 and f"argument {flag}: expected a finite number, got '{value}'" in result.stderr
-    assert not (tmp_path / "s.bin").exists()
-
-
-def test_an_out_path_that_cannot_be_written_is_one_line_and_exit_1(truck_sample, statue, tmp_path):
-    """--out under a file, or a folder where a file goes: one line naming it, exit 1."""
-    blocker = tmp_path / "a_file"
-    blocker.write_text("x")
-    folder = tmp_path / "a_folder"
-    folder.mkdir()
-    cases = [
-        ("prepare_objects.py", ["--in", truck_sample["reconstruction.ply"].parent, "--class", "truck",
-                                "--heading", "baseline", "--out", blocker / "prepared"]),
-        ("mix_bank.py", ["--real", ROOT.parent / "shared" / "data" / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl",
-                         "--bank", ROOT.parent / "shared" / "data" / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl",
-                         "--out", blocker / "mixed.pkl"]),
-        ("import_reconstruction.py", [statue, "--out", folder]),
-    ]
-    for script, args in cases:
-        result = run_script(script, *args)
-        lines = result.stderr.strip().splitlines()
-        assert result.returncode == 1 and len(lines) == 1 and lines[0].startswith("error: "), (script, result.stderr)
-        assert str(blocker) in lines[0] or str(folder) in lines[0], (script, lines[0])
-    assert blocker.read_text() == "x" and not any(folder.iterdir())
 
 
 def test_fit_ground_prints_the_banks_ground_model(shared_data, tmp_path):
@@ -227,14 +167,6 @@ def test_fit_ground_prints_the_banks_ground_model(shared_data, tmp_path):
     result = run_script("fit_ground.py", tmp_path)
     assert result.returncode == 1 and result.stderr.strip() == \
         f"error: {tmp_path}: no velodyne/*.bin scans (expected a KITTI folder with velodyne, label_2, calib)"
-
-
-def test_scan_object_with_no_returns_says_why_and_writes_nothing(truck_sample, tmp_path):
-    out = tmp_path / "scan.bin"
-    result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"], "--x", 500, "--y", 0, "--out", out)
-    assert result.returncode == 1 and not out.exists()
-    assert result.stderr.strip() == f"error: {truck_sample['mesh.ply']}: no returns at x = 500 m, y = 0 m: the " \
-                                    f"object is out of the nuscenes sensor's range or view there; nothing written"
 
 
 def test_train_intensity_end_to_end_on_the_shared_data(shared_data, truck_sample, tmp_path):

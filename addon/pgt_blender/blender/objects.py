@@ -10,6 +10,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
+from ..core.errors import InputError
 from ..core.reconstruction import CameraView, Reconstruction
 
 _BLENDER_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -103,15 +104,24 @@ def _mesh(recon: Reconstruction, made: list) -> bpy.types.Mesh:
         colors.data.foreach_set("color_srgb", recon.colors.ravel())
         mesh.color_attributes.active_color = colors
     for name, values in recon.attributes.items():
-        add_attribute(mesh, name, values)
+        if name in mesh.attributes or name.startswith("."):
+            raise InputError(recon.source, f"property '{name}' has the name of a Blender attribute the mesh "
+                                           f"already has; rename it")
+        add_attribute(mesh, name, values, recon.source)
     mesh.update(calc_edges=bool(len(recon.faces)))
     return mesh
 
 
-def add_attribute(mesh: bpy.types.Mesh, name: str, values: np.ndarray) -> None:
+def add_attribute(mesh: bpy.types.Mesh, name: str, values: np.ndarray, source=None) -> None:
+    """A new per-point attribute ``name`` holding ``values`` (N,) or (N, k); InputError
+    naming ``source`` when Blender reserves the name for a built-in attribute of
+    another type or domain (``id``, ``sharp_face``, ``material_index``, ...)."""
     columns = 1 if values.ndim == 1 else values.shape[1]
     data_type, field = _ATTRIBUTE_TYPES[(values.dtype.kind, columns)]
     attribute = mesh.attributes.new(name, data_type, "POINT")
+    if attribute is None or attribute.name != name:
+        raise InputError(source or mesh.name, f"property '{name}' has the name of a built-in Blender attribute; "
+                                              f"rename it")
     attribute.data.foreach_set(field, np.ascontiguousarray(values).ravel())
 
 

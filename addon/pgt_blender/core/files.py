@@ -22,3 +22,22 @@ def atomic_output(path):
         raise OSError(error.errno, error.strerror, str(path)) from error
     finally:
         temporary.unlink(missing_ok=True)
+
+
+def read_float32_rows(path, columns: int = 1, what: str = "values"):
+    """(N, columns) float32 rows of a raw little-endian float32 file (KITTI velodyne
+    scans, ground-truth database .bin files); InputError naming ``path`` when it cannot
+    be read or its size is not a whole number of rows (a cut or padded file)."""
+    import numpy as np
+
+    from .errors import InputError
+
+    path = Path(path)
+    try:
+        data = np.fromfile(path, "<f4")
+        size = path.stat().st_size
+    except OSError as error:
+        raise InputError(path, f"cannot read the file ({error.strerror or error})") from None
+    if size % (4 * columns):
+        raise InputError(path, f"{size} bytes are not whole rows of {columns} float32 {what}")
+    return data.reshape(-1, columns)

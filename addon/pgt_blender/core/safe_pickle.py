@@ -1,6 +1,6 @@
 """Pickles read without running code: ground-truth info pickles (``*_dbinfos_*.pkl``,
-OpenPCDet's and mmdetection3d's, the bank's and mixes of them) and the bank's own
-chunk records.
+OpenPCDet's and mmdetection3d's, the bank's and mixes of them). The project's own state
+is JSON (bank/records.py), never a pickle.
 
 A plain ``pickle.load`` calls whatever the file names, so a crafted database runs code
 on load. ``load_pickle`` allows only what such files hold: Python's containers and

@@ -31,7 +31,7 @@ import numpy as np
 
 from .. import learning
 from ..errors import InputError
-from ..files import atomic_output
+from ..files import atomic_output, read_float32_rows
 from ..safe_pickle import load_pickle
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[2] / "models" / "heading_pointnet.pt"
@@ -168,10 +168,7 @@ def read_gt_database(path, convention: str, min_points: int = 5) -> list:
 
 def _gt_object(path: Path, box: np.ndarray, count: int, convention: str, class_name: str, relative: str,
                source: str) -> PointSet:
-    try:
-        values = np.fromfile(path, np.float32)
-    except OSError as error:
-        raise InputError(path, f"cannot read the object's points ({error.strerror})") from None
+    values = read_float32_rows(path).ravel()
     if not (box[3:6] > 0).all():
         raise InputError(path, f"its box has non-positive dims {box[3:6].tolist()}")
     if len(values) < 3 * count or len(values) % count:

@@ -6,7 +6,7 @@ Output folder::
     OUT/<format>/<dataset>_dbinfos_pgt.pkl      the info pickle (formats.py)
     OUT/<format>/pgt_gt_database/<object>_<class>_<index>.bin
     OUT/.work/identity.json                     what this bank is made of (checked on --resume)
-    OUT/.work/chunks/<chunk>.pkl                one chunk's infos, file checksums and statistics
+    OUT/.work/chunks/<chunk>.json               one chunk's infos, file checksums and statistics (records.py)
 
 A chunk is ``chunk_size`` consecutive entries (objects in name order, each in grid
 order). Each chunk's .bin files are written first, its record last, each file
@@ -30,14 +30,15 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import atomic_output
-from ..safe_pickle import load_pickle
 from ..scan.physical_intensity import dataset_intensity
 from ..scan.sensors import INTENSITY_MAX, sensor_from_name
+from ..scan.sweeps import motion_class
 from .config import BankConfig
 from .entries import TargetCache, scan_entry
 from .formats import DATABASE_CLASSES, DATABASE_FOLDER, class_name_for, database_record, entry_points
-from .grid import object_entries
+from .grid import object_entries, sweeps_of
 from .inputs import BankObject, safe_name
+from .records import read_record, write_record
 
 WORK = ".work"
 MANIFEST = "manifest.json"
@@ -63,8 +64,8 @@ class BankJob:
 
     def entries(self) -> np.ndarray:
         """Every entry of the bank, object by object (grid.ENTRY_DTYPE)."""
-        return np.concatenate([object_entries(self.config, i, obj.class_name, obj.dims)
-                               for i, obj in enumerate(self.objects)])
+        return np.concatenate([object_entries(self.config, i, motion_class(obj.class_name, name), obj.dims)
+                               for i, (obj, name) in enumerate(zip(self.objects, self.class_names))])
 
     def chunks(self, entries: np.ndarray) -> list:
         size = self.config.chunk_size
@@ -83,6 +84,11 @@ def new_job(objects: list, config: BankConfig, out) -> BankJob:
                   [name for name in names if name])
     if not job.objects:
         raise InputError(out, "every object's class is skipped by the config's [classes] table")
+    still = sorted({obj.class_name for obj, name in zip(job.objects, job.class_names)
+                    if not motion_class(obj.class_name, name)})
+    if still and sweeps_of(config) > 1:
+        raise InputError(out, f"no motion model for {', '.join(still)} (nor for the {config.dataset} name it maps to): "
+                              f"map it to a class of {', '.join(DATABASE_CLASSES[config.dataset])} in [classes]")
     if job.sensor.dataset != config.dataset:
         raise InputError(config.sensor, f"is a {job.sensor.dataset} sensor, the bank is {config.dataset}")
     if config.intensity_checkpoint:
@@ -156,19 +162,19 @@ def read_identity(out: Path) -> dict:
 
 
 def chunk_record_path(out: Path, chunk_id: int) -> Path:
-    return out / WORK / "chunks" / f"{chunk_id:06d}.pkl"
+    return out / WORK / "chunks" / f"{chunk_id:06d}.json"
 
 
 def chunk_record(out: Path, chunk_id: int, path: Path | None = None) -> dict | None:
     """The record of chunk ``chunk_id`` (read from ``path``, default its place in OUT),
-    or None when it is missing or damaged: such a chunk is not done and is redone. Read
-    without running code (safe_pickle) and checked field by field."""
+    or None when it is missing or damaged: such a chunk is not done and is redone.
+    Checked field by field."""
     path = chunk_record_path(out, chunk_id) if path is None else path
     if not path.is_file():
         return None
     try:
-        record = load_pickle(path)
-    except InputError:
+        record = read_record(path)
+    except (OSError, ValueError, TypeError, KeyError):  # what damaged JSON or array fields raise
         return None
     fields = {"chunk": int, "infos": dict, "files": dict, "stats": np.ndarray, "intensity": dict}
     whole = isinstance(record, dict) and all(isinstance(record.get(key), kind) for key, kind in fields.items()) \
@@ -281,7 +287,7 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
         histogram = histograms.setdefault(class_name, np.zeros(INTENSITY_BINS, np.int64))
         histogram += np.histogram(rows["intensity"], INTENSITY_BINS, (0.0, INTENSITY_MAX[config.dataset]))[0]
     record = {"chunk": chunk_id, "infos": infos, "files": files, "stats": stats, "intensity": histograms}
-    _write_bytes(chunk_record_path(job.out, chunk_id), pickle.dumps(record, protocol=4))
+    _write_bytes(chunk_record_path(job.out, chunk_id), write_record(record))
 
 
 def _group_id(entry) -> int:
@@ -437,7 +443,7 @@ def copy_shard(source: Path, out: Path) -> int:
     if read_identity(source) != read_identity(out):
         raise InputError(source, "is not a shard of this bank (its .work/identity.json differs)")
     copied = 0
-    for record_path in sorted((source / WORK / "chunks").glob("*.pkl")):
+    for record_path in sorted((source / WORK / "chunks").glob("*.json")):
         record = chunk_record(source, int(record_path.stem), record_path) if record_path.stem.isdigit() else None
         if record is None:
             continue  # damaged: the chunk stays to do

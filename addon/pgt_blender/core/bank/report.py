@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..files import atomic_output
+from ..files import atomic_output, read_float32_rows
 from ..scan.sensors import BIN_COLUMNS, INTENSITY_MAX
 from .config import DATASET_GRIDS, grid_values
 from .export import INTENSITY_BINS, WORK, chunk_record, chunk_record_path, read_identity
@@ -205,26 +205,23 @@ def real_statistics(info_pickle, root=None, *, dataset: str, grid=None) -> dict:
 
 def _database_rows(path: Path, columns: int, dataset: str) -> np.ndarray:
     """(N, columns) float32 rows of one database .bin; InputError naming it otherwise."""
-    try:
-        data = np.fromfile(path, np.float32)
-    except OSError as error:
-        raise InputError(path, f"cannot read the database file: {error.strerror or error}") from None
-    if data.size % columns:
-        raise InputError(path, f"{data.size} float32 values are not whole {columns}-column rows ({dataset})")
-    return data.reshape(-1, columns)
+    return read_float32_rows(path, columns, f"values ({dataset} database columns)")
 
 
-def write_report(out, real=None, real_root=None) -> tuple:
-    """Write OUT/report.md and OUT/report.png for the bank in ``out``; with ``real`` (a
-    real database's info pickle, its .bin files under ``real_root``, default the
-    pickle's folder) side by side with it. Every statistic is computed before anything
-    is written and each file is written atomically, so bad input (InputError) leaves no
-    report file. The same bank gives the same bytes. Returns (md path, png path)."""
+def real_reference(real, config: dict, real_root=None) -> dict:
+    """real_statistics of the database ``real`` (.bin files under ``real_root``) for a
+    bank made with ``config`` (its dataset and grid), to set beside it in the report."""
+    return real_statistics(real, real_root, dataset=config["dataset"], grid=(config["x"], config["y"]))
+
+
+def write_report(out, reference: dict | None = None) -> tuple:
+    """Write OUT/report.md and OUT/report.png for the bank in ``out``, side by side with
+    a real database's ``reference`` (real_reference) when given. Every statistic is
+    computed before anything is written and each file is written atomically, so bad
+    input (InputError) leaves no report file. The same bank gives the same bytes.
+    Returns (md path, png path)."""
     out = Path(out)
     bank = bank_statistics(out)
-    config = bank["config"]
-    reference = None if real is None else real_statistics(real, real_root, dataset=config["dataset"],
-                                                          grid=(config["x"], config["y"]))
     outputs = {out / REPORT_MD: _markdown(bank, reference).encode(), out / REPORT_PNG: _figure_png(bank, reference)}
     for path, data in outputs.items():
         with atomic_output(path) as stream:

@@ -36,7 +36,7 @@ def detect_kind(path) -> str:
         face = header.element("face")
         if face is not None and face.count > 0:
             return "mesh"
-        return "gaussian_splat" if is_gaussian_splat(header) else "point_ply"
+        return "gaussian_splat" if is_gaussian_splat(path, header) else "point_ply"
     if suffix in MESH_SUFFIXES:
         return "mesh"
     raise InputError(path, f"unsupported format '{suffix or path.name}' (supported: {SUPPORTED})")

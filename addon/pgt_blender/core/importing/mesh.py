@@ -6,6 +6,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..reconstruction import Reconstruction
+from .ply import read_header
 from .source import checked_positions, sha256_of_files
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl")
@@ -26,6 +27,8 @@ def load_mesh(path: Path) -> Reconstruction:
     if len(faces) == 0:
         raise InputError(path, "mesh has no faces")
     positions = checked_positions(path, mesh.vertices, "vertices")
+    if path.suffix.lower() == ".ply":
+        _require_declared_counts(path, len(positions), len(faces))
     if faces.min() < 0 or faces.max() >= len(positions):
         raise InputError(path, f"face indices out of range for {len(positions)} vertices")
     colors = None
@@ -35,3 +38,14 @@ def load_mesh(path: Path) -> Reconstruction:
         positions=positions, faces=faces.astype(np.int32), kind="mesh",
         source=path, sha256=sha256_of_files([path]), colors=colors,
     )
+
+
+def _require_declared_counts(path: Path, vertices: int, triangles: int) -> None:
+    """InputError when trimesh read fewer vertices or faces than the PLY header declares
+    (it accepts a short ASCII body without a word). A polygon of n corners gives n - 2
+    triangles, so whole faces give at least as many triangles as declared faces."""
+    header = read_header(path)
+    declared = {element.name: element.count for element in header.elements}
+    if declared.get("vertex", vertices) != vertices or declared.get("face", 0) > triangles:
+        raise InputError(path, f"the header declares {declared.get('vertex')} vertices and {declared.get('face')} "
+                               f"faces but the body holds {vertices} vertices and {triangles} triangles")

@@ -75,12 +75,17 @@ def read_header(path: Path) -> PlyHeader:
                 elements.append(PlyElement(words[1], int(words[2])))
                 if elements[-1].count < 0:
                     raise ValueError("negative element count")
-            elif words[0] == "property" and words[1] == "list":
-                elements[-1].list_properties.append(words[4])
             elif words[0] == "property":
-                if words[1] not in PLY_TYPES:
+                name = words[4] if words[1] == "list" else words[2]
+                element = elements[-1]
+                if name in element.list_properties or name in (known for known, _ in element.properties):
+                    raise ValueError(f"property '{name}' appears twice in element '{element.name}'")
+                if words[1] == "list":
+                    element.list_properties.append(name)
+                elif words[1] not in PLY_TYPES:
                     raise ValueError(f"unknown property type '{words[1]}'")
-                elements[-1].properties.append((words[2], PLY_TYPES[words[1]]))
+                else:
+                    element.properties.append((name, PLY_TYPES[words[1]]))
             else:
                 raise ValueError(f"unexpected keyword '{words[0]}'")
         except (IndexError, ValueError) as error:

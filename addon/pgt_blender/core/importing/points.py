@@ -17,11 +17,16 @@ _RGB = ("red", "green", "blue")
 _NORMAL = ("nx", "ny", "nz")
 
 
-def is_gaussian_splat(header: PlyHeader) -> bool:
-    """True when the vertex element carries the 3DGS fields (f_dc, opacity, scale, rot)."""
+def is_gaussian_splat(path: Path, header: PlyHeader) -> bool:
+    """True when the vertex element carries the 3DGS fields (f_dc, opacity, scale, rot);
+    InputError when it carries some of them (f_dc_* or rot_*, which no plain point cloud
+    has) but not all: a damaged or cut-down splat file, not a point cloud."""
     vertex = header.element("vertex")
     names = {name for name, _ in vertex.properties} if vertex else set()
-    return set(SPLAT_FIELDS) <= names
+    present = [name for name in SPLAT_FIELDS if name in names]
+    if present and len(present) < len(SPLAT_FIELDS) and any(name.startswith(("f_dc_", "rot_")) for name in present):
+        _require(path, names, SPLAT_FIELDS, "a whole Gaussian-splat PLY")
+    return len(present) == len(SPLAT_FIELDS)
 
 
 def load_point_ply(path: Path, header: PlyHeader) -> Reconstruction:
@@ -31,8 +36,9 @@ def load_point_ply(path: Path, header: PlyHeader) -> Reconstruction:
     data = read_vertices(path, header)
     names = set(data)
     _require(path, names, _XYZ, "a point PLY")
-    attributes = _leftover_attributes(data, _XYZ + _RGB + ("alpha",) + _NORMAL)
-    if set(_NORMAL) <= names:
+    normals = ("normal",) if set(_NORMAL) <= names else ()
+    attributes = _leftover_attributes(path, data, _XYZ + _RGB + ("alpha",) + _NORMAL, normals)
+    if normals:
         attributes["normal"] = _stack(data, _NORMAL)
     colors = None
     _require_finite(path, data, [name for name in _RGB + ("alpha",) + _NORMAL if name in names], "points")
@@ -72,7 +78,7 @@ def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
     length = np.linalg.norm(rotation, axis=1)
     if not (length > 0).all():
         raise InputError(path, f"{int((length <= 0).sum())} splats have a zero-length rotation quaternion")
-    attributes = _leftover_attributes(data, _XYZ + SPLAT_FIELDS[3:])
+    attributes = _leftover_attributes(path, data, _XYZ + SPLAT_FIELDS[3:], ("opacity", "scale", "rotation"))
     attributes["opacity"] = (1.0 / (1.0 + np.exp(-data["opacity"].astype(np.float64)))).astype(np.float32)
     attributes["scale"] = np.exp(_stack(data, ("scale_0", "scale_1", "scale_2")).astype(np.float64)).astype(np.float32)
     attributes["rotation"] = (rotation / length[:, None]).astype(np.float32)
@@ -105,8 +111,13 @@ def _stack(data: dict, names) -> np.ndarray:
     return np.column_stack([data[name] for name in names]).astype(np.float32, copy=False)
 
 
-def _leftover_attributes(data: dict, consumed) -> dict:
-    """Every property not in ``consumed`` as a per-point attribute (ints stay ints)."""
+def _leftover_attributes(path, data: dict, consumed, produced) -> dict:
+    """Every property not in ``consumed`` as a per-point attribute (ints stay ints);
+    InputError for one named like an attribute the importer makes (``produced``)."""
+    taken = [name for name in produced if name in data and name not in consumed]
+    if taken:
+        raise InputError(path, f"vertex property '{taken[0]}' has the name of the attribute the importer makes from "
+                               f"other properties; rename it")
     return {
         name: values.astype(np.int32 if values.dtype.kind in "iu" else np.float32, copy=False)
         for name, values in data.items() if name not in consumed

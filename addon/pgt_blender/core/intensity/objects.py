@@ -18,6 +18,7 @@ import numpy as np
 
 from ..boxes import box_frame
 from ..errors import InputError
+from ..files import read_float32_rows
 from ..scan.sensors import INTENSITY_MAX
 
 DEFAULT_POINTS = 256  # the paper's point count per object, and its minimum
@@ -135,10 +136,8 @@ def kitti_frames(folder):
         label, calib = folder / "label_2" / f"{scan.stem}.txt", folder / "calib" / f"{scan.stem}.txt"
         if not label.is_file() or not calib.is_file():
             raise InputError(scan, f"has no {label.name} in label_2 or calib")
-        raw = np.fromfile(scan, np.float32)
-        if raw.size % 4:
-            raise InputError(scan, f"{raw.size} floats do not split into x, y, z, intensity rows")
-        yield scan, raw.reshape(-1, 4).astype(np.float64), kitti_label_boxes(label, calib)
+        rows = read_float32_rows(scan, 4, "values (x, y, z, intensity)")
+        yield scan, rows.astype(np.float64), kitti_label_boxes(label, calib)
 
 
 def kitti_scan_objects(folder, min_points: int = 1) -> list:

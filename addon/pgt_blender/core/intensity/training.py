@@ -299,11 +299,27 @@ def _resume_state(torch, out_dir: Path, config: dict) -> tuple:
         key = changed[0]
         raise InputError(path, f"was written by a different run ({key}: {saved.get(key)!r} there, "
                                f"{config.get(key)!r} now); train without --resume or use another folder")
-    rows = []
-    if (out_dir / "losses.csv").is_file():
-        with open(out_dir / "losses.csv", newline="") as stream:
-            rows = [row for row in list(csv.reader(stream))[1:] if int(row[0]) <= state["step"]]
-    return state, rows
+    return state, _loss_rows(out_dir / "losses.csv", state["step"])
+
+
+def _loss_rows(path: Path, step: int) -> list:
+    """The rows of losses.csv up to ``step`` (none when the file is missing); InputError
+    when it is not the table this module writes."""
+    if not path.is_file():
+        return []
+    try:
+        with open(path, newline="", encoding="utf-8") as stream:
+            table = list(csv.reader(stream))
+        if not table or tuple(table[0]) != LOSS_COLUMNS:
+            raise ValueError(f"the header is not {','.join(LOSS_COLUMNS)}")
+        for number, row in enumerate(table[1:], 2):
+            if len(row) != len(LOSS_COLUMNS):
+                raise ValueError(f"line {number} has {len(row)} values, not {len(LOSS_COLUMNS)}")
+            int(row[0]), [float(value) for value in row[1:]]
+    except (UnicodeDecodeError, ValueError, csv.Error) as error:
+        raise InputError(path, f"damaged ({error}); delete it to resume without the earlier loss rows, or train "
+                               f"without --resume") from None
+    return [row for row in table[1:] if int(row[0]) <= step]
 
 
 def _progress_bar(enabled: bool, total: int, initial: int):

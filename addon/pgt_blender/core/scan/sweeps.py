@@ -26,6 +26,7 @@ from .targets import ScanTarget
 
 # Plausible urban motion per class, not fitted to a dataset: chance of standing still,
 # then speed ~ N(mean, std) clipped to [0, 2 mean] m/s and acceleration ~ N(0, std) m/s^2.
+STILL = (1.0, 0.0, 0.0, 0.0)
 CLASS_MOTION = {
     "car": (0.5, 8.0, 4.0, 1.0),
     "truck": (0.5, 6.0, 3.0, 0.8),
@@ -35,6 +36,10 @@ CLASS_MOTION = {
     "motorcycle": (0.4, 8.0, 4.0, 1.5),
     "bicycle": (0.5, 4.0, 2.0, 1.0),
     "pedestrian": (0.3, 1.3, 0.4, 0.3),
+    # the other classes of the datasets' databases (formats.DATABASE_CLASSES), lower case
+    "van": (0.5, 8.0, 4.0, 1.0), "emergency_vehicle": (0.5, 8.0, 4.0, 1.0), "other_vehicle": (0.5, 6.0, 3.0, 0.8),
+    "tram": (0.3, 6.0, 3.0, 0.8), "cyclist": (0.5, 4.0, 2.0, 1.0), "animal": (0.7, 1.0, 0.5, 0.3),
+    "person_sitting": STILL, "traffic_cone": STILL, "barrier": STILL, "misc": STILL,
 }
 # Sweeps merged per sample by the datasets' 10-sweep databases (OpenPCDet's
 # nuscenes_dbinfos_10sweeps_withvelo.pkl and lyft_dbinfos_10sweeps.pkl; mmdet3d's
@@ -57,9 +62,15 @@ class Motion:
         return self.speed * seconds + 0.5 * self.acceleration * seconds**2
 
 
+def motion_class(*names: str) -> str | None:
+    """The first of ``names`` (lower-cased: KITTI's "Truck" is "truck") with a motion
+    model in CLASS_MOTION, or None."""
+    return next((name.lower() for name in names if name and name.lower() in CLASS_MOTION), None)
+
+
 def sample_motion(class_name: str, rng: np.random.Generator) -> Motion:
-    """A draw from ``class_name``'s entry of CLASS_MOTION (static for unknown classes)."""
-    return _draw(CLASS_MOTION[class_name], rng) if class_name in CLASS_MOTION else Motion()
+    """A draw from ``class_name``'s entry of CLASS_MOTION (``motion_class`` names one)."""
+    return _draw(CLASS_MOTION[class_name], rng)
 
 
 def sample_ego_motion(dataset: str, rng: np.random.Generator) -> Motion:

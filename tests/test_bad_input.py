@@ -1,0 +1,276 @@
+"""The bad-input contract of every command, in one table (README "What the tools promise").
+
+Each case builds a broken input in a fresh folder, runs the command as a user does (a
+subprocess of the venv's Python) and checks the promise: exit status 1 and exactly one
+stderr line ``error: <the file or folder at fault>: <the problem>``; nothing written
+(the folder holds only the inputs afterwards, byte for byte); no code run from a data
+file; no file outside the output folder. Usage mistakes argparse catches exit 2.
+
+Deeper cases of each reader sit beside its module's tests: PLY headers (test_ply),
+importers and COLMAP binaries (test_importing), sensor files (test_scan), bank configs,
+damaged resume state and full disks (test_bank), info pickles (test_bank_merge,
+test_heading_classifier), training (test_intensity_model), and the Blender operators'
+CANCELLED reports with the scene unchanged (test_blender_import, test_blender_scan,
+test_blender_authoring, test_blender_bank).
+"""
+
+import json
+import pickle
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pgt_blender.core.authoring.prepare import prepare, write_prepared
+from pgt_blender.core.importing import load_reconstruction
+from pgt_blender.core.importing.ply import read_vertices, write_ply
+from pgt_blender.core.samples import write_sample
+
+from .conftest import CodeOnLoad
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory, shared_data) -> dict:
+    """Good inputs the cases break: a sample truck (mesh, points, sidecar), a prepared
+    bank object, real info pickles and the real COLMAP, splat and KITTI data."""
+    samples = write_sample(tmp_path_factory.mktemp("samples"), "truck", points=3000)
+    prepared = tmp_path_factory.mktemp("prepared")
+    write_prepared(prepare(load_reconstruction(samples["reconstruction.ply"]), "truck", up="pca",
+                           heading_method="baseline"), "truck", "nuscenes", prepared)
+    return {"mesh": samples["mesh.ply"], "points": samples["reconstruction.ply"], "prepared": prepared,
+            "infos": shared_data / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl",
+            "statue": shared_data / "colmap_statue" / "sparse" / "0",
+            "splat": shared_data / "gaussian_splat_donut" / "fused.ply", "kitti": shared_data / "kitti_scans"}
+
+
+# --- builders: each takes (folder, inputs) and returns (command line, the path the error names, problem) ---
+
+def ascii_ply(folder, header, body):
+    path = folder / "cloud.ply"
+    path.write_text("ply\nformat ascii 1.0\n" + header + "end_header\n" + body)
+    return path
+
+
+XYZ = "property float x\nproperty float y\nproperty float z\n"
+
+
+def import_ply(header, body, problem):
+    def build(folder, _):
+        path = ascii_ply(folder, header, body)
+        return ["import_reconstruction.py", path, "--out", folder / "scene.blend"], path, problem
+    return build
+
+
+def import_columns(change, problem):
+    """A binary PLY of the first 10 donut splats, with ``change(columns)`` applied."""
+    def build(folder, inputs):
+        columns = {name: values[:10].copy() for name, values in read_vertices(inputs["splat"]).items()}
+        change(columns)
+        path = folder / "splat.ply"
+        write_ply(path, columns)
+        return ["import_reconstruction.py", path, "--out", folder / "scene.blend"], path, problem
+    return build
+
+
+def colmap_points_cut_in_half(folder, inputs):
+    model = Path(shutil.copytree(inputs["statue"], folder / "model"))
+    for text in model.glob("*.txt"):
+        text.unlink()
+    points = model / "points3D.bin"
+    points.write_bytes(points.read_bytes()[:points.stat().st_size // 2])  # pycolmap asked for 17 GB
+    return ["import_reconstruction.py", model, "--out", folder / "scene.blend"], points, "claims 1,816 points but only"
+
+
+def import_out_is_a_folder(folder, inputs):
+    (folder / "scene").mkdir()
+    return ["import_reconstruction.py", inputs["statue"], "--out", folder / "scene"], folder / "scene", "is a folder"
+
+
+def scan(extra, problem, named=lambda folder, inputs: inputs["mesh"]):
+    """scan_object.py of the sample truck at (10, 0) with ``extra(folder, inputs)`` arguments;
+    the error names ``named(folder, inputs)``."""
+    def build(folder, inputs):
+        command = ["scan_object.py", "--object", inputs["mesh"], "--x", 10, "--y", 0, "--out", folder / "scan.bin"]
+        return command + extra(folder, inputs), named(folder, inputs), problem
+    return build
+
+
+def in_folder(name):
+    return lambda folder, inputs: folder / name
+
+
+def sensor_file(body):
+    def extra(folder, _):
+        (folder / "sensor.toml").write_text('base = "nuscenes"\n' + body + "\n")
+        return ["--sensor", folder / "sensor.toml"]
+    return extra
+
+
+def sidecar_scan(content: bytes, problem):
+    def build(folder, inputs):
+        mesh = folder / "truck.ply"
+        mesh.write_bytes(inputs["mesh"].read_bytes())
+        (folder / "truck.json").write_bytes(content)
+        return (["scan_object.py", "--object", mesh, "--x", 10, "--y", 0, "--sweeps", 2, "--out", folder / "scan.bin"],
+                folder / "truck.json", problem)
+    return build
+
+
+def under_a_file(script, args):
+    """--out inside a file: the error names the file in the way (or the path through it)."""
+    def build(folder, inputs):
+        (folder / "a_file").write_text("x")
+        command = [script, *[inputs.get(arg, arg) for arg in args], "--out", folder / "a_file" / "out"]
+        return command, folder / "a_file", ""
+    return build
+
+
+def crafted_pickle(script, flag, extra=()):
+    """An otherwise valid info pickle with a payload that would run a shell command."""
+    def build(folder, inputs):
+        infos = pickle.loads(inputs["infos"].read_bytes())
+        infos["Pedestrian"][0]["score"] = CodeOnLoad(folder / "code_ran")
+        crafted = folder / "crafted.pkl"
+        crafted.write_bytes(pickle.dumps(infos))
+        command = [script, flag, crafted, *[inputs.get(arg, arg) for arg in extra], "--out", folder / "out"]
+        return command, crafted, "refused to load posix.system"
+    return build
+
+
+def spoiled_bank(key, value, problem):
+    def build(folder, inputs):
+        infos = pickle.loads(inputs["infos"].read_bytes())
+        infos["Pedestrian"][0][key] = value
+        bank = folder / "bank.pkl"
+        bank.write_bytes(pickle.dumps(infos))
+        return (["mix_bank.py", "--real", inputs["infos"], "--bank", bank, "--out", folder / "mixed.pkl"], bank,
+                f"info 0 of 'Pedestrian': {problem}")
+    return build
+
+
+def bank(table: dict, problem, named="bank.toml", sidecar=None):
+    """export_bank.py on a copy of the prepared truck with ``table`` as the config and
+    ``sidecar(record)`` (if given) as its sidecar."""
+    def build(folder, inputs):
+        objects = Path(shutil.copytree(inputs["prepared"], folder / "objects"))
+        if sidecar:
+            path = objects / "truck_reconstruction.json"
+            path.write_bytes(sidecar(json.loads(path.read_text())))
+        config = folder / "bank.toml"
+        config.write_text("".join(f"[{section}]\n" + "".join(f"{key} = {json.dumps(value)}\n"
+                                                              for key, value in entries.items())
+                                  for section, entries in table.items()))
+        command = ["export_bank.py", "--objects", objects, "--config", config, "--out", folder / "bank",
+                   "--workers", 1]
+        return command, {"bank.toml": config, "sidecar": objects / "truck_reconstruction.json",
+                         "out": folder / "bank"}[named], problem
+    return build
+
+
+def cut_velodyne(folder, inputs):
+    kitti = Path(shutil.copytree(inputs["kitti"], folder / "kitti"))
+    scan_file = sorted((kitti / "velodyne").glob("*.bin"))[0]
+    scan_file.write_bytes(scan_file.read_bytes() + b"\0\0")  # padded: the rows no longer line up
+    return ["fit_ground.py", kitti], scan_file, "bytes are not whole rows of 4 float32 values"
+
+
+SMALL_GRID = {"grid": {"headings_deg": [0, 0, 1], "x": [10, 10, 1], "y": [0, 0, 1]}}
+CASES = {
+    # reading reconstructions
+    "PLY body shorter than its header": import_ply("element vertex 2\n" + XYZ, "1 2 3\n", "declares 2 data rows"),
+    "PLY property declared twice": import_ply("element vertex 1\n" + XYZ + "property float x\n", "1 2 3 4\n",
+                                              "property 'x' appears twice in element 'vertex'"),
+    "PLY uchar colour of 300": import_ply(
+        "element vertex 1\n" + XYZ + "property uchar red\nproperty uchar green\nproperty uchar blue\n",
+        "0 0 0 300 0 0\n", "holds 300 in row 1: not a uint8 value"),
+    "PLY property named like Blender's position": import_ply(
+        "element vertex 1\n" + XYZ + "property float position\n", "1 2 3 4\n", "property 'position' has the name"),
+    "PLY property named like a built-in Blender attribute": import_ply(
+        "element vertex 1\n" + XYZ + "property float sharp_face\n", "1 2 3 4\n",
+        "'sharp_face' has the name of a built-in Blender"),
+    "mesh PLY with fewer faces than declared": import_ply(
+        "element vertex 3\n" + XYZ + "element face 2\nproperty list uchar int vertex_indices\n",
+        "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", "declares 3 vertices and 2 faces but the body holds 3 vertices and 1"),
+    "splat with a NaN scale": import_columns(lambda c: c["scale_1"].__setitem__(3, np.nan),
+                                             "have NaN or Inf values in scale_1"),
+    "splat without opacity": import_columns(lambda c: c.pop("opacity"), "missing vertex properties opacity"),
+    "COLMAP points3D.bin cut in half": colmap_points_cut_in_half,
+    "import --out is a folder": import_out_is_a_folder,
+    # scanning
+    "scan of a missing object": scan(lambda f, i: ["--object", f / "missing.obj"], "no such file", in_folder("missing.obj")),
+    "scan of points as a mesh": scan(lambda f, i: ["--object", i["points"], "--surface", "mesh"],
+                                     "has no faces to scan as a mesh",
+                                     lambda folder, inputs: inputs["points"]),
+    "scan out of the sensor's range": scan(lambda f, i: ["--x", 500], "no returns at x = 500 m, y = 0 m: the object is "
+                                           "out of the nuscenes sensor's range or view there; nothing written"),
+    "unknown sensor preset": scan(lambda f, i: ["--sensor", "velodyne128"], "not a sensor preset",
+                                  lambda folder, inputs: "velodyne128"),
+    "sensor TOML unreadable": scan(sensor_file("columns = "), "not a readable TOML file", in_folder("sensor.toml")),
+    "sensor with 1e9 columns": scan(sensor_file("columns = 1000000000"), "exceeds 16,777,216 rays",
+                                    in_folder("sensor.toml")),
+    "sensor rate_hz = 'fast'": scan(sensor_file('rate_hz = "fast"'), "rate_hz must be a finite number",
+                                    in_folder("sensor.toml")),
+    "sensor mounted at infinity": scan(sensor_file("mounting_height = inf"), "mounting_height must be a finite",
+                                       in_folder("sensor.toml")),
+    "sidecar not UTF-8": sidecar_scan(b"\xe9{}", "UnicodeDecodeError"),
+    "sidecar class without a motion model": sidecar_scan(b'{"class": "semi"}', "class 'semi' has no motion model"),
+    # outputs that cannot be written
+    "prepare_objects --out under a file": under_a_file(
+        "prepare_objects.py", ["--in", "prepared", "--class", "truck", "--heading", "baseline"]),
+    "mix_bank --out under a file": under_a_file("mix_bank.py", ["--real", "infos", "--bank", "infos"]),
+    "train_intensity --out under a file": under_a_file(
+        "train_intensity.py", ["--real", "kitti", "--real", "infos", "--gt-convention", "mmdet3d", "--steps", "1"]),
+    # pickles that would run code, garbage inside databases
+    "mix_bank --real crafted": crafted_pickle("mix_bank.py", "--real", ("--bank", "infos")),
+    "mix_bank --bank crafted": crafted_pickle("mix_bank.py", "--bank", ("--real", "infos")),
+    "train_intensity --real crafted": crafted_pickle("train_intensity.py", "--real"),
+    "mix_bank NaN box": spoiled_bank("box3d_lidar", np.array([0, 0, np.nan, 1, 1, 1, 0], np.float32),
+                                     "box3d_lidar must be 7 or more finite numbers"),
+    "mix_bank negative point count": spoiled_bank("num_points_in_gt", -3, "num_points_in_gt must be a count >= 0"),
+    # banks
+    "class name leading out of the bank": bank({"classes": {"truck": "../../../../elsewhere/anywhere"}},
+                                               "classes.truck = '../../../../elsewhere/anywhere'"),
+    "class name with a slash": bank({"classes": {"truck": "sub/dir"}}, "expected a dataset class name"),
+    "grid with no pose": bank({"grid": {"x": [0, 0, 1], "y": [0, 0, 1]}}, "the grid leaves no pose", "out"),
+    "sidecar dims 'big'": bank(SMALL_GRID, "dims must be three positive lengths", "sidecar",
+                               lambda record: json.dumps({**record, "dims": "big"}).encode()),
+    "class mapped to a name without a motion model": bank(
+        {**SMALL_GRID, "classes": {"semi": "Semi"}}, "no motion model for semi", "out",
+        lambda record: json.dumps({**record, "class": "semi"}).encode()),
+    "export_bank --real crafted": crafted_pickle("export_bank.py", "--real",
+                                                 ("--objects", "prepared", "--workers", "1")),
+    # real scans
+    "velodyne file padded by two bytes": cut_velodyne,
+}
+
+
+def contents(folder: Path) -> dict:
+    return {path: path.read_bytes() if path.is_file() else None for path in sorted(folder.rglob("*"))}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_input_is_one_line_exit_1_and_writes_nothing(inputs, tmp_path, case):
+    command, named, problem = CASES[case](tmp_path, inputs)
+    before = contents(tmp_path)
+    result = subprocess.run([sys.executable, str(ROOT / "headless_scripts" / command[0]), *map(str, command[1:])],
+                            capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
+    assert result.returncode == 1 and len(errors) == 1, result.stderr
+    assert errors[0].startswith(f"error: {named}") and problem in errors[0], errors[0]
+    assert contents(tmp_path) == before  # nothing written, nothing left half-written, no code ran
+    assert not (tmp_path.parent / "elsewhere").exists()
+
+
+@pytest.mark.parametrize("flag, value", [("--x", "nan"), ("--heading", "inf"), ("--y", "-inf")])
+def test_a_non_finite_pose_is_a_usage_error(inputs, tmp_path, flag, value):
+    args = {"--x": "10", "--y": "0", "--heading": "0", flag: value}
+    result = subprocess.run([sys.executable, str(ROOT / "headless_scripts" / "scan_object.py"), "--object",
+                             str(inputs["mesh"]), *[f"{key}={item}" for key, item in args.items()], "--out",
+                             str(tmp_path / "scan.bin")], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2 and f"argument {flag}: expected a finite number, got '{value}'" in result.stderr
+    assert not any(tmp_path.iterdir())
