@@ -7,7 +7,7 @@ MMDET3D_VENV := .venv-mmdet3d
 MMDET3D_PIP := $(MMDET3D_VENV)/bin/python -m pip install --disable-pip-version-check -q \
 	-c tests/detectors/mmdet3d-constraints.txt
 
-.PHONY: demo test extension bench clean
+.PHONY: demo test test-core extension bench clean
 
 $(VENV)/bin/python:
 	$(PYTHON) -m venv $(VENV)
@@ -34,6 +34,9 @@ $(MMDET3D_VENV)/.installed: tests/detectors/mmdet3d-constraints.txt tests/detect
 
 test: $(VENV)/.dev-installed $(MMDET3D_VENV)/.installed
 	$(VENV)/bin/python -m pytest
+
+test-core: $(VENV)/.dev-installed
+	$(VENV)/bin/python -m pytest -m "not blender and not slow"
 
 extension: $(VENV)/.run-installed
 	$(VENV)/bin/python headless_scripts/build_extension.py

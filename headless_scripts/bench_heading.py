@@ -29,7 +29,6 @@ import trimesh  # noqa: E402
 from pgt_blender import cli  # noqa: E402
 from pgt_blender.core.authoring import heading_classifier as hc  # noqa: E402
 from pgt_blender.core.authoring.heading import profile_front_score  # noqa: E402
-from pgt_blender.core.errors import InputError  # noqa: E402
 
 CHRONO = ROOT.parent / "shared" / "data" / "chrono_vehicles"
 DENSITIES = (64, 256, 1024, 4096)
@@ -75,11 +74,7 @@ def main(argv: list) -> int:
     torch.set_num_threads(args.threads)
     meshes = hc.sample_point_sets()
     if args.chrono.is_dir():
-        try:
-            meshes += hc.mesh_folder_point_sets(args.chrono)
-        except InputError as error:
-            print(f"error: {error}", file=sys.stderr)
-            return 1
+        meshes += hc.mesh_folder_point_sets(args.chrono)
     else:
         print(f"note: no Chrono meshes at {args.chrono}; leave-one-out over the built-in samples only")
     start = time.perf_counter()
@@ -146,4 +141,4 @@ def plot(plt, cells: list, meshes: int):
 
 
 if __name__ == "__main__":
-    sys.exit(main(cli.script_argv()))
+    sys.exit(cli.run_main(main, cli.script_argv()))

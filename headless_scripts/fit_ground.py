@@ -20,7 +20,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 
 from pgt_blender.cli import run_main, script_argv  # noqa: E402
 from pgt_blender.core.bank.ground import MIN_GROUND_POINTS, fit_kitti_frames  # noqa: E402
-from pgt_blender.core.errors import InputError  # noqa: E402
 
 
 def _number(value, digits: int = 2) -> str:
@@ -33,11 +32,7 @@ def main(argv: list) -> int:
     parser.add_argument("--mounting-height", type=float, default=1.73, help="sensor height above the ground, m")
     parser.add_argument("--json", action="store_true", help="print the fit as one JSON object")
     args = parser.parse_args(argv)
-    try:
-        fit = fit_kitti_frames(args.folder, args.mounting_height)
-    except InputError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 1
+    fit = fit_kitti_frames(args.folder, args.mounting_height)
     if args.json:
         print(json.dumps(fit))
         return 0

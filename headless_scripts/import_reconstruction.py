@@ -32,11 +32,7 @@ def main(argv: list) -> int:
     args = parser.parse_args(argv)
     headless.ensure_registered()
     headless.start_scene()
-    try:
-        recon = load_reconstruction(args.input, with_cameras=not args.no_cameras)
-    except InputError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 1
+    recon = load_reconstruction(args.input, with_cameras=not args.no_cameras)
     if args.out and args.out.is_dir():
         raise InputError(args.out, "is a folder; --out is the .blend file to write")
     obj = objects.add_reconstruction(bpy.context.scene, recon, not args.no_cameras)

@@ -20,7 +20,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 
 from pgt_blender.cli import run_main, script_argv  # noqa: E402
 from pgt_blender.core.bank.merge import mix_databases, parse_ratio  # noqa: E402
-from pgt_blender.core.errors import InputError  # noqa: E402
 
 
 def ratio_argument(text: str) -> tuple:
@@ -42,11 +41,7 @@ def main(argv: list) -> int:
     parser.add_argument("--root", type=Path, help="dataset root the detector joins info paths to "
                                                   "(default: the folder of --real)")
     args = parser.parse_args(argv)
-    try:
-        summary = mix_databases(args.real, args.bank, args.out, args.ratio, args.seed, args.root)
-    except InputError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 1
+    summary = mix_databases(args.real, args.bank, args.out, args.ratio, args.seed, args.root)
     print(f"{'class':24} {'real':>8} {'asked':>8} {'bank':>8} {'used':>8}  GT:PGT")
     for name, counts in [*summary["classes"].items(), ("total", summary["total"])]:
         ratio = "-" if counts["effective_ratio"] is None else f"1:{counts['effective_ratio']:.2f}"

@@ -78,11 +78,7 @@ def main(argv: list) -> int:
     args = parser.parse_args(argv)
     if args.class_name not in CLASS_SIZES[args.dataset]:
         parser.error(f"{args.dataset} has no class '{args.class_name}' (have: {', '.join(CLASS_SIZES[args.dataset])})")
-    try:
-        inputs = find_inputs(args.inputs)
-    except InputError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 1
+    inputs = find_inputs(args.inputs)
     if not inputs:
         print(f"error: {args.inputs}: no reconstructions found (supported: {', '.join(sorted(SUFFIXES))}, "
               "COLMAP model folders)", file=sys.stderr)

@@ -80,12 +80,8 @@ def main(argv: list) -> int:
         parser.error("--gt-database needs --gt-convention mmdet3d or openpcdet")
     if args.steps < 1 or args.points < 1:
         parser.error("--steps and --points must be positive")
-    try:
-        hc.require_torch(args.out)
-        sets = training_sets(args)
-    except InputError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 1
+    hc.require_torch(args.out)
+    sets = training_sets(args)
     print(f"training on {len(sets)} point sets: " + ", ".join(item.name for item in sets[:12])
           + (", ..." if len(sets) > 12 else ""))
     start = time.perf_counter()

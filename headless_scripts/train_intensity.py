@@ -33,7 +33,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "addon"))
 
 from pgt_blender.cli import run_main, script_argv  # noqa: E402
-from pgt_blender.core.errors import InputError  # noqa: E402
 from pgt_blender.core.intensity import model  # noqa: E402
 from pgt_blender.core.intensity.estimator import IntensityEstimator  # noqa: E402
 from pgt_blender.core.intensity.training import TrainConfig, train  # noqa: E402
@@ -97,18 +96,14 @@ def parse(argv: list):
 def main(argv: list) -> int:
     args, config = parse(argv)
     start = time.perf_counter()
-    try:
-        model.require_torch(args.out)
-        real, rgb = load_sets(args)
-        print(f"{len(real.names)} real and {len(rgb.names)} rgb objects of {', '.join(real.classes)} "
-              f"({real.dataset}), loaded in {time.perf_counter() - start:.0f} s")
-        if args.resume and not (args.out / "checkpoint.pt").is_file():
-            print(f"note: no checkpoint in {args.out}; starting at step 0")
-        start = time.perf_counter()
-        final = train(real, rgb, config, args.out, resume=args.resume)
-    except InputError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 1
+    model.require_torch(args.out)
+    real, rgb = load_sets(args)
+    print(f"{len(real.names)} real and {len(rgb.names)} rgb objects of {', '.join(real.classes)} "
+          f"({real.dataset}), loaded in {time.perf_counter() - start:.0f} s")
+    if args.resume and not (args.out / "checkpoint.pt").is_file():
+        print(f"note: no checkpoint in {args.out}; starting at step 0")
+    start = time.perf_counter()
+    final = train(real, rgb, config, args.out, resume=args.resume)
     seconds = time.perf_counter() - start
     with open(args.out / "losses.csv", newline="") as stream:
         last = list(csv.DictReader(stream))[-1]

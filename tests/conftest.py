@@ -1,13 +1,59 @@
-"""Shared fixtures. Core tests never import bpy; Blender tests ask for ``scene``."""
+"""Shared fixtures and markers. Core tests never import bpy; Blender tests ask for ``scene``.
+
+Markers are set here from what a test uses, so ``pytest -m "not blender and not slow"``
+(``make test-core``) is a fast loop over the core:
+
+- ``blender``: needs headless bpy (the ``registered`` / ``scene`` fixtures);
+- ``data``: reads ../shared/data (the ``shared_data`` fixture; skipped without it);
+- ``torch``: trains or loads a network (TORCH_MODULES);
+- ``slow``: runs the scripts as subprocesses, builds banks or runs the detectors' code
+  (SLOW_MODULES).
+"""
 
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"
+
+
+def run_script(name: str, *args, check: bool = False, blender_style: bool = False, timeout: float = 600, **kwargs):
+    """headless_scripts/<name> as a user runs it, a subprocess of this Python, output
+    captured; ``check`` asserts exit status 0. ``blender_style`` runs it the way
+    ``blender -b -P script.py -- ARGS`` does: Blender's own arguments before ``--``."""
+    script = str(ROOT / "headless_scripts" / name)
+    command = [sys.executable, script, *map(str, args)]
+    if blender_style:
+        code = ("import sys, runpy; script = sys.argv[1]; sys.argv = ['blender', '-b', '-P', script, '--', "
+                "*sys.argv[2:]]; runpy.run_path(script, run_name='__main__')")
+        command = [sys.executable, "-c", code, *command[1:]]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=timeout, **kwargs)
+    if check:
+        assert result.returncode == 0, result.stderr
+    return result
+
+
+TORCH_MODULES = {"test_intensity_model", "test_heading_classifier", "test_blender_intensity"}
+SLOW_MODULES = {"test_scripts", "test_bad_input", "test_detectors", "test_bank", "test_blender_bank",
+                "test_bank_report", "test_authoring"}
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        module = item.module.__name__.rsplit(".", 1)[-1]
+        if "registered" in item.fixturenames or module.startswith("test_blender"):
+            item.add_marker(pytest.mark.blender)
+        if "shared_data" in item.fixturenames:
+            item.add_marker(pytest.mark.data)
+        if module in TORCH_MODULES:
+            item.add_marker(pytest.mark.torch)
+        if module in SLOW_MODULES:
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.fixture(scope="session")

@@ -16,7 +16,7 @@ from pgt_blender.core.importing import load_reconstruction
 from pgt_blender.core.reconstruction import Reconstruction
 from pgt_blender.core.samples import sample_vehicle
 
-from .test_scripts import run_script
+from .conftest import run_script
 
 
 def yawed_sample(class_name, yaw_degrees, offset=(3.0, -2.0, 1.0), count=20000) -> Reconstruction:

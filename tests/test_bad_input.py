@@ -17,8 +17,6 @@ test_blender_authoring, test_blender_bank).
 import json
 import pickle
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -29,9 +27,8 @@ from pgt_blender.core.importing import load_reconstruction
 from pgt_blender.core.importing.ply import read_vertices, write_ply
 from pgt_blender.core.samples import write_sample
 
-from .conftest import CodeOnLoad
+from .conftest import CodeOnLoad, run_script
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -202,7 +199,8 @@ CASES = {
     "COLMAP points3D.bin cut in half": colmap_points_cut_in_half,
     "import --out is a folder": import_out_is_a_folder,
     # scanning
-    "scan of a missing object": scan(lambda f, i: ["--object", f / "missing.obj"], "no such file", in_folder("missing.obj")),
+    "scan of a missing object": scan(lambda f, i: ["--object", f / "missing.obj"], "no such file",
+                                     in_folder("missing.obj")),
     "scan of points as a mesh": scan(lambda f, i: ["--object", i["points"], "--surface", "mesh"],
                                      "has no faces to scan as a mesh",
                                      lambda folder, inputs: inputs["points"]),
@@ -257,8 +255,7 @@ def contents(folder: Path) -> dict:
 def test_bad_input_is_one_line_exit_1_and_writes_nothing(inputs, tmp_path, case):
     command, named, problem = CASES[case](tmp_path, inputs)
     before = contents(tmp_path)
-    result = subprocess.run([sys.executable, str(ROOT / "headless_scripts" / command[0]), *map(str, command[1:])],
-                            capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    result = run_script(*command, cwd=tmp_path)
     errors = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
     assert result.returncode == 1 and len(errors) == 1, result.stderr
     assert errors[0].startswith(f"error: {named}") and problem in errors[0], errors[0]
@@ -269,8 +266,7 @@ def test_bad_input_is_one_line_exit_1_and_writes_nothing(inputs, tmp_path, case)
 @pytest.mark.parametrize("flag, value", [("--x", "nan"), ("--heading", "inf"), ("--y", "-inf")])
 def test_a_non_finite_pose_is_a_usage_error(inputs, tmp_path, flag, value):
     args = {"--x": "10", "--y": "0", "--heading": "0", flag: value}
-    result = subprocess.run([sys.executable, str(ROOT / "headless_scripts" / "scan_object.py"), "--object",
-                             str(inputs["mesh"]), *[f"{key}={item}" for key, item in args.items()], "--out",
-                             str(tmp_path / "scan.bin")], capture_output=True, text=True, timeout=300)
+    result = run_script("scan_object.py", "--object", inputs["mesh"], *[f"{key}={item}" for key, item in args.items()],
+                        "--out", tmp_path / "scan.bin")
     assert result.returncode == 2 and f"argument {flag}: expected a finite number, got '{value}'" in result.stderr
     assert not any(tmp_path.iterdir())

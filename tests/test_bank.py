@@ -29,7 +29,7 @@ from pgt_blender.core.importing import load_reconstruction
 from pgt_blender.core.samples import write_sample
 from pgt_blender.core.scan.sensors import PRESETS
 
-from .conftest import CodeOnLoad
+from .conftest import CodeOnLoad, run_script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "headless_scripts" / "export_bank.py"
@@ -49,12 +49,9 @@ def write_config(path: Path, table: dict) -> Path:
     return path
 
 
-def run_script(*args, check=True, **kwargs):
-    result = subprocess.run([sys.executable, str(SCRIPT), *map(str, args)], capture_output=True, text=True,
-                            **kwargs)
-    if check:
-        assert result.returncode == 0, result.stderr
-    return result
+def run_export(*args, check=True, **kwargs):
+    """export_bank.py with ``args``; unless ``check`` is False it must succeed."""
+    return run_script("export_bank.py", *args, check=check, **kwargs)
 
 
 def bank_bytes(out: Path) -> dict:
@@ -316,20 +313,20 @@ def reference(objects, tmp_path_factory, prepared):
 
 def test_same_bank_whatever_the_workers(reference, prepared, tmp_path):
     out, config = reference
-    run_script("--objects", prepared, "--config", config, "--out", tmp_path / "two", "--workers", "2")
+    run_export("--objects", prepared, "--config", config, "--out", tmp_path / "two", "--workers", "2")
     assert bank_bytes(tmp_path / "two") == bank_bytes(out)
 
 
 def test_shards_assemble_to_the_same_bank(reference, prepared, tmp_path):
     out, config = reference
     for index in range(3):
-        result = run_script("--objects", prepared, "--config", config, "--out", tmp_path / f"shard{index}",
+        result = run_export("--objects", prepared, "--config", config, "--out", tmp_path / f"shard{index}",
                             "--shard", f"{index}/3", "--workers", "1")
         assert "--assemble" in result.stdout
     assert not (tmp_path / "shard0" / "manifest.json").exists()
-    failed = run_script("--assemble", "--out", tmp_path / "shard0", check=False)
+    failed = run_export("--assemble", "--out", tmp_path / "shard0", check=False)
     assert failed.returncode == 1 and "not exported yet" in failed.stderr
-    run_script("--assemble", "--out", tmp_path / "shard0", "--from", tmp_path / "shard1", tmp_path / "shard2")
+    run_export("--assemble", "--out", tmp_path / "shard0", "--from", tmp_path / "shard1", tmp_path / "shard2")
     assert bank_bytes(tmp_path / "shard0") == bank_bytes(out)
 
 
@@ -348,9 +345,9 @@ def test_a_killed_run_resumes_to_the_same_bank(reference, prepared, tmp_path):
     done = len(list(chunks.glob("*.json")))
     total = json.loads((target / ".work" / "identity.json").read_text())["chunks"]
     assert 0 < done < total and not (target / "manifest.json").exists()
-    refused = run_script("--objects", prepared, "--config", config, "--out", target, check=False)
+    refused = run_export("--objects", prepared, "--config", config, "--out", target, check=False)
     assert refused.returncode == 1 and "not empty" in refused.stderr
-    result = run_script("--objects", prepared, "--config", config, "--out", target, "--resume")
+    result = run_export("--objects", prepared, "--config", config, "--out", target, "--resume")
     assert f"{total - done} to do" in result.stdout
     assert bank_bytes(target) == bank_bytes(out)
 
@@ -358,7 +355,7 @@ def test_a_killed_run_resumes_to_the_same_bank(reference, prepared, tmp_path):
 def test_ray_executor_on_a_local_cluster(reference, prepared, tmp_path):
     pytest.importorskip("ray")
     out, config = reference
-    run_script("--objects", prepared, "--config", config, "--out", tmp_path / "ray", "--executor", "ray",
+    run_export("--objects", prepared, "--config", config, "--out", tmp_path / "ray", "--executor", "ray",
                timeout=300)
     assert bank_bytes(tmp_path / "ray") == bank_bytes(out)
 
@@ -372,15 +369,15 @@ def test_output_folder_rules(reference, prepared, tmp_path):
     stranger.mkdir()
     (stranger / "holiday.jpg").write_bytes(b"jpeg")
     for flags in ((), ("--overwrite",), ("--resume",)):
-        result = run_script("--objects", prepared, "--config", config, "--out", stranger, *flags, check=False)
+        result = run_export("--objects", prepared, "--config", config, "--out", stranger, *flags, check=False)
         assert result.returncode == 1 and str(stranger) in result.stderr
     assert (stranger / "holiday.jpg").exists()
     other = write_config(tmp_path / "other.toml", {**SMALL, "bank": {"chunk_size": 4, "seed": 5}})
     copy = tmp_path / "copy"
-    run_script("--objects", prepared, "--config", config, "--out", copy)
-    mismatch = run_script("--objects", prepared, "--config", other, "--out", copy, "--resume", check=False)
+    run_export("--objects", prepared, "--config", config, "--out", copy)
+    mismatch = run_export("--objects", prepared, "--config", other, "--out", copy, "--resume", check=False)
     assert mismatch.returncode == 1 and "other objects or settings" in mismatch.stderr
-    run_script("--objects", prepared, "--config", other, "--out", copy, "--overwrite")
+    run_export("--objects", prepared, "--config", other, "--out", copy, "--overwrite")
     assert json.loads((copy / "manifest.json").read_text())["seed"] == 5
 
 
@@ -397,10 +394,10 @@ def test_damaged_or_crafted_chunk_records_are_redone_never_run(reference, prepar
     crafted = json.loads(records[3].read_text())
     crafted["stats"] = {"numpy": "|O", "shape": [1], "bytes": "AAAAAAAAAAA="}  # an object array
     records[3].write_text(json.dumps(crafted))
-    result = run_script("--assemble", "--out", copy, check=False)
+    result = run_export("--assemble", "--out", copy, check=False)
     assert result.returncode == 1 and not marker.exists()
     assert last_line(result) == f"error: {records[1]}: damaged (3 chunk record(s)); --resume redoes them"
-    run_script("--objects", prepared, "--config", config, "--out", copy, "--resume")
+    run_export("--objects", prepared, "--config", config, "--out", copy, "--resume")
     assert not marker.exists() and bank_bytes(copy) == bank_bytes(out)
 
 
@@ -413,11 +410,11 @@ def test_a_damaged_identity_names_the_fix_and_overwrite_replaces_it(reference, p
     identity = copy / ".work" / "identity.json"
     identity.write_text(identity.read_text()[:40])
     for args in (("--assemble",), ("--objects", prepared, "--config", config, "--resume")):
-        result = run_script(*args, "--out", copy, check=False)
+        result = run_export(*args, "--out", copy, check=False)
         assert result.returncode == 1
         assert last_line(result).startswith(f"error: {identity}: damaged (JSONDecodeError")
         assert last_line(result).endswith("--overwrite starts the bank anew")
-    run_script("--objects", prepared, "--config", config, "--out", copy, "--overwrite")
+    run_export("--objects", prepared, "--config", config, "--out", copy, "--overwrite")
     assert bank_bytes(copy) == bank_bytes(out)
 
 
@@ -429,7 +426,7 @@ def test_a_damaged_identity_names_the_fix_and_overwrite_replaces_it(reference, p
 def test_an_empty_bank_is_an_error_not_an_empty_database(prepared, tmp_path, table, problem):
     config = write_config(tmp_path / "bank.toml", table)
     out = tmp_path / "bank"
-    result = run_script("--objects", prepared, "--config", config, "--out", out, "--workers", 1, check=False)
+    result = run_export("--objects", prepared, "--config", config, "--out", out, "--workers", 1, check=False)
     assert result.returncode == 1 and problem in last_line(result)
     assert not (out / "manifest.json").exists() and not list(out.glob("*/*_dbinfos_pgt.pkl"))
 
@@ -440,7 +437,7 @@ def test_a_start_cut_short_before_its_identity_does_not_block_the_folder(referen
     out, config = reference
     cut = tmp_path / "bank"
     (cut / ".work" / "chunks").mkdir(parents=True)
-    run_script("--objects", prepared, "--config", config, "--out", cut, *flags)
+    run_export("--objects", prepared, "--config", config, "--out", cut, *flags)
     assert bank_bytes(cut) == bank_bytes(out)
 
 
@@ -454,7 +451,7 @@ def test_the_report_compares_with_a_real_database(prepared, tmp_path, shared_dat
     real = shared_data / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl"
     config = write_config(tmp_path / "kitti.toml", {**SMALL, "bank": {"chunk_size": 4, "dataset": "kitti"},
                                                      "grid": {**SMALL["grid"], "x": [0, 40, 20]}})
-    result = run_script("--objects", prepared, "--config", config, "--out", tmp_path / "bank", "--real", real)
+    result = run_export("--objects", prepared, "--config", config, "--out", tmp_path / "bank", "--real", real)
     report = (tmp_path / "bank" / "report.md").read_text()
     assert "report.md" in result.stdout and "kitti_dbinfos_train.pkl" in report and "| Pedestrian |" in report
 
@@ -470,11 +467,11 @@ def test_incomplete_objects_are_listed_and_refused(prepared, tmp_path, reference
     unsized["steps"] = [step for step in unsized["steps"] if step["step"] != "size"]
     (folder / "unsized.ply").write_bytes((prepared / "bicycle_reconstruction.ply").read_bytes())
     (folder / "unsized.json").write_text(json.dumps(unsized))
-    result = run_script("--objects", folder, "--config", config, "--out", tmp_path / "bank", check=False)
+    result = run_export("--objects", folder, "--config", config, "--out", tmp_path / "bank", check=False)
     assert result.returncode == 1 and "2 incomplete" in result.stderr
     assert "loose.ply: no sidecar" in result.stderr and "unsized.ply: no size set" in result.stderr
     assert not (tmp_path / "bank").exists()
-    run_script("--objects", folder, "--config", config, "--out", tmp_path / "bank", "--skip-incomplete")
+    run_export("--objects", folder, "--config", config, "--out", tmp_path / "bank", "--skip-incomplete")
     manifest = json.loads((tmp_path / "bank" / "manifest.json").read_text())
     assert [obj["name"] for obj in manifest["objects"]] == ["truck_reconstruction"]
 
@@ -494,7 +491,7 @@ def test_a_damaged_sidecar_is_one_line_in_both_scripts(prepared, tmp_path, refer
     (folder / "truck.ply").write_bytes((prepared / "truck_reconstruction.ply").read_bytes())
     record = json.loads((prepared / "truck_reconstruction.json").read_text())
     (folder / "truck.json").write_bytes(damage(record))
-    result = run_script("--objects", folder, "--config", config, "--out", tmp_path / "bank", check=False)
+    result = run_export("--objects", folder, "--config", config, "--out", tmp_path / "bank", check=False)
     assert result.returncode == 1 and last_line(result).startswith(f"error: {folder / 'truck.json'}: ")
     assert problem in last_line(result) and not (tmp_path / "bank").exists()
     scan = subprocess.run([sys.executable, str(ROOT / "headless_scripts" / "scan_object.py"), "--object",
@@ -549,24 +546,24 @@ def test_write_errors_end_cleanly(reference, prepared, tmp_path):
     exit 1, no manifest, no partial file and no broken pickle."""
     out, config = reference
     full = tmp_path / "full"
-    result = run_script("--objects", prepared, "--config", config, "--out", full, "--workers", "1", check=False,
+    result = run_export("--objects", prepared, "--config", config, "--out", full, "--workers", "1", check=False,
                         preexec_fn=file_size_limit(64_000))
     assert result.returncode == 1 and "File too large" in last_line(result) and str(full) in last_line(result)
     assert not (full / "manifest.json").exists() and not list(full.rglob("*dbinfos*"))
     assert not [path for path in full.rglob("*") if path.name.endswith(".partial")]
     for record in (full / ".work" / "chunks").glob("*.json"):
         assert isinstance(read_record(record), dict)  # the chunks that finished are whole
-    run_script("--objects", prepared, "--config", config, "--out", full, "--resume")
+    run_export("--objects", prepared, "--config", config, "--out", full, "--resume")
     for name in ("manifest.json", "openpcdet/nuscenes_dbinfos_pgt.pkl", "mmdet3d/nuscenes_dbinfos_pgt.pkl"):
         (full / name).unlink()
-    result = run_script("--assemble", "--out", full, check=False, preexec_fn=file_size_limit(4_000))
+    result = run_export("--assemble", "--out", full, check=False, preexec_fn=file_size_limit(4_000))
     assert result.returncode == 1 and "dbinfos_pgt.pkl: File too large" in last_line(result)
     assert not (full / "manifest.json").exists() and not list(full.rglob("*dbinfos*"))
     assert not [path for path in full.rglob("*") if path.name.endswith(".partial")]
-    run_script("--assemble", "--out", full)
+    run_export("--assemble", "--out", full)
     assert bank_bytes(full) == bank_bytes(out)
     with read_only_folder(tmp_path / "locked") as locked:
-        result = run_script("--objects", prepared, "--config", config, "--out", locked / "bank", check=False)
+        result = run_export("--objects", prepared, "--config", config, "--out", locked / "bank", check=False)
         assert result.returncode == 1 and str(locked) in last_line(result)
         assert "Permission denied" in last_line(result) or "Operation not permitted" in last_line(result)
         assert not (locked / "bank").exists()

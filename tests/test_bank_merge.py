@@ -4,8 +4,6 @@ at a GT:PGT ratio, on synthetic pickles and on the real mmdet3d KITTI database."
 import os
 import pickle
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,9 +12,8 @@ import pytest
 from pgt_blender.core.bank.merge import mix_databases, parse_ratio
 from pgt_blender.core.errors import InputError
 
-from .conftest import CodeOnLoad
+from .conftest import CodeOnLoad, run_script
 
-ROOT = Path(__file__).resolve().parents[1]
 
 # Pedestrian (2 in the bank) and Truck (none) are short at 1:1; Bus is not in the real database.
 REAL_COUNTS = {"Car": 5, "Pedestrian": 3, "Cyclist": 2, "Truck": 4}
@@ -275,17 +272,6 @@ def test_real_mmdet3d_kitti_database(shared_data, tmp_path):
         mix_databases(real, nuscenes, tmp_path / "never.pkl")
 
 
-def run_script(*args, blender_style=False):
-    script = str(ROOT / "headless_scripts" / "mix_bank.py")
-    if blender_style:  # ``blender -b -P script.py -- ARGS``: Blender's own arguments precede ``--``
-        code = ("import sys, runpy; script = sys.argv[1]; sys.argv = ['blender', '-b', '-P', script, '--', "
-                "*sys.argv[2:]]; runpy.run_path(script, run_name='__main__')")
-        command = [sys.executable, "-c", code, script, *map(str, args)]
-    else:
-        command = [sys.executable, script, *map(str, args)]
-    return subprocess.run(command, capture_output=True, text=True, timeout=120)
-
-
 @pytest.mark.parametrize("crafted", ["real", "bank"])
 def test_a_crafted_database_runs_no_code(real, bank, tmp_path, crafted):
     """Info pickles are read with an unpickler that builds only containers, numbers,
@@ -296,7 +282,7 @@ def test_a_crafted_database_runs_no_code(real, bank, tmp_path, crafted):
     infos["Car"][0]["score"] = CodeOnLoad(marker)  # hidden inside an otherwise valid database
     target.write_bytes(pickle.dumps(infos))
     out = tmp_path / "mixed.pkl"
-    result = run_script("--real", real, "--bank", bank, "--out", out)
+    result = run_script("mix_bank.py", "--real", real, "--bank", bank, "--out", out)
     assert result.returncode == 1 and not marker.exists() and not out.exists()
     assert result.stderr.strip() == f"error: {target}: not a readable pickle (UnpicklingError: refused to load " \
                                     f"posix.system: only containers, numbers, strings and numpy arrays may be in it)"
@@ -331,7 +317,7 @@ def test_gt_database_readers_run_no_code(tmp_path):
 
 def test_cli(real, bank, tmp_path):
     out = tmp_path / "mixed.pkl"
-    result = run_script("--real", real, "--bank", bank, "--out", out, "--ratio", "2:1", "--seed", "4")
+    result = run_script("mix_bank.py", "--real", real, "--bank", bank, "--out", out, "--ratio", "2:1", "--seed", "4")
     assert result.returncode == 0, result.stderr
     rows = {line.split()[0]: line.split()[1:] for line in result.stdout.splitlines() if line.strip()}
     assert rows["Car"] == ["5", "2", "20", "2", "1:0.40"]
@@ -341,14 +327,14 @@ def test_cli(real, bank, tmp_path):
     assert len(load(out)["Car"]) == 7
 
     again = tmp_path / "again.pkl"
-    result = run_script("--real", real, "--bank", bank, "--out", again, "--ratio", "2:1", "--seed", "4",
+    result = run_script("mix_bank.py", "--real", real, "--bank", bank, "--out", again, "--ratio", "2:1", "--seed", "4",
                         blender_style=True)
     assert result.returncode == 0, result.stderr
     assert again.read_bytes() == out.read_bytes()
 
     garbage(bank)
     failed = tmp_path / "failed.pkl"
-    result = run_script("--real", real, "--bank", bank, "--out", failed)
+    result = run_script("mix_bank.py", "--real", real, "--bank", bank, "--out", failed)
     assert result.returncode == 1 and result.stdout == ""
     lines = result.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: {bank}: not a readable pickle")

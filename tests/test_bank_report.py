@@ -4,8 +4,6 @@ its info pickle and .bin files; real-database statistics; the Markdown + PNG rep
 import json
 import pickle
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +14,8 @@ from pgt_blender.core.bank.report import (REPORT_MD, REPORT_PNG, _quantiles, ban
                                           real_statistics, write_report)
 from pgt_blender.core.errors import InputError
 from pgt_blender.core.samples import write_sample
+
+from .conftest import run_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -33,12 +33,6 @@ y = [-20, 20, 20]
 """
 
 
-def run_script(name, *args):
-    result = subprocess.run([sys.executable, str(ROOT / "headless_scripts" / name), *map(str, args)],
-                            capture_output=True, text=True)
-    assert result.returncode == 0, result.stderr
-
-
 @pytest.fixture(scope="module")
 def bank(tmp_path_factory) -> Path:
     """The exported bank folder (built once for the module, about 3 s)."""
@@ -48,10 +42,10 @@ def bank(tmp_path_factory) -> Path:
         write_sample(raw, class_name, seed=0, points=2000)
         (raw / f"{class_name}_truth.json").unlink()
         run_script("prepare_objects.py", "--in", raw, "--class", class_name, "--out", work / "prepared",
-                   "--up", "+z", "--heading", "baseline")
+                   "--up", "+z", "--heading", "baseline", check=True)
     (work / "bank.toml").write_text(CONFIG)
     run_script("export_bank.py", "--objects", work / "prepared", "--config", work / "bank.toml",
-               "--out", work / "out", "--workers", 1)
+               "--out", work / "out", "--workers", 1, check=True)
     return work / "out"
 
 

@@ -9,7 +9,7 @@ from pgt_blender.core.bank.inputs import prepared_objects
 from pgt_blender.core.importing import load_reconstruction
 from pgt_blender.core.samples import write_sample
 
-from .test_bank import CHRONO_TRUCK, SMALL, bank_bytes, run_script, write_config
+from .test_bank import CHRONO_TRUCK, SMALL, bank_bytes, run_export, write_config
 
 bpy = pytest.importorskip("bpy")
 
@@ -63,16 +63,16 @@ def test_blend_and_prepared_folder_give_the_same_bank(scene, sources, tmp_path):
         np.testing.assert_array_equal(ours.dims, theirs.dims)
 
     config = write_config(tmp_path / "bank.toml", SMALL)
-    refused = run_script("--blend", blend, "--config", config, "--out", tmp_path / "from_blend", check=False)
+    refused = run_export("--blend", blend, "--config", config, "--out", tmp_path / "from_blend", check=False)
     assert refused.returncode == 1 and "unsized: no class and no size set" in refused.stderr
-    run_script("--blend", blend, "--config", config, "--out", tmp_path / "from_blend", "--skip-incomplete")
-    run_script("--objects", folder, "--config", config, "--out", tmp_path / "from_folder")
+    run_export("--blend", blend, "--config", config, "--out", tmp_path / "from_blend", "--skip-incomplete")
+    run_export("--objects", folder, "--config", config, "--out", tmp_path / "from_folder")
     assert bank_bytes(tmp_path / "from_blend") == bank_bytes(tmp_path / "from_folder")
 
 
 def test_a_bad_blend_file_is_named(tmp_path):
     broken = tmp_path / "broken.blend"
     broken.write_bytes(b"not a blend file")
-    result = run_script("--blend", broken, "--out", tmp_path / "bank", check=False)
+    result = run_export("--blend", broken, "--out", tmp_path / "bank", check=False)
     assert result.returncode == 1 and f"{broken}: not a readable .blend file" in result.stderr
     assert not (tmp_path / "bank").exists()

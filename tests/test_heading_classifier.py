@@ -14,14 +14,11 @@ import pytest
 from pgt_blender.core.authoring import heading_classifier as hc
 from pgt_blender.core.errors import InputError
 
+from .conftest import run_script
+
 ROOT = Path(__file__).resolve().parents[1]
 needs_torch = pytest.mark.skipif(importlib.util.find_spec("torch") is None, reason="needs PyTorch (the 'learn' extra)")
 FLIP = np.array([-1.0, -1.0, 1.0])
-
-
-def run_script(name, *args):
-    return subprocess.run([sys.executable, str(ROOT / "headless_scripts" / name), *map(str, args)],
-                          capture_output=True, text=True, timeout=300)
 
 
 @pytest.fixture(scope="module")

@@ -345,6 +345,6 @@ def test_train_script_bad_input_is_one_line_and_exit_1(script, tmp_path, monkeyp
         raise InputError(tmp_path / "db.pkl", "not a ground-truth database pickle")
 
     monkeypatch.setattr(script, "load_sets", bad)
-    assert script.main(["--out", str(tmp_path / "run"), "--real", str(tmp_path)]) == 1
+    assert script.run_main(script.main, ["--out", str(tmp_path / "run"), "--real", str(tmp_path)]) == 1
     assert capsys.readouterr().err == f"error: {tmp_path / 'db.pkl'}: not a ground-truth database pickle\n"
     assert not (tmp_path / "run").exists()

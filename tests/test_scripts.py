@@ -7,12 +7,9 @@ from pathlib import Path
 
 import pytest
 
+from .conftest import run_script
+
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def run_script(name, *args, cwd=None):
-    return subprocess.run([sys.executable, str(ROOT / "headless_scripts" / name), *map(str, args)],
-                          capture_output=True, text=True, timeout=600, cwd=cwd)
 
 
 def last_json_line(stdout):
@@ -46,11 +43,7 @@ def test_help(script):
 
 def test_blender_style_arguments_after_double_dash(donut):
     """``blender -b -P script.py -- ARGS``: Blender's own arguments precede ``--``."""
-    code = ("import sys, runpy; sys.argv = ['blender', '-b', '-P', sys.argv[1], '--', sys.argv[2], '--json'];"
-            "runpy.run_path(sys.argv[3], run_name='__main__')")
-    script = ROOT / "headless_scripts" / "import_reconstruction.py"
-    result = subprocess.run([sys.executable, "-c", code, str(script), str(donut)],
-                            capture_output=True, text=True, timeout=300)
+    result = run_script("import_reconstruction.py", donut, "--json", blender_style=True)
     assert result.returncode == 0, result.stderr
     assert last_json_line(result.stdout)["points"] == 45624
 

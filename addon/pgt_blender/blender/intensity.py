@@ -14,6 +14,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from ..core.errors import InputError
 from ..core.intensity.estimator import IntensityEstimator
 from ..core.scan.physical_intensity import dataset_intensity
 from ..core.scan.sensors import INTENSITY_MAX
@@ -67,14 +68,15 @@ def element_rgb(source: bpy.types.Object) -> np.ndarray:
     return per_slot[np.clip(index, 0, len(per_slot) - 1)]
 
 
-def apply_estimator(preview: bpy.types.Object, estimator: IntensityEstimator, class_name: str) -> float:
-    """Overwrite the preview's ``intensity`` attribute (and its colours when they show
-    intensity) with ``estimator``'s values for ``class_name``; returns points per second."""
+def apply_estimator(preview: bpy.types.Object, estimator: IntensityEstimator, class_name: str, settings) -> float:
+    """Overwrite the preview's ``intensity`` attribute (and its colours when the scan
+    ``settings``, ``Scene.pgt_scan``, show intensity) with ``estimator``'s values for
+    ``class_name``; returns points per second."""
     source = source_of(preview)
     dataset = preview[scanning.DATASET_TAG]
     if estimator.dataset != dataset:
-        raise ValueError(f"{estimator.path}: trained on {estimator.dataset} intensities, the scan is {dataset}'s")
-    target = scanning.scan_target(source, bpy.context.scene.pgt_scan.surfel_scale)
+        raise InputError(estimator.path, f"trained on {estimator.dataset} intensities, the scan is {dataset}'s")
+    target = scanning.scan_target(source, settings.surfel_scale)
     mesh = preview.data
     faces = scanning.read(mesh.attributes["face"].data, "value", len(mesh.vertices), np.int32)
     to_object = np.array(source.matrix_world.inverted() @ preview.matrix_world)
@@ -83,7 +85,7 @@ def apply_estimator(preview: bpy.types.Object, estimator: IntensityEstimator, cl
     relative = estimator.predict(box, target.size, element_rgb(source)[faces], class_name, source.name)
     values = dataset_intensity(relative, dataset)
     mesh.attributes["intensity"].data.foreach_set("value", values)
-    if bpy.context.scene.pgt_scan.colour_by == "INTENSITY":
+    if settings.colour_by == "INTENSITY":
         mesh.color_attributes["color"].data.foreach_set("color", scanning.ramp(values / INTENSITY_MAX[dataset]).ravel())
     mesh.update()
     return estimator.last_rate

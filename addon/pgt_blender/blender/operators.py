@@ -232,7 +232,7 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 result, sensor, sensor_from_object = scanning.scan(obj, settings)
-        except ValueError as error:  # InputError, or the custom sensor's missing file
+        except InputError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         for warning in caught:
@@ -273,8 +273,8 @@ class OBJECT_OT_pgt_apply_intensity(bpy.types.Operator):
         try:
             estimator = intensity.load(checkpoint)
             class_name = source.pgt.class_name or (estimator.classes[0] if len(estimator.classes) == 1 else "")
-            rate = intensity.apply_estimator(preview, estimator, class_name)
-        except ValueError as error:  # InputError: no torch, bad checkpoint, other dataset or class
+            rate = intensity.apply_estimator(preview, estimator, class_name, context.scene.pgt_scan)
+        except InputError as error:  # no torch, bad checkpoint, other dataset or class
             self.report({"ERROR"}, f"{error} (the scan keeps its physical intensities)")
             return {"CANCELLED"}
         self.report({"INFO"}, f"{len(preview.data.vertices)} intensities from {checkpoint} ({rate:,.0f} points/s)")

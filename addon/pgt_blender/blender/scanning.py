@@ -20,6 +20,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
+from ..core.errors import InputError
 from ..core.scan.raycast import ScanOptions, cast_rays, placement
 from ..core.scan.returns import Scan
 from ..core.scan.sensors import PRESETS, Sensor, load_sensor_toml
@@ -46,7 +47,7 @@ def sensor_of(settings) -> Sensor:
     if settings.sensor != CUSTOM:
         return PRESETS[settings.sensor]
     if not settings.sensor_file:
-        raise ValueError("Custom sensor: no .toml file chosen")
+        raise InputError("Custom sensor", "no .toml file chosen")
     return load_sensor_toml(bpy.path.abspath(settings.sensor_file))
 
 
@@ -54,8 +55,7 @@ def scan(obj: bpy.types.Object, settings) -> tuple[Scan, Sensor, np.ndarray]:
     """One sweep of ``obj`` standing ``settings.distance`` m from the sensor towards
     ``settings.azimuth`` (rad, from +x counter-clockwise), turned to ``settings.heading``
     (rad). Returns the scan (sensor frame), the sensor and the (4, 4) float64
-    sensor_from_object. Bad input raises ValueError (mostly InputError) before any
-    Blender data is made."""
+    sensor_from_object. Bad input raises InputError before any Blender data is made."""
     sensor = sensor_of(settings)
     target = scan_target(obj, settings.surfel_scale)
     x, y = settings.distance * math.cos(settings.azimuth), settings.distance * math.sin(settings.azimuth)

@@ -3,7 +3,12 @@
 Pipeline steps, each a module or sub-package, data flowing one way:
 
 1. ``importing``  -- reconstruction files -> :class:`~.reconstruction.Reconstruction`
-2. authoring, 3. scanning, 4. intensity, 5. bank export, 6. placement (later issues)
+2. ``authoring``  -- up axis, heading and size: the object frame and its box
+3. ``scan``       -- rotating-LiDAR returns of an object (BVH or Embree ray casts)
+4. ``intensity``  -- learned LiDAR intensity from real objects
+5. ``bank``       -- the object bank the detectors' samplers load, its report and mixes
+
+Placement into real scenes and the bank quality score are not built yet.
 
 ``samples`` builds the parametric vehicles and synthetic reconstructions used as
 demo input and as ground truth for tests.

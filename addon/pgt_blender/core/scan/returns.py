@@ -30,7 +30,6 @@ RETURN_DTYPE = np.dtype([
     ("azimuth", "f4"), ("time", "f4"), ("range", "f8"), ("true_range", "f8"), ("face", "i4"), ("time_lag", "f4"),
     ("sweep", "i2"),
 ])
-BOX_FIELDS = ("x", "y", "z", "dx", "dy", "dz", "heading", "vx", "vy")
 OUTPUT_SUFFIXES = (".bin", ".ply", ".npy")
 
 
@@ -96,10 +95,6 @@ class Scan:
     def dataset_array(self) -> np.ndarray:
         """(N, C) float32 in the dataset's point-file columns (sensors.BIN_COLUMNS)."""
         return np.column_stack([self.returns[name] for name in BIN_COLUMNS[self.dataset]]).astype(np.float32)
-
-
-def empty_returns(count: int = 0) -> np.ndarray:
-    return np.zeros(count, RETURN_DTYPE)
 
 
 def write_scan(scan: Scan, path) -> None:

@@ -127,10 +127,6 @@ class Sensor:
         column_seconds = self.sweep_seconds / self.columns
         return columns * column_seconds + np.asarray(self.firing_us)[rings] * 1e-6
 
-    def with_columns(self, columns: int) -> "Sensor":
-        """The same sensor at another azimuth resolution (the paper's 1080 vs 3600)."""
-        return replace(self, columns=int(columns), name=f"{self.name}@{columns}")
-
 
 MAX_CELLS = 2**24  # beams x columns: the ray table (24 bytes a cell) stays within 400 MB
 
