@@ -244,6 +244,8 @@ CASES = {
                                                  ("--objects", "prepared", "--workers", "1")),
     # real scans
     "velodyne file padded by two bytes": cut_velodyne,
+    "fit_sensor on a folder without scans": lambda folder, inputs: (["fit_sensor.py", folder], folder,
+                                                                    "holds no *.bin scans"),
 }
 
 

@@ -42,7 +42,7 @@ def test_bundled_wheels_are_the_runtime_dependencies(extension_zip):
 
     names = zipfile.ZipFile(extension_zip).namelist()
     wheels = sorted(Path(n).name.split("-")[0] for n in names if n.endswith(".whl"))
-    assert wheels == ["manifold3d", "pycolmap", "scipy", "trimesh"]  # numpy comes with Blender
+    assert wheels == ["manifold3d", "pycolmap", "pyyaml", "scipy", "trimesh"]  # numpy comes with Blender
     assert "blender_manifest.toml" in names and "__init__.py" in names
     assert "models/heading_pointnet.pt" in names  # the shipped heading classifier
     assert not any("__pycache__" in n for n in names)
@@ -52,11 +52,11 @@ def test_bundled_wheels_are_the_runtime_dependencies(extension_zip):
 # lives there). The venv's own copies of the bundled packages are hidden, so the
 # import below can only succeed from the wheels the extension installed.
 INSTALL_SCRIPT = textwrap.dedent("""
-    import importlib.abc, importlib.machinery, os, sys
+    import importlib, importlib.abc, importlib.machinery, os, sys
     site = {p for p in sys.path if p.endswith("site-packages")}
     class HideVenvCopies(importlib.abc.MetaPathFinder):
         def find_spec(self, name, path=None, target=None):
-            if name.split(".")[0] not in ("pycolmap", "trimesh", "manifold3d", "scipy") or path is not None:
+            if name.split(".")[0] not in ("pycolmap", "trimesh", "manifold3d", "scipy", "yaml") or path is not None:
                 return None
             spec = importlib.machinery.PathFinder.find_spec(name, [p for p in sys.path if p not in site])
             if spec is None:
@@ -65,7 +65,7 @@ INSTALL_SCRIPT = textwrap.dedent("""
     sys.meta_path.insert(0, HideVenvCopies())
 
     import bpy
-    zip_path, statue, module = sys.argv[1], sys.argv[2], "bl_ext.user_default.pgt_blender"
+    zip_path, statue, calibration, module = sys.argv[1:4] + ["bl_ext.user_default.pgt_blender"]
     assert bpy.ops.extensions.package_install_files(
         filepath=zip_path, repo="user_default", enable_on_install=True) == {"FINISHED"}
     assert module in bpy.context.preferences.addons
@@ -79,6 +79,10 @@ INSTALL_SCRIPT = textwrap.dedent("""
     assert bpy.ops.object.pgt_align() == {"FINISHED"}  # scipy's KD-tree, from the bundled wheel
     import scipy
     assert "extensions" in scipy.__file__, scipy.__file__
+    sensors = importlib.import_module(module + ".core.scan.sensors")  # reads YAML with the bundled PyYAML
+    assert len(sensors.read_velodyne_calibration(calibration)["elevations_deg"]) == 32
+    import yaml
+    assert "extensions" in yaml.__file__, yaml.__file__
     bpy.ops.preferences.addon_disable(module=module)
     assert not hasattr(bpy.types.Object, "pgt") and not hasattr(bpy.types, "VIEW3D_PT_pgt_import")
     bpy.ops.preferences.addon_enable(module=module)
@@ -95,7 +99,8 @@ INSTALL_SCRIPT = textwrap.dedent("""
 def test_install_enable_disable_remove(extension_zip, tmp_path, shared_data):
     statue = shared_data / "colmap_statue" / "sparse" / "0"
     env = {"HOME": str(tmp_path), "PATH": "/usr/bin:/bin"}
-    result = subprocess.run([sys.executable, "-c", INSTALL_SCRIPT, str(extension_zip), str(statue)],
+    calibration = shared_data / "velodyne_calibrations" / "32db.yaml"
+    result = subprocess.run([sys.executable, "-c", INSTALL_SCRIPT, str(extension_zip), str(statue), str(calibration)],
                             capture_output=True, text=True, timeout=600, env=env)
     assert "EXTENSION-OK" in result.stdout, result.stdout[-3000:] + result.stderr[-3000:]
     assert result.returncode == 0

@@ -58,7 +58,8 @@ def test_presets_follow_the_reference():
     assert NUSCENES.elevations_deg[0] == -30.67 and NUSCENES.elevations_deg[-1] == 10.67
     assert np.allclose(np.diff(NUSCENES.elevations_deg), 4 / 3, atol=0.011)
     kitti = PRESETS["kitti"]
-    assert kitti.beams == 64 and kitti.elevations_deg[-1] == 2.0 and kitti.elevations_deg[0] == -24.33
+    assert kitti.beams == 64 and kitti.elevations_deg[-1] == 1.9367 and kitti.elevations_deg[0] == -24.9997
+    assert kitti.columns == 2000 and 0.1 < min(kitti.vertical_offsets_m) < max(kitti.vertical_offsets_m) < 0.21
     assert np.diff(kitti.elevations_deg)[-1] < np.diff(kitti.elevations_deg)[0]  # upper block finer
     assert PRESETS["lyft"].beams == 40 and PRESETS["vlp16"].beams == 16
     for sensor in PRESETS.values():
@@ -113,11 +114,17 @@ def test_firing_times_follow_the_column_and_the_beam_order():
 SENSOR_WITH_OFFSETS = Sensor("offsets", tuple(np.linspace(-25, 15, 20)), columns=900, rate_hz=10.0,
                              min_range=0.5, max_range=150.0, mounting_height=1.8,
                              azimuth_offsets_deg=tuple(np.tile([-1.2, 0.0, 1.9, 0.4], 5)))
+# Lasers off the sensor origin, as a Velodyne calibration table places them (up to 0.2 m).
+LASERS_OFF_ORIGIN = replace(SENSOR_WITH_OFFSETS, name="lasers-off-origin", max_range=2000.0,
+                            vertical_offsets_m=tuple(np.tile([0.2, 0.05, -0.1, 0.12], 5)),
+                            horizontal_offsets_m=tuple(np.tile([0.03, -0.026, 0.0, 0.01], 5)))
 
 
 @pytest.mark.parametrize("case, sensor, matrix", [
     ("seam", NUSCENES, pose(-12.0, 0.05, -1.0, 0.3)),          # straddles azimuth +-180 deg
     ("seam offsets", SENSOR_WITH_OFFSETS, pose(-20.0, -0.4, -1.0, 1.2)),
+    ("lasers off the origin, near", LASERS_OFF_ORIGIN, pose(2.4, 1.0, -1.0, 0.3)),
+    ("lasers off the origin, seam", LASERS_OFF_ORIGIN, pose(-20.0, -0.4, -1.0, 1.2)),
     ("near", NUSCENES, pose(2.2, 1.0, -1.0, 0.0)),              # half a metre from the sensor
     ("far", NUSCENES, pose(48.0, -47.0, -1.0, 2.0)),
     ("footprint around the sensor", NUSCENES, pose(0.5, 0.2, -1.0, 0.7)),
@@ -190,20 +197,28 @@ def test_sphere_hits_match_float64_intersections(centre):
     assert np.abs(ranges - ideal)[facing].max(initial=0) < 1e-4 * radius
 
 
+@pytest.mark.parametrize("sensor", [FAR_NUSCENES, LASERS_OFF_ORIGIN], ids=lambda sensor: sensor.name)
 @pytest.mark.parametrize("centre, heading", [((7.0, -3.0, -0.3), 0.4), ((80.0, 2.0, 0.0), -0.2),
                                              ((420.0, -250.0, 3.0), 1.0)])
-def test_box_hits_match_the_analytic_box(centre, heading):
+def test_box_hits_match_the_analytic_box(centre, heading, sensor):
     size = np.array([4.0, 2.0, 1.6]) * (1 if abs(centre[0]) < 100 else 8)
     box = trimesh.creation.box(extents=size)
     target = mesh_target(box.vertices, box.faces, "box")
     matrix = pose(*centre, heading)
-    full = cast_rays(target, FAR_NUSCENES, matrix, ScanOptions(window=False))
-    # every ray of the revolution, intersected analytically in the box frame
+    full = cast_rays(target, sensor, matrix, ScanOptions(window=False))
+    # every ray of the revolution from its laser's origin, intersected analytically in the box frame
     rotation, translation = matrix[:3, :3], matrix[:3, 3]
-    local = FAR_NUSCENES.directions @ rotation
-    entry, depth = box_entry(-(rotation.T @ translation), local, -size / 2, size / 2)
-    hit_cells = full.returns["ring"].astype(np.int64) * FAR_NUSCENES.columns + full.returns["column"]
+    local = sensor.directions @ rotation
+    origins = np.zeros(3) if sensor.cell_origins is None else sensor.cell_origins
+    entry, depth = box_entry((origins - translation) @ rotation, local, -size / 2, size / 2)
+    hit_cells = full.returns["ring"].astype(np.int64) * sensor.columns + full.returns["column"]
     assert np.abs(full.returns["range"] - entry[hit_cells]).max() < 1e-4
+    # a return is its laser's origin + range x direction, and lies on the box
+    points = np.column_stack([full.returns[axis] for axis in "xyz"])
+    laser = origins[hit_cells] if origins.ndim == 2 else origins
+    assert np.allclose(points, laser + full.returns["range"][:, None] * sensor.directions[hit_cells], atol=1e-9)
+    on_box = np.abs((points - translation) @ rotation) - size / 2
+    assert np.abs(on_box.max(axis=1)).max() < 1e-3 * (1 + np.linalg.norm(centre) / 100)
     clear = np.isfinite(entry) & (depth > 1e-6)  # rays not merely grazing an edge
     assert set(np.flatnonzero(clear)) <= set(hit_cells) <= set(np.flatnonzero(np.isfinite(entry)))
 

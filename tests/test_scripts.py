@@ -35,7 +35,8 @@ def test_import_splat_json(donut):
 
 @pytest.mark.parametrize("script", ["import_reconstruction.py", "demo.py", "bench_import.py", "build_extension.py",
                                     "scan_object.py", "bench_scan.py", "train_intensity.py", "bench_intensity.py",
-                                    "export_bank.py", "mix_bank.py", "bench_bank.py", "fit_ground.py"])
+                                    "export_bank.py", "mix_bank.py", "bench_bank.py", "fit_ground.py",
+                                    "fit_sensor.py"])
 def test_help(script):
     result = run_script(script, "--help")
     assert result.returncode == 0 and result.stdout.startswith("usage:")

@@ -3,7 +3,10 @@ rearrangement") for dense point input, without rays:
 
 1. place the object's points in the sensor frame and project each to its
    (beam, column) cell: the beam of nearest elevation (points beyond half a beam gap
-   outside the table are dropped), the column whose azimuth span holds it;
+   outside the table are dropped), the column whose azimuth span holds it; with lasers
+   off the sensor origin (sensors.py) the elevation is seen from the height of the
+   beam's cone apex (offset / cos elevation), refined twice, and the range is measured
+   from the cell's laser;
 2. keep the nearest point per cell (what the sensor would see first);
 3. move each kept point to its cell's centre angles (phi', theta') at its own range.
 
@@ -21,21 +24,26 @@ from .sensors import Sensor
 
 
 def cells_of_points(sensor: Sensor, points: np.ndarray):
-    """(M,) flat cell index and (M,) range for (M, 3) sensor-frame points; -1 for points
-    outside the beam table's span."""
-    ranges = np.linalg.norm(points, axis=1)
-    elevation = np.degrees(np.arctan2(points[:, 2], np.linalg.norm(points[:, :2], axis=1)))
+    """(M,) flat cell index and (M,) range from the cell's laser for (M, 3) sensor-frame
+    points; -1 for points outside the beam table's span."""
     table = np.asarray(sensor.elevations_deg)
     gaps = np.diff(table)
     edges = np.concatenate([[table[0] - (gaps[0] if len(gaps) else 1.0) / 2], table[:-1] + gaps / 2,
                             [table[-1] + (gaps[-1] if len(gaps) else 1.0) / 2]])
-    rings = np.searchsorted(edges, elevation, side="right") - 1
+    apex_of_ring = np.asarray(sensor.vertical_offsets_m) / np.cos(np.radians(table))
+    distance, apex = np.linalg.norm(points[:, :2], axis=1), 0.0
+    for _ in range(3 if sensor.cell_origins is not None else 1):
+        elevation = np.degrees(np.arctan2(points[:, 2] - apex, distance))
+        rings = np.searchsorted(edges, elevation, side="right") - 1
+        apex = apex_of_ring[np.clip(rings, 0, sensor.beams - 1)]
     inside = (rings >= 0) & (rings < sensor.beams)
     rings = np.clip(rings, 0, sensor.beams - 1)
     azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0])) - np.asarray(sensor.azimuth_offsets_deg)[rings]
     step = sensor.direction * (azimuth - sensor.start_azimuth_deg) / sensor.azimuth_step_deg
     columns = np.floor(step).astype(np.int64) % sensor.columns
-    return np.where(inside, rings * sensor.columns + columns, -1), ranges
+    cells = rings * sensor.columns + columns
+    origins = 0.0 if sensor.cell_origins is None else sensor.cell_origins[cells]
+    return np.where(inside, cells, -1), np.linalg.norm(points - origins, axis=1)
 
 
 def range_view_scan(positions: np.ndarray, sensor: Sensor, sensor_from_object: np.ndarray,

@@ -6,8 +6,10 @@ float64 places the object; the geometry never moves: every pose transforms the r
 into the object frame instead, so one BVH serves all poses and the float32 BVH stays
 near its origin (accurate for objects far from the sensor).
 
-A return lies exactly on its cell's ray: range x the cell's float64 direction, the
-range solved in float64 on the plane of the polygon the BVH hit.
+A return lies exactly on its cell's ray: the laser's origin + range x the cell's float64
+direction, the range solved in float64 on the plane of the polygon the BVH hit. Rays
+share the sensor origin unless the sensor's lasers sit off it (sensors.py); ``origin``
+below is then one row per ray, (M, 3), else (3,).
 
 Only the rays a scene needs are cast: the (beam, column) cells inside the object's
 angular window, then only those whose ray meets its bounding box (exact float64 slab
@@ -152,13 +154,19 @@ def candidate_cells(sensor: Sensor, bounds: np.ndarray, sensor_from_object: np.n
     return np.sort((rings[:, None] * sensor.columns + columns[None, :]).ravel())
 
 
-def _in_object_frame(sensor_from_object: np.ndarray, components) -> tuple:
-    """The sensor origin (3,) and the x, y, z components of ray directions in the object
-    frame, elementwise (no BLAS), so a ray's bits do not depend on its batch."""
+def _in_object_frame(sensor_from_object: np.ndarray, components, origins=None) -> tuple:
+    """The ray origins, (3,) the sensor's or (M, 3) the lasers' ``origins`` (sensor
+    frame), and the x, y, z components of ray directions, in the object frame,
+    elementwise (no BLAS), so a ray's bits do not depend on its batch."""
     rotation, translation = sensor_from_object[:3, :3], sensor_from_object[:3, 3]
     x, y, z = components
-    return -(rotation.T @ translation), tuple(x * rotation[0, i] + y * rotation[1, i] + z * rotation[2, i]
-                                              for i in range(3))
+    directions = tuple(x * rotation[0, i] + y * rotation[1, i] + z * rotation[2, i] for i in range(3))
+    sensor_origin = -(rotation.T @ translation)
+    if origins is None:
+        return sensor_origin, directions
+    ox, oy, oz = origins.T
+    return np.column_stack([ox * rotation[0, i] + oy * rotation[1, i] + oz * rotation[2, i] + sensor_origin[i]
+                            for i in range(3)]), directions
 
 
 def _meets_box(origin: np.ndarray, components, box: np.ndarray, far: float) -> np.ndarray:
@@ -167,7 +175,8 @@ def _meets_box(origin: np.ndarray, components, box: np.ndarray, far: float) -> n
     enter, leave = np.zeros(len(components[0])), np.full(len(components[0]), far)
     with np.errstate(divide="ignore", invalid="ignore"):
         for axis, direction in enumerate(components):
-            t0, t1 = (box[0, axis] - origin[axis]) / direction, (box[1, axis] - origin[axis]) / direction
+            start = origin[..., axis]
+            t0, t1 = (box[0, axis] - start) / direction, (box[1, axis] - start) / direction
             # fmin/fmax skip the NaN of a ray lying in a slab plane: kept, as a superset must.
             enter = np.fmax(enter, np.fmin(t0, t1))
             leave = np.fmin(leave, np.fmax(t0, t1))
@@ -175,19 +184,24 @@ def _meets_box(origin: np.ndarray, components, box: np.ndarray, far: float) -> n
 
 
 def rays_to_cast(sensor: Sensor, cast_bounds: np.ndarray, sensor_from_object: np.ndarray, window: bool = True):
-    """The cells a scan casts, (M,) sorted, with the sensor origin (3,) and their unit
-    directions (M, 3) in the object frame, float64. ``window``: only cells inside the
-    angular window whose rays meet the padded ``cast_bounds`` from range 0 (not
-    min_range: a hit in the blind zone still takes its random draws, as in a full
-    revolution, so both give the same bytes with noise on); else every cell."""
+    """The cells a scan casts, (M,) sorted, with their origins ((3,) the sensor's, or
+    (M, 3) per laser) and unit directions (M, 3) in the object frame, float64.
+    ``window``: only cells inside the angular window whose rays meet the padded
+    ``cast_bounds`` from range 0 (not min_range: a hit in the blind zone still takes its
+    random draws, as in a full revolution, so both give the same bytes with noise on);
+    else every cell. Lasers off the origin widen the window by their offset."""
+    origins = sensor.cell_origins
     if window:
-        cells = candidate_cells(sensor, cast_bounds, sensor_from_object)
-        origin, local = _in_object_frame(sensor_from_object, [axis[cells] for axis in sensor.direction_axes])
+        widened = cast_bounds + np.array([[-1.0], [1.0]]) * sensor.max_origin_offset
+        cells = candidate_cells(sensor, widened, sensor_from_object)
+        origin, local = _in_object_frame(sensor_from_object, [axis[cells] for axis in sensor.direction_axes],
+                                         None if origins is None else origins[cells])
         inside = _meets_box(origin, local, _padded(cast_bounds), sensor.max_range)
         cells, local = cells[inside], [axis[inside] for axis in local]
+        origin = origin if origins is None else origin[inside]
     else:
         cells = np.arange(sensor.beams * sensor.columns)
-        origin, local = _in_object_frame(sensor_from_object, sensor.direction_axes)
+        origin, local = _in_object_frame(sensor_from_object, sensor.direction_axes, origins)
     return cells, origin, np.column_stack(local)
 
 
@@ -197,7 +211,8 @@ def _refined_ranges(planes: np.ndarray, origin: np.ndarray, directions: np.ndarr
     Near-grazing hits, where the plane solve is ill-conditioned, keep the BVH's range."""
     # Written out, not BLAS: a ray's bits must not depend on the batch it is in.
     cos_incidence = planes[:, 0] * directions[:, 0] + planes[:, 1] * directions[:, 1] + planes[:, 2] * directions[:, 2]
-    height = planes[:, 3] - (planes[:, 0] * origin[0] + planes[:, 1] * origin[1] + planes[:, 2] * origin[2])
+    height = planes[:, 3] - (planes[:, 0] * origin[..., 0] + planes[:, 1] * origin[..., 1]
+                             + planes[:, 2] * origin[..., 2])
     with np.errstate(divide="ignore", invalid="ignore"):
         solved = height / cos_incidence
     usable = (np.abs(cos_incidence) > 1e-3) & (np.abs(solved - bvh_range) < 1e-3 * (1 + bvh_range))
@@ -231,6 +246,7 @@ def trace_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarra
     polygons, bvh_range = cast(target, origin, directions, sensor.max_range)
     hit = polygons >= 0
     polygons, bvh_range = polygons[hit], bvh_range[hit]
+    origin = origin if origin.ndim == 1 else origin[hit]
     ranges, cos_incidence = _refined_ranges(target.planes[polygons], origin, directions[hit], bvh_range)
     return Trace(len(cells), cells[hit], ranges, cos_incidence, polygons, time.perf_counter() - start)
 
@@ -239,8 +255,8 @@ def _bvh_hits(target: ScanTarget, origin: np.ndarray, directions: np.ndarray, fa
     """(M,) int64 polygon hit by each ray (-1: none) and (M,) float64 its distance."""
     from mathutils import Vector
 
-    results = map(target.bvh.ray_cast, repeat(Vector(origin), len(directions)), directions.tolist(),
-                  repeat(far, len(directions)))
+    starts = repeat(Vector(origin), len(directions)) if origin.ndim == 1 else map(Vector, origin.tolist())
+    results = map(target.bvh.ray_cast, starts, directions.tolist(), repeat(far, len(directions)))
     # One pass over the results: (polygon, distance) per ray, polygon -1 for a miss.
     found = np.fromiter(chain.from_iterable(_MISS if result[2] is None else result[2:] for result in results),
                         np.float64, 2 * len(directions)).reshape(-1, 2)
@@ -259,7 +275,7 @@ def _embree_hits(target: ScanTarget, origin: np.ndarray, directions: np.ndarray,
         TriangleMesh(target.embree_scene, target.triangle_vertices, target.triangle_faces)
     if not len(directions):
         return np.zeros(0, np.int64), np.zeros(0)
-    result = target.embree_scene.run(np.tile(origin.astype(np.float32), (len(directions), 1)),
+    result = target.embree_scene.run(np.ascontiguousarray(np.broadcast_to(origin, directions.shape), np.float32),
                                      directions.astype(np.float32), dists=np.full(len(directions), far, np.float32),
                                      output=1)
     triangle = result["primID"]
@@ -305,6 +321,8 @@ def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflect
         keep &= relative >= options.min_intensity
     cells, noisy = cells[keep], noisy[keep]
     points = sensor.directions[cells] * noisy[:, None]
+    if sensor.cell_origins is not None:
+        points += sensor.cell_origins[cells]
     rings, columns = np.divmod(cells, sensor.columns)
     rows = np.zeros(len(cells), RETURN_DTYPE)
     rows["x"], rows["y"], rows["z"] = points.T

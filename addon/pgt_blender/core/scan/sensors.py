@@ -11,6 +11,13 @@ A ray is one (beam, column) cell. Beam ``b`` (its *ring*, 0 = lowest) points at
 after the sweep starts, towards azimuth
 ``start_azimuth_deg + direction * 360 * (c + 0.5) / columns + azimuth_offsets_deg[b]``
 (the cell's centre: the paper's phi', theta').
+
+Each laser also sits off the sensor origin, as Velodyne calibration tables give it
+(ROS velodyne_pointcloud: ``vert_offset_correction``, ``horiz_offset_correction``): its
+ray starts at ``vertical_offsets_m[b] * (-sin e * a + cos e * z) +
+horizontal_offsets_m[b] * (z x a)``, with ``e`` the beam's elevation, ``a`` the cell's
+horizontal azimuth unit vector and ``z`` up: the origin turns with the head. A return is
+that origin + range * direction; the range is measured from the laser.
 """
 
 import tomllib
@@ -39,6 +46,9 @@ SWEEP_INTERVAL_S = {"nuscenes": 0.05, "kitti": 0.1, "lyft": 0.2}
 FORWARD = {"nuscenes": (0.0, 1.0), "kitti": (1.0, 0.0), "lyft": (1.0, 0.0)}
 
 
+PER_BEAM = ("elevations_deg", "azimuth_offsets_deg", "firing_us", "vertical_offsets_m", "horizontal_offsets_m")
+
+
 @dataclass(frozen=True, eq=False)
 class Sensor:
     """One rotating LiDAR. Angles in degrees, distances in metres, times in seconds
@@ -54,13 +64,15 @@ class Sensor:
     range_noise_sigma: float = 0.0
     azimuth_offsets_deg: tuple = ()
     firing_us: tuple = ()
+    vertical_offsets_m: tuple = ()
+    horizontal_offsets_m: tuple = ()
     start_azimuth_deg: float = -180.0
     direction: int = -1  # -1 clockwise seen from above, as Velodyne and Hesai spin
     dataset: str = "nuscenes"
     note: str = field(default="", compare=False)
 
     def __post_init__(self):
-        for name in ("elevations_deg", "azimuth_offsets_deg", "firing_us"):
+        for name in PER_BEAM:
             try:
                 if isinstance(getattr(self, name), (str, bytes)):
                     raise TypeError
@@ -118,6 +130,26 @@ class Sensor:
         return table.reshape(-1, 3)
 
     @cached_property
+    def cell_origins(self) -> np.ndarray | None:
+        """(beams * columns, 3) float64 laser origins per cell (sensor frame, m), or None
+        when every laser sits at the sensor origin (the rays share one origin)."""
+        vertical, horizontal = np.asarray(self.vertical_offsets_m), np.asarray(self.horizontal_offsets_m)
+        if not (vertical.any() or horizontal.any()):
+            return None
+        elevation = np.radians(np.asarray(self.elevations_deg))[:, None]
+        cos_a, sin_a = np.cos(self.cell_azimuths), np.sin(self.cell_azimuths)
+        radial = -vertical[:, None] * np.sin(elevation)
+        table = np.stack([radial * cos_a - horizontal[:, None] * sin_a, radial * sin_a + horizontal[:, None] * cos_a,
+                          np.broadcast_to(vertical[:, None] * np.cos(elevation), cos_a.shape)], axis=-1)
+        table.setflags(write=False)
+        return table.reshape(-1, 3)
+
+    @property
+    def max_origin_offset(self) -> float:
+        """The farthest any laser sits from the sensor origin (m)."""
+        return float(np.hypot(self.vertical_offsets_m, self.horizontal_offsets_m).max(initial=0.0))
+
+    @cached_property
     def direction_axes(self) -> tuple:
         """The x, y, z columns of ``directions`` as three contiguous (cells,) arrays."""
         return tuple(np.ascontiguousarray(self.directions[:, axis]) for axis in range(3))
@@ -129,6 +161,7 @@ class Sensor:
 
 
 MAX_CELLS = 2**24  # beams x columns: the ray table (24 bytes a cell) stays within 400 MB
+MAX_ORIGIN_OFFSET_M = 1.0  # a laser farther than this from the sensor origin is a unit error
 
 
 def validate(sensor: Sensor) -> None:
@@ -151,12 +184,14 @@ def validate(sensor: Sensor) -> None:
         problems.append("elevations_deg must be finite and strictly between -90 and 90")
     elif (np.diff(elevations) <= 0).any():
         problems.append("elevations_deg must be strictly increasing (ring 0 = lowest beam)")
-    for name in ("azimuth_offsets_deg", "firing_us"):
+    for name in PER_BEAM[1:]:
         values = np.asarray(getattr(sensor, name), np.float64)
         if len(values) != len(elevations):
             problems.append(f"{name} has {len(values)} entries for {len(elevations)} beams")
         elif not np.isfinite(values).all() or (name == "firing_us" and values.min(initial=0) < 0):
             problems.append(f"{name} must be finite" + (" and >= 0" if name == "firing_us" else ""))
+        elif name.endswith("_offsets_m") and np.abs(values).max(initial=0) > MAX_ORIGIN_OFFSET_M:
+            problems.append(f"{name} must lie within +-{MAX_ORIGIN_OFFSET_M} m of the sensor origin")
     if len(sensor.azimuth_offsets_deg) == len(elevations) and elevations.size and \
             np.abs(sensor.azimuth_offsets_deg).max() >= 180:
         problems.append("azimuth_offsets_deg must lie strictly between -180 and 180")
@@ -192,20 +227,35 @@ def _hdl32e() -> Sensor:
                        "every 4/3 deg, 20 Hz, 1080 columns (0.333 deg)")
 
 
+# The KITTI HDL-64E fitted to KITTI's own raw scans (headless_scripts/fit_sensor.py on
+# the three frames of ../shared/data/kitti_scans; KITTI publishes no calibration): per
+# laser, sorted by elevation, its elevation (deg) and its origin's offset along the beam
+# normal (m). z residual 0.3 mm median; fitted on two frames, the third's elevations are
+# off by <= 0.004 deg RMS (the nominal S2 table: 0.6 to 1.4 deg).
+KITTI_ELEVATIONS_DEG = (
+    -24.9997, -24.5064, -23.9711, -23.3225, -22.8560, -22.4381, -21.9355, -21.3180, -20.7887, -20.2223, -19.7364,
+    -19.3203, -18.7975, -18.3230, -17.7297, -17.1871, -16.5544, -16.1769, -15.6568, -15.1888, -14.5970, -14.0483,
+    -13.4849, -13.0407, -12.5621, -12.1149, -11.5992, -10.9565, -10.4705, -10.0625, -9.5735, -9.0259, -8.7114,
+    -8.3105, -8.0581, -7.6787, -7.2872, -6.9990, -6.6757, -6.3289, -5.9583, -5.6106, -5.2508, -4.9138, -4.5881,
+    -4.2155, -3.9359, -3.5393, -3.2359, -2.8738, -2.5466, -2.2076, -1.8332, -1.4939, -1.2012, -0.8031, -0.4518,
+    -0.0887, 0.1806, 0.5788, 0.8716, 1.3048, 1.5740, 1.9367)
+KITTI_VERTICAL_OFFSETS_M = (
+    0.1052, 0.1058, 0.1065, 0.1074, 0.1079, 0.1085, 0.1091, 0.1099, 0.1106, 0.1112, 0.1119, 0.1124, 0.1130, 0.1135,
+    0.1142, 0.1150, 0.1157, 0.1162, 0.1168, 0.1173, 0.1179, 0.1186, 0.1193, 0.1197, 0.1203, 0.1208, 0.1214, 0.1221,
+    0.1226, 0.1231, 0.1237, 0.1243, 0.1956, 0.1961, 0.1964, 0.1969, 0.1974, 0.1977, 0.1981, 0.1986, 0.1990, 0.1995,
+    0.2000, 0.2004, 0.2008, 0.2013, 0.2016, 0.2021, 0.2025, 0.2030, 0.2034, 0.2038, 0.2043, 0.2047, 0.2051, 0.2056,
+    0.2060, 0.2064, 0.2068, 0.2073, 0.2077, 0.2082, 0.2086, 0.2090)
+KITTI_COLUMNS = 2000  # fitted: the scans step 0.180 deg in azimuth
+
+
 def _hdl64e() -> Sensor:
-    # The HDL-64E S2 nominal layout: upper block +2..-8.33 every 1/3 deg, lower block
-    # -8.83..-24.33 every 1/2 deg. KITTI publishes no per-laser calibration; its real
-    # scans spread over about +2..-24.8 deg because each laser also sits off-centre.
-    lower = -24.33 + 0.5 * np.arange(32)
-    upper = -8.33 + np.arange(32) / 3.0
-    elevations = np.round(np.concatenate([lower, upper]), 2)
-    # Both blocks fire together, one laser each per 1/32 of a column.
-    firing = np.tile(np.arange(32), 2) * (1e6 / (10.0 * 2083) / 32)
-    return Sensor("kitti", tuple(elevations), columns=2083, rate_hz=10.0, min_range=2.0,
+    # Both blocks (the lower and upper 32 rings) fire together, one laser each per 1/32 of a column.
+    firing = np.tile(np.arange(32), 2) * (1e6 / (10.0 * KITTI_COLUMNS) / 32)
+    return Sensor("kitti", KITTI_ELEVATIONS_DEG, columns=KITTI_COLUMNS, rate_hz=10.0, min_range=2.0,
                   max_range=120.0, mounting_height=1.73, range_noise_sigma=0.02,
-                  firing_us=tuple(firing), dataset="kitti",
-                  note="Velodyne HDL-64E S2 as on KITTI: nominal 64-beam table +2..-24.33 deg, "
-                       "10 Hz, 2083 columns (0.173 deg, 1.33 M points/s)")
+                  firing_us=tuple(firing), vertical_offsets_m=KITTI_VERTICAL_OFFSETS_M, dataset="kitti",
+                  note="Velodyne HDL-64E as on KITTI: 64 beams -25.0..+1.94 deg with per-laser vertical offsets "
+                       "fitted to KITTI's raw scans, 10 Hz, 2000 columns (0.18 deg)")
 
 
 def _pandar40p() -> Sensor:
@@ -231,6 +281,41 @@ def _vlp16() -> Sensor:
 PRESETS = {sensor.name: sensor for sensor in (_hdl32e(), _hdl64e(), _pandar40p(), _vlp16())}
 
 _TOML_KEYS = {f.name for f in fields(Sensor)} - {"note"}
+MAX_LASERS = 1024
+
+
+def read_velodyne_calibration(path) -> dict:
+    """The per-laser table of a ROS velodyne_pointcloud calibration YAML (``lasers``:
+    ``vert_correction`` and ``rot_correction`` in radians, ``vert_offset_correction``
+    and ``horiz_offset_correction`` in metres) as Sensor per-beam fields, ordered by
+    elevation (ring 0 = lowest): elevations_deg, azimuth_offsets_deg,
+    vertical_offsets_m, horizontal_offsets_m.
+
+    The driver's azimuth is the encoder angle minus ``rot_correction``, clockwise; in
+    the counter-clockwise sensor frame that is + ``rot_correction``. ``dist_correction``
+    is what the driver adds to a raw range to calibrate it: calibrated points, which the
+    datasets hold and the scans make, carry none, so it is not read. InputError naming
+    the file for anything else."""
+    import yaml
+
+    path = Path(path)
+    try:
+        table = yaml.safe_load(path.read_text())
+        lasers = table["lasers"]
+        if not isinstance(lasers, list) or not 0 < len(lasers) <= MAX_LASERS:
+            raise ValueError(f"'lasers' must list 1 to {MAX_LASERS} lasers")
+        rows = np.array([[float(laser["vert_correction"]), float(laser.get("rot_correction", 0.0)),
+                          float(laser.get("vert_offset_correction", 0.0)),
+                          float(laser.get("horiz_offset_correction", 0.0))] for laser in lasers])
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as error:
+        raise InputError(path, f"not a readable YAML file: {' '.join(str(error).split())}") from None
+    except (KeyError, TypeError, ValueError) as error:
+        raise InputError(path, f"not a velodyne_pointcloud calibration ({type(error).__name__}: {error})") from None
+    if not np.isfinite(rows).all():
+        raise InputError(path, "calibration values must be finite numbers")
+    rows = rows[np.argsort(rows[:, 0], kind="stable")]
+    return {"elevations_deg": tuple(np.degrees(rows[:, 0])), "azimuth_offsets_deg": tuple(np.degrees(rows[:, 1])),
+            "vertical_offsets_m": tuple(rows[:, 2]), "horizontal_offsets_m": tuple(rows[:, 3])}
 
 
 def load_sensor_toml(path) -> Sensor:
@@ -239,19 +324,34 @@ def load_sensor_toml(path) -> Sensor:
 
         base = "nuscenes"
         columns = 3600
+
+    ``calibration`` = a ROS velodyne_pointcloud YAML (path relative to the TOML) sets
+    the per-laser table (read_velodyne_calibration); the preset gives the rest::
+
+        base = "nuscenes"
+        calibration = "32db.yaml"
     """
     path = Path(path)
     try:
         table = tomllib.loads(path.read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
         raise InputError(path, f"not a readable TOML file: {error}") from None
-    unknown = sorted(set(table) - _TOML_KEYS - {"base"})
+    unknown = sorted(set(table) - _TOML_KEYS - {"base", "calibration"})
     if unknown:
         raise InputError(path, f"unknown sensor keys {', '.join(unknown)}; known: {', '.join(sorted(_TOML_KEYS))}")
     base = table.pop("base", None)
     if base is not None and base not in PRESETS:
         raise InputError(path, f"base {base!r} is not a preset ({', '.join(PRESETS)})")
     table.setdefault("name", path.stem)
+    calibration = table.pop("calibration", None)
+    if calibration is not None:
+        if not isinstance(calibration, str):
+            raise InputError(path, f"calibration must be the path of a calibration YAML, got {calibration!r}")
+        laser_table = read_velodyne_calibration(path.parent / calibration)
+        if base is not None and len(laser_table["elevations_deg"]) != PRESETS[base].beams:
+            raise InputError(path, f"the calibration has {len(laser_table['elevations_deg'])} lasers, the {base} "
+                                   f"preset {PRESETS[base].beams} beams")
+        table = {**laser_table, **table}
     try:
         if base is None:
             missing = sorted({"elevations_deg", "columns", "rate_hz", "min_range", "max_range",
