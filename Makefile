@@ -48,6 +48,7 @@ bench: $(VENV)/.dev-installed
 	$(VENV)/bin/python headless_scripts/bench_scan.py
 	$(VENV)/bin/python headless_scripts/bench_intensity.py
 	$(VENV)/bin/python headless_scripts/bench_bank.py
+	$(VENV)/bin/python headless_scripts/bench_fidelity.py
 
 clean:
 	rm -rf $(VENV) $(MMDET3D_VENV) dist demo_output

@@ -36,7 +36,7 @@ def test_import_splat_json(donut):
 @pytest.mark.parametrize("script", ["import_reconstruction.py", "demo.py", "bench_import.py", "build_extension.py",
                                     "scan_object.py", "bench_scan.py", "train_intensity.py", "bench_intensity.py",
                                     "export_bank.py", "mix_bank.py", "bench_bank.py", "fit_ground.py",
-                                    "fit_sensor.py"])
+                                    "fit_sensor.py", "bench_fidelity.py"])
 def test_help(script):
     result = run_script(script, "--help")
     assert result.returncode == 0 and result.stdout.startswith("usage:")
@@ -76,6 +76,16 @@ def test_bench_alignment_quick(tmp_path):
     assert result.returncode == 0, result.stderr
     assert "| varied |" in result.stdout and (tmp_path / "alignment.png").stat().st_size > 0
     assert json.loads((tmp_path / "alignment.json").read_text())
+
+
+def test_bench_fidelity_on_the_shared_kitti_scans(shared_data, tmp_path):
+    result = run_script("bench_fidelity.py", shared_data / "kitti_scans", "--out", tmp_path / "fidelity", check=True)
+    results = json.loads((tmp_path / "fidelity.json").read_text())
+    assert results["totals"]["objects"] == 6 and (tmp_path / "fidelity.png").stat().st_size > 0
+    assert {row["class"] for row in results["objects"]} == {"Pedestrian", "Truck", "Car", "Cyclist", "Misc"}
+    assert results["totals"]["mean_ring_jaccard"] >= 0.8  # the fitted kitti table hits the rings the scans do
+    assert "| Truck | truck_chassis.obj | 69.7 |" in result.stdout
+    assert "W1" in result.stdout and results["machine"]["cores"]
 
 
 def test_bench_scan_quick(tmp_path):
