@@ -1,5 +1,5 @@
 """Banks in the detectors' own samplers, from their stock configs with only the change
-the README documents ("Training with a bank", read from README.md here), on real scenes:
+the user guide documents ("Training with a bank", read from docs/user_guide.md here), on real scenes:
 
 - OpenPCDet's DataBaseSampler: the unmodified files in ../shared/consumers/OpenPCDet
   (tests/detectors/openpcdet.py says what the harness supplies), with the bank beside
@@ -49,7 +49,8 @@ REAL_PICKLES = {
 }
 MMDET3D_CONFIGS = {"nuscenes": "centerpoint/centerpoint_voxel01_second_secfpn_8xb4-cyclic-20e_nus-3d.py",
                    "kitti": "_base_/datasets/kitti-3d-3class.py", "lyft": "_base_/datasets/lyft-3d.py"}
-README_NAMES = {"nuscenes": "nuScenes", "kitti": "KITTI", "lyft": "Lyft"}
+GUIDE_NAMES = {"nuscenes": "nuScenes", "kitti": "KITTI", "lyft": "Lyft"}
+GUIDE = ROOT / "docs" / "user_guide.md"  # "Training with a bank"
 # Small grids; KITTI's inside camera 2's view and within 30 m, so every entry has a difficulty.
 GRIDS = {"nuscenes": {"headings_deg": [-180, 180, 90], "x": [-20, 20, 20], "y": [-20, 20, 20]},
          "kitti": {"headings_deg": [-180, 180, 90], "x": [10, 30, 10], "y": [-5, 5, 5]},
@@ -57,20 +58,20 @@ GRIDS = {"nuscenes": {"headings_deg": [-180, 180, 90], "x": [-20, 20, 20], "y": 
 REPEATS = 4  # samplings of the scene per test: the samplers keep their state between them
 
 
-# --- what the README says -----------------------------------------------------------
+# --- what the user guide says ----------------------------------------------------
 
 
 def readme_row(table_header: str, dataset: str) -> list:
-    """The code spans of ``dataset``'s row in the README table whose header row starts
+    """The code spans of ``dataset``'s row in the user guide's table whose header row starts
     with ``table_header``."""
-    text = (ROOT / "README.md").read_text()
+    text = GUIDE.read_text()
     table = text[text.index(table_header):].split("\n\n")[0]
-    row = next(line for line in table.splitlines() if line.startswith(f"| {README_NAMES[dataset]} |"))
+    row = next(line for line in table.splitlines() if line.startswith(f"| {GUIDE_NAMES[dataset]} |"))
     return re.findall(r"`([^`]+)`", row)
 
 
 def openpcdet_change(dataset: str, route: str) -> dict:
-    """The README's gt_sampling change for ``route`` (beside / mixed), as YAML data."""
+    """The user guide's gt_sampling change for ``route`` (beside / mixed), as YAML data."""
     import yaml
 
     spans = readme_row("| dataset | export with |", dataset)
@@ -79,30 +80,30 @@ def openpcdet_change(dataset: str, route: str) -> dict:
 
 
 def export_arguments(dataset: str) -> tuple:
-    """(data root, bank folder) of the README's export line, relative to the work folder."""
+    """(data root, bank folder) of the user guide's export line, relative to the work folder."""
     spans = readme_row("| dataset | export with |", dataset)
     words = spans[0].split()
     return Path(words[words.index("--data-root") + 1]), Path(words[words.index("--out") + 1])
 
 
 def mmdet3d_change(dataset: str) -> dict:
-    """The README's mmdet3d change: {"info_path": file} or {"object_sample_code": code}."""
+    """The user guide's mmdet3d change: {"info_path": file} or {"object_sample_code": code}."""
     if dataset == "lyft":
-        text = (ROOT / "README.md").read_text()
+        text = GUIDE.read_text()
         block = next(b for b in re.findall(r"```python\n(.*?)```", text, re.S) if "type='ObjectSample'" in b)
         return {"object_sample_code": block.strip().rstrip(","), "object_sample_after": "LoadAnnotations3D"}
     span = next(s for s in readme_row("| dataset | config | change |", dataset) if s.startswith("info_path="))
     return {"info_path": re.fullmatch(r"info_path=data_root \+ '([^']+)'", span).group(1)}
 
 
-def test_the_readme_names_every_change():
+def test_the_user_guide_names_every_change():
     for dataset in DATASETS:
         assert openpcdet_change(dataset, "beside")["DB_INFO_PATH"][1] == \
             f"pgt_bank/openpcdet/{dataset}_dbinfos_pgt.pkl"
         assert openpcdet_change(dataset, "mixed") == {"DB_INFO_PATH": [f"{dataset}_dbinfos_mixed.pkl"]}
         root, bank = export_arguments(dataset)
         assert bank == root / "pgt_bank"
-        assert MMDET3D_CONFIGS[dataset] in (ROOT / "README.md").read_text()
+        assert MMDET3D_CONFIGS[dataset] in GUIDE.read_text()
     assert mmdet3d_change("kitti") == {"info_path": "kitti_dbinfos_mixed.pkl"}
     assert "use_dim=[0, 1, 2, 4]" in mmdet3d_change("lyft")["object_sample_code"]
 
@@ -175,7 +176,7 @@ def run(script: str, *args) -> None:
 
 
 def dataset_root(work: Path, framework: str, dataset: str, banks: Path, pcdet) -> Path:
-    """A dataset root as the README lays it out: the real database (KITTI: the shared
+    """A dataset root as the user guide lays it out: the real database (KITTI: the shared
     frames'; else the stand-in), the bank copied to pgt_bank and re-assembled for this
     root with export_bank.py --assemble --data-root, and the 1:1 mix by mix_bank.py."""
     data_root, bank_folder = export_arguments(dataset)
@@ -272,7 +273,7 @@ def test_openpcdet_stock_config_samples_the_bank(dataset, route, banks, pcdet, t
     root = dataset_root(tmp_path, "openpcdet", dataset, banks, pcdet)
     class_names = openpcdet.CLASS_NAMES[dataset]
     sampler_config = openpcdet.gt_sampling(openpcdet.read_config(openpcdet.DATASET_CONFIGS[dataset]))
-    sampler_config.update(openpcdet_change(dataset, route))  # the README's one change
+    sampler_config.update(openpcdet_change(dataset, route))  # the user guide's one change
     sampler = openpcdet.build_sampler(pcdet, root, sampler_config, class_names)
     known = infos_by_box([root / path for path in sampler_config.DB_INFO_PATH])
     scene = scene_of(dataset, class_names)

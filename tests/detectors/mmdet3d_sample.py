@@ -10,7 +10,7 @@ nothing of pgt_blender. The request (JSON):
 - ``data_root``: the dataset root (the config's ``data_root``, here a test folder);
 - ``db_sampler``: keys set on the config's ``db_sampler`` dict (the documented change:
   ``info_path``), plus ``data_root``; or, for configs without an ObjectSample step
-  (Lyft's), ``object_sample_code``: the step as Python (the README's), evaluated with
+  (Lyft's), ``object_sample_code``: the step as Python (the user guide's), evaluated with
   the config's ``class_names`` and ``data_root``, inserted after the step named by
   ``object_sample_after``;
 - ``scene``: ``points_file`` (float32 .bin, the dataset's columns), ``boxes``
