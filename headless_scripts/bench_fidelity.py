@@ -42,7 +42,7 @@ from pgt_blender.core.samples import sample_vehicle  # noqa: E402
 from pgt_blender.core.scan import sensor_fit  # noqa: E402
 from pgt_blender.core.scan.raycast import ScanOptions, cast_rays  # noqa: E402
 from pgt_blender.core.scan.sensors import sensor_from_name  # noqa: E402
-from pgt_blender.core.scan.targets import mesh_target  # noqa: E402
+from pgt_blender.core.scan.targets import mesh_target, see_through_materials  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
 CHRONO = {"car": "sedan/sedan_chassis_vis.obj", "van": "VW_microbus/van_chassis.obj",
@@ -53,9 +53,10 @@ TOP_SHARE = 0.4  # top 40 % of the box height
 
 
 def class_meshes(choice: str) -> dict:
-    """KITTI class (lower case) -> (vertices (V, 3), faces (F, 3), name) in the mesh's own frame."""
+    """KITTI class (lower case) -> (vertices (V, 3), faces (F, 3), name, see-through (F,)
+    bool) in the mesh's own frame."""
     if choice == "samples":
-        return {kind: (vehicle.vertices, vehicle.faces, f"sample {name}")
+        return {kind: (vehicle.vertices, vehicle.faces, f"sample {name}", np.zeros(len(vehicle.faces), bool))
                 for kind, name in SAMPLES.items() for vehicle in [sample_vehicle(name)]}
     folder = SHARED / "chrono_vehicles" / "data" / "vehicle" if choice == "chrono" else Path(choice)
     paths = {kind: folder / path for kind, path in CHRONO.items()} if choice == "chrono" else \
@@ -63,15 +64,41 @@ def class_meshes(choice: str) -> dict:
     meshes = {}
     for kind, path in paths.items():
         recon = load_reconstruction(path)
-        meshes[kind] = (recon.positions.astype(np.float64), recon.faces, path.name)
+        meshes[kind] = (recon.positions.astype(np.float64), recon.faces, path.name, obj_see_through(path))
     return meshes
+
+
+def obj_see_through(path: Path) -> np.ndarray:
+    """(F,) bool per face of an OBJ (in the order trimesh reads it): its material is glass
+    by name or by the .mtl's dissolve ``d`` < 1 (trimesh drops ``d``); all False for
+    other files."""
+    import trimesh
+
+    faces = len(load_reconstruction(path).faces)
+    if path.suffix.lower() != ".obj":
+        return np.zeros(faces, bool)
+    alphas = {}
+    for library in path.parent.glob("*.mtl"):
+        name = None
+        for line in library.read_text(errors="replace").splitlines():
+            words = line.split()
+            if words[:1] == ["newmtl"] and len(words) > 1:
+                name = words[1]
+            elif words[:1] == ["d"] and name and len(words) > 1:
+                alphas[name] = float(words[1])
+    scene = trimesh.load(str(path), process=False)
+    parts = scene.geometry.values() if isinstance(scene, trimesh.Scene) else [scene]
+    names = [getattr(getattr(part.visual, "material", None), "name", "") or "" for part in parts]
+    flags = see_through_materials(names, [alphas.get(name, 1.0) for name in names])
+    per_face = np.repeat(flags, [len(part.faces) for part in parts])
+    return per_face if len(per_face) == faces else np.zeros(faces, bool)  # an order we cannot match: no glass
 
 
 def box_mesh() -> tuple:
     corners = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
     faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
                       [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
-    return corners, faces, "box"
+    return corners, faces, "box", np.zeros(len(faces), bool)
 
 
 def placed(mesh: tuple, centre, dims, heading) -> np.ndarray:
@@ -83,7 +110,7 @@ def placed(mesh: tuple, centre, dims, heading) -> np.ndarray:
     return local @ np.array([[cos, sin, 0.0], [-sin, cos, 0.0], [0.0, 0.0, 1.0]]) + centre
 
 
-def frame_objects(rows, labels, sensor, meshes, seed: int) -> list:
+def frame_objects(rows, labels, sensor, meshes, seed: int, glass: bool = True) -> list:
     """One frame: the scene of meshes scanned once, then per labelled object its real and
     simulated points (box frame), rings, columns and intensities."""
     chosen = [meshes.get(kind.lower(), box_mesh()) for kind, *_ in labels]
@@ -92,7 +119,9 @@ def frame_objects(rows, labels, sensor, meshes, seed: int) -> list:
         faces.append(mesh[1] + sum(len(v) for v in vertices))
         vertices.append(placed(mesh, centre, dims, heading))
         offsets.append(offsets[-1] + len(mesh[1]))
-    scene = mesh_target(np.concatenate(vertices), np.concatenate(faces), "scene")
+    see_through = np.concatenate([mesh[3] for mesh in chosen])
+    scene = mesh_target(np.concatenate(vertices), np.concatenate(faces), "scene",
+                        face_see_through=see_through if glass else None)
     scan = cast_rays(scene, sensor, np.eye(4), ScanOptions(window=False, range_noise=True, seed=seed))
     owner = np.searchsorted(offsets, scan.returns["face"], side="right") - 1
     fit = sensor_fit.fit_lasers([rows])
@@ -201,6 +230,7 @@ def main(argv: list) -> int:
     parser.add_argument("--meshes", default="chrono", help="chrono, samples or a folder of <class>.obj/.ply")
     parser.add_argument("--sensor", default="kitti", help="sensor preset or TOML")
     parser.add_argument("--min-points", type=int, default=1, help="real points an object needs to be scored")
+    parser.add_argument("--no-glass", action="store_true", help="scan glass materials as solid surfaces")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "fidelity")
     args = parser.parse_args(argv)
@@ -210,14 +240,16 @@ def main(argv: list) -> int:
     meshes = class_meshes(args.meshes)
     start = time.perf_counter()
     objects = [obj for _, rows, labels in kitti_frames(args.folder) if labels
-               for obj in frame_objects(rows, labels, sensor, meshes, args.seed) if len(obj["real"]) >= args.min_points]
+               for obj in frame_objects(rows, labels, sensor, meshes, args.seed, not args.no_glass)
+               if len(obj["real"]) >= args.min_points]
     if not objects:
         raise InputError(args.folder, f"no labelled object has {args.min_points} real points")
     rows, totals = measure(objects)
     import scipy
 
     machine = cli.machine(numpy=np.__version__, scipy=scipy.__version__)
-    print(f"machine: {machine}\ninputs: {args.folder}, meshes {args.meshes}, sensor {sensor.name}, seed {args.seed}; "
+    print(f"machine: {machine}\ninputs: {args.folder}, meshes {args.meshes} (glass "
+          f"{'solid' if args.no_glass else 'seen through'}), sensor {sensor.name}, seed {args.seed}; "
           f"{time.perf_counter() - start:.1f} s\n")
     print(table(rows))
     print(f"\n{totals['objects']} objects: median points ratio sim / real {number(totals['median_ratio'])}, "
@@ -225,7 +257,8 @@ def main(argv: list) -> int:
           f"{number(totals['mean_ring_jaccard'])}; intensity W1 {number(totals['mean_w1_sim'], 3)} simulated vs "
           f"{number(totals['mean_w1_constant'], 3)} constant mean ({totals['constant_intensity']:.3f})")
     cli.write_results(args.out, {"machine": machine, "inputs": {"folder": str(args.folder), "meshes": args.meshes,
-                                                                "sensor": sensor.name, "seed": args.seed},
+                                                                "glass": not args.no_glass, "sensor": sensor.name,
+                                                                "seed": args.seed},
                                  "objects": rows, "totals": totals}, draw(rows))
     return 0
 

@@ -257,6 +257,33 @@ def test_material_colour_gives_the_reflectivity(scene, use_nodes):
     assert stored["intensity"].mean() > 1.5 * grey.mean()
 
 
+@pytest.mark.parametrize("glass", ["named", "transparent"])
+def test_glass_materials_are_seen_through(scene, glass):
+    """Faces whose material is named like glass, or has an alpha below 1, return
+    nothing; the rays go on to the far side of the box, as the core scans it."""
+    vertices, faces = box_geometry()
+    obj = mesh_object(scene, "Box", vertices, faces)
+    paint, pane = bpy.data.materials.new("paint"), bpy.data.materials.new("Window" if glass == "named" else "clear")
+    if glass == "transparent":
+        pane.use_nodes = True
+        pane.node_tree.nodes["Principled BSDF"].inputs["Alpha"].default_value = 0.2
+    obj.data.materials.append(paint)
+    obj.data.materials.append(pane)
+    settings = scene.pgt_scan
+    settings.distance, settings.azimuth = 8.0, 0.0
+    panes = [index for index, polygon in enumerate(obj.data.polygons) if polygon.center.x < 0]  # facing the sensor
+    for index in panes:
+        obj.data.polygons[index].material_index = 1
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    stored = scan_columns(bpy.data.objects["Box Scan"])
+    assert len(stored["face"]) > 50 and not set(stored["face"].tolist()) & set(panes)
+    triangles = scanning.mesh_triangles(obj.data)[1]  # Blender polygon of each triangle
+    see_through = np.isin(triangles, panes)
+    expected = core_scan(mesh_target(np.float32(vertices), scanning.mesh_triangles(obj.data)[0], "Box",
+                                     face_see_through=see_through), settings)
+    assert len(stored["face"]) == expected.hits
+
+
 def test_bvh_is_built_once_per_object_and_rebuilt_after_an_edit(scene, monkeypatch):
     built = []
 

@@ -473,3 +473,43 @@ def test_scan_files_hold_the_dataset_columns(sample_truck, tmp_path):
         write_scan(scan, tmp_path / "scan.txt")
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
         f"{d}.{s}" for d in ("nuscenes", "kitti") for s in ("bin", "ply", "npy"))
+
+
+# ---------------------------------------------------------------- see-through surfaces
+
+def _pane(x, half=2.0):
+    """Two triangles of a 4 x 4 m square facing the sensor at distance x."""
+    return (np.array([[x, -half, -half], [x, half, -half], [x, half, half], [x, -half, half]]),
+            np.array([[0, 1, 2], [0, 2, 3]]))
+
+
+@pytest.mark.parametrize("engine", ["bvh", "embree"])
+def test_rays_pass_glass_and_return_from_what_lies_behind(engine):
+    """A glass pane 5 m ahead and a wall at 7 m: every return is on the wall, at the
+    wall's analytic range; glass alone returns nothing."""
+    (glass, glass_faces), (wall, wall_faces) = _pane(5.0), _pane(7.0, half=3.0)
+    vertices, faces = np.vstack([glass, wall]), np.vstack([glass_faces, wall_faces + 4])
+    see_through = np.array([True, True, False, False])
+    target = mesh_target(vertices, faces, "window", face_see_through=see_through, with_bvh=engine == "bvh")
+    scan = cast_rays(target, FAR_NUSCENES, np.eye(4), ScanOptions(engine=engine))
+    directions = ray_directions(FAR_NUSCENES, scan)
+    assert scan.hits > 50 and set(scan.returns["face"]) <= {2, 3}
+    assert np.abs(scan.returns["range"] - 7.0 / directions[:, 0]).max() < 1e-6
+    only_glass = mesh_target(glass, glass_faces, "glass", face_see_through=[True, True], with_bvh=engine == "bvh")
+    assert cast_rays(only_glass, FAR_NUSCENES, np.eye(4), ScanOptions(engine=engine)).hits == 0
+
+
+def test_glass_is_named_or_transparent_and_faint_splats_are_seen_through(donut):
+    from pgt_blender.core.importing import load_reconstruction
+    from pgt_blender.core.scan.targets import see_through_materials, target_from_reconstruction
+
+    assert see_through_materials(["Material_Window.000", "GLASS", "Windshield", "paint", "", None]).tolist() == \
+        [True, True, True, False, False, False]
+    assert see_through_materials(["paint", "paint"], [1.0, 0.3]).tolist() == [False, True]
+    splats = load_reconstruction(donut)
+    splats.positions = splats.positions * 20  # a 4 m donut
+    target = target_from_reconstruction(splats)
+    faint = splats.attributes["opacity"] < 0.5
+    assert target.see_through is not None and target.see_through.sum() == faint.sum() > 0
+    scan = cast_rays(target, FAR_NUSCENES, pose(6.0, 0.0, 0.0), ScanOptions())
+    assert scan.hits > 100 and not faint[scan.returns["face"]].any()

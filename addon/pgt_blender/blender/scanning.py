@@ -25,7 +25,7 @@ from ..core.scan.raycast import ScanOptions, cast_rays, placement
 from ..core.scan.returns import Scan
 from ..core.scan.sensors import PRESETS, Sensor, load_sensor_toml
 from ..core.scan.targets import (DEFAULT_REFLECTIVITY, ScanTarget, mesh_target, reflectivity_from_linear,
-                                 reflectivity_from_srgb, surfel_target)
+                                 reflectivity_from_srgb, see_through_materials, surfel_target)
 from .objects import add_attribute, show_as_points, remove_datablocks
 
 CUSTOM = "CUSTOM"
@@ -85,16 +85,20 @@ def _target_inputs(obj: bpy.types.Object, radius_scale: float):
     vertices = mesh_vertices(mesh)
     if not len(mesh.polygons):
         colors = point_colors(mesh)
-        return ("surfels", vertices, colors, radius_scale), \
-            lambda: surfel_target(vertices, obj.name, colors, radius_scale)
+        opacity = mesh.attributes.get("opacity")  # Gaussian splats: faint ones are seen through
+        opacities = read(opacity.data, "value", len(vertices), np.float32) if opacity is not None \
+            and opacity.data_type == "FLOAT" and opacity.domain == "POINT" else None
+        return ("surfels", vertices, colors, radius_scale, opacities), \
+            lambda: surfel_target(vertices, obj.name, colors, radius_scale, opacities=opacities)
     triangles, polygon_index = mesh_triangles(mesh)
     reflectivity = _face_reflectivity(obj, triangles)
+    see_through = _face_see_through(obj, len(triangles))
 
     def build():
-        target = mesh_target(vertices, triangles, obj.name, reflectivity)
+        target = mesh_target(vertices, triangles, obj.name, reflectivity, face_see_through=see_through)
         return replace(target, source_index=polygon_index[target.source_index])
 
-    return ("mesh", vertices, triangles, polygon_index, reflectivity), build
+    return ("mesh", vertices, triangles, polygon_index, reflectivity, see_through), build
 
 
 def _fingerprint(inputs: tuple) -> bytes:
@@ -159,6 +163,29 @@ def _face_reflectivity(obj: bpy.types.Object, triangles: np.ndarray):
         return None
     material_index = read(mesh.loop_triangles, "material_index", len(triangles), np.int32)
     return per_slot[np.clip(material_index, 0, len(per_slot) - 1)]
+
+
+def _face_see_through(obj: bpy.types.Object, triangles: int):
+    """(T,) bool per triangle whose material is glass (targets.see_through_materials: by
+    name, or an alpha below 1), or None when no material is."""
+    materials = [slot.material for slot in obj.material_slots]
+    if not any(materials):
+        return None
+    per_slot = see_through_materials([material.name if material else "" for material in materials],
+                                     [material_alpha(material) if material else 1.0 for material in materials])
+    if not per_slot.any():
+        return None
+    material_index = read(obj.data.loop_triangles, "material_index", triangles, np.int32)
+    return per_slot[np.clip(material_index, 0, len(per_slot) - 1)]
+
+
+def material_alpha(material: bpy.types.Material) -> float:
+    """The first Principled BSDF's Alpha, else the viewport colour's alpha."""
+    if material.use_nodes and material.node_tree:
+        for node in material.node_tree.nodes:
+            if node.type == "BSDF_PRINCIPLED":
+                return float(node.inputs["Alpha"].default_value)
+    return float(material.diffuse_color[3])
 
 
 def _material_reflectivity(obj: bpy.types.Object):

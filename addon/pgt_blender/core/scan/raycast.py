@@ -30,6 +30,8 @@ from .targets import ScanTarget
 
 
 ENGINES = ("bvh", "embree")
+MAX_SEE_THROUGH = 4  # see-through surfaces a ray passes (both sides of a cabin, twice)
+SEE_THROUGH_STEP = 1e-4  # m: how far past a see-through hit the ray goes on
 
 
 @dataclass(frozen=True)
@@ -244,6 +246,8 @@ def trace_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarra
     cells, origin, directions = rays_to_cast(sensor, cast_bounds, sensor_from_object, window)
     cast = _embree_hits if engine == "embree" else _bvh_hits
     polygons, bvh_range = cast(target, origin, directions, sensor.max_range)
+    if target.see_through is not None:
+        polygons, bvh_range = _through_glass(target, cast, origin, directions, polygons, bvh_range, sensor.max_range)
     hit = polygons >= 0
     polygons, bvh_range = polygons[hit], bvh_range[hit]
     origin = origin if origin.ndim == 1 else origin[hit]
@@ -251,12 +255,32 @@ def trace_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarra
     return Trace(len(cells), cells[hit], ranges, cos_incidence, polygons, time.perf_counter() - start)
 
 
-def _bvh_hits(target: ScanTarget, origin: np.ndarray, directions: np.ndarray, far: float) -> tuple:
-    """(M,) int64 polygon hit by each ray (-1: none) and (M,) float64 its distance."""
+def _through_glass(target: ScanTarget, cast, origin: np.ndarray, directions: np.ndarray, polygons: np.ndarray,
+                   ranges: np.ndarray, far: float) -> tuple:
+    """(polygons, ranges from ``origin``) after the rays that hit see-through polygons
+    went on from just past them, up to MAX_SEE_THROUGH times (then they are lost)."""
+    polygons, ranges, travelled = polygons.copy(), ranges.copy(), np.zeros(len(directions))
+    for _ in range(MAX_SEE_THROUGH):
+        passing = np.flatnonzero(polygons >= 0)
+        passing = passing[target.see_through[polygons[passing]]]
+        if not len(passing):
+            return polygons, ranges
+        travelled[passing] = ranges[passing] + SEE_THROUGH_STEP
+        starts = (origin if origin.ndim == 1 else origin[passing]) + travelled[passing, None] * directions[passing]
+        found, further = cast(target, starts, directions[passing], far - travelled[passing])
+        polygons[passing], ranges[passing] = found, travelled[passing] + further
+    polygons[(polygons >= 0) & target.see_through[np.maximum(polygons, 0)]] = -1
+    return polygons, ranges
+
+
+def _bvh_hits(target: ScanTarget, origin: np.ndarray, directions: np.ndarray, far) -> tuple:
+    """(M,) int64 polygon hit by each ray (-1: none) and (M,) float64 its distance;
+    ``origin`` (3,) or (M, 3), ``far`` a distance or (M,) distances."""
     from mathutils import Vector
 
     starts = repeat(Vector(origin), len(directions)) if origin.ndim == 1 else map(Vector, origin.tolist())
-    results = map(target.bvh.ray_cast, starts, directions.tolist(), repeat(far, len(directions)))
+    limits = np.broadcast_to(far, len(directions)).tolist()
+    results = map(target.bvh.ray_cast, starts, directions.tolist(), limits)
     # One pass over the results: (polygon, distance) per ray, polygon -1 for a miss.
     found = np.fromiter(chain.from_iterable(_MISS if result[2] is None else result[2:] for result in results),
                         np.float64, 2 * len(directions)).reshape(-1, 2)
@@ -276,7 +300,8 @@ def _embree_hits(target: ScanTarget, origin: np.ndarray, directions: np.ndarray,
     if not len(directions):
         return np.zeros(0, np.int64), np.zeros(0)
     result = target.embree_scene.run(np.ascontiguousarray(np.broadcast_to(origin, directions.shape), np.float32),
-                                     directions.astype(np.float32), dists=np.full(len(directions), far, np.float32),
+                                     directions.astype(np.float32),
+                                     dists=np.broadcast_to(far, len(directions)).astype(np.float32),
                                      output=1)
     triangle = result["primID"]
     polygons = np.where(triangle >= 0, target.triangle_polygon[np.maximum(triangle, 0)], -1)

@@ -5,9 +5,14 @@ used as they are (open, non-manifold and self-intersecting meshes are fine: a ra
 takes the nearest triangle). Point clouds and Gaussian splats become *surfels*: one
 flat hexagon per point with the area of its disk, so a reconstruction is scanned
 without meshing.
+
+A LiDAR sees through glass: rays pass see-through polygons (glass and window
+materials, transparent ones, splats fainter than SEE_THROUGH_OPACITY) and return from
+what lies behind, as a car's windows return the seats or nothing.
 """
 
 import importlib
+import re
 import warnings
 from dataclasses import dataclass
 
@@ -20,6 +25,8 @@ SURFEL_SIDES = 6
 _HEXAGON_FOR_DISK = np.sqrt(2 * np.pi / (3 * np.sqrt(3)))
 SPLAT_SIGMAS = 2.0  # a splat's disk reaches 2 sigma along its two larger axes
 DEFAULT_REFLECTIVITY = 0.5
+SEE_THROUGH_NAMES = re.compile(r"glass|window|windshield|windscreen", re.IGNORECASE)
+SEE_THROUGH_OPACITY = 0.5  # a splat fainter than this is seen through
 
 
 def bvhtree_class():
@@ -51,6 +58,8 @@ class ScanTarget:
     source_index: (P,) int32: the mesh face (or point) each polygon came from; the
                   scan's ``face`` column.
     kind:         "mesh" or "surfels".
+    see_through:  (P,) bool per polygon, or None: glass and faint splats, which a ray
+                  passes on to what lies behind (raycast.trace_rays).
     triangle_vertices (V, 3) float32, triangle_faces (T, 3) int32: the polygons as an
                   indexed triangle mesh, and triangle_polygon (T,) int32 the polygon of
                   each triangle: what the Embree engine casts on.
@@ -68,6 +77,7 @@ class ScanTarget:
     triangle_faces: np.ndarray | None = None
     triangle_polygon: np.ndarray | None = None
     embree_scene: object = None  # built on the first Embree cast (raycast.trace_rays)
+    see_through: np.ndarray | None = None
 
     @property
     def size(self) -> np.ndarray:
@@ -100,8 +110,10 @@ def _planes(normals: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
-                face_reflectivity: np.ndarray | None = None, with_bvh: bool = True) -> ScanTarget:
-    """A BVH over triangles. vertices (V, 3) object frame m; faces (F, 3) int.
+                face_reflectivity: np.ndarray | None = None, with_bvh: bool = True,
+                face_see_through: np.ndarray | None = None) -> ScanTarget:
+    """A BVH over triangles. vertices (V, 3) object frame m; faces (F, 3) int;
+    ``face_see_through`` (F,) bool marks glass (see_through_materials).
     Faces of zero area (or with a repeated vertex) are dropped with a warning; an empty
     mesh or non-finite vertices are an InputError naming ``name``."""
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
@@ -130,12 +142,25 @@ def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
         reflectivity = np.clip(np.asarray(face_reflectivity, np.float32).reshape(-1), 0, 1)
         if len(reflectivity) != len(faces):
             raise InputError(name, f"{len(reflectivity)} face reflectivities for {len(faces)} faces")
+    see_through = None
+    if face_see_through is not None:
+        see_through = np.asarray(face_see_through, bool).reshape(-1)
+        if len(see_through) != len(faces):
+            raise InputError(name, f"{len(see_through)} see-through flags for {len(faces)} faces")
+        see_through = see_through[kept] if see_through[kept].any() else None
     bvh = bvhtree_class().FromPolygons(vertices.tolist(), used.tolist(), all_triangles=True, epsilon=0.0) \
         if with_bvh else None
     bounds = np.stack([vertices[used].reshape(-1, 3).min(0), vertices[used].reshape(-1, 3).max(0)])
     return ScanTarget(bvh, bounds, bounds, _planes(normals, corners[:, 0]), reflectivity[kept],
                       kept.astype(np.int32), "mesh", name, vertices.astype(np.float32), used.astype(np.int32),
-                      np.arange(len(kept), dtype=np.int32))
+                      np.arange(len(kept), dtype=np.int32), see_through=see_through)
+
+
+def see_through_materials(names, alphas=None) -> np.ndarray:
+    """(M,) bool: materials a LiDAR sees through, by name (``glass``, ``window``,
+    ``windshield``, any case) or by an alpha below 1 (a transparent material)."""
+    by_name = np.array([bool(SEE_THROUGH_NAMES.search(name or "")) for name in names], bool)
+    return by_name if alphas is None else by_name | (np.asarray(alphas, np.float64) < 1.0)
 
 
 def local_frames(positions: np.ndarray, neighbours: int = 8):
@@ -165,13 +190,14 @@ def _quaternion_matrices(wxyz: np.ndarray) -> np.ndarray:
 def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarray | None = None,
                   radius_scale: float = 1.0, neighbours: int = 8,
                   scales: np.ndarray | None = None, rotations: np.ndarray | None = None,
-                  with_bvh: bool = True) -> ScanTarget:
+                  with_bvh: bool = True, opacities: np.ndarray | None = None) -> ScanTarget:
     """Oriented surfels for a point cloud, object frame (m).
 
     Point clouds: normal from local PCA over ``neighbours`` points, radius =
     ``radius_scale`` x the mean distance to them. Gaussian splats (``scales`` (N, 3) m,
     ``rotations`` (N, 4) w x y z): an ellipse along the two larger axes with semi-axes
-    ``SPLAT_SIGMAS`` x scale (x ``radius_scale``), normal along the smallest.
+    ``SPLAT_SIGMAS`` x scale (x ``radius_scale``), normal along the smallest; a splat
+    with ``opacities`` below SEE_THROUGH_OPACITY lets rays pass (see_through).
     """
     positions = np.asarray(positions, np.float64).reshape(-1, 3)
     if len(positions) == 0:
@@ -205,11 +231,13 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
     flat = corners.reshape(-1, 3)
     normals = np.cross(tangents[:, :, 0], tangents[:, :, 1])
     fan = np.array([[0, side, side + 1] for side in range(1, SURFEL_SIDES - 1)])  # a hexagon as 4 triangles
+    faint = None if opacities is None else np.asarray(opacities, np.float64).reshape(-1) < SEE_THROUGH_OPACITY
     return ScanTarget(bvh, np.stack([positions.min(0), positions.max(0)]), np.stack([flat.min(0), flat.max(0)]),
                       _planes(normals, positions), reflectivity,
                       np.arange(len(positions), dtype=np.int32), "surfels", name,
                       flat.astype(np.float32), polygons[:, fan].reshape(-1, 3).astype(np.int32),
-                      np.repeat(np.arange(len(positions), dtype=np.int32), len(fan)))
+                      np.repeat(np.arange(len(positions), dtype=np.int32), len(fan)),
+                      see_through=faint if faint is not None and faint.any() else None)
 
 
 def element_colors(reconstruction) -> np.ndarray:
@@ -234,4 +262,5 @@ def target_from_reconstruction(reconstruction, radius_scale: float = 1.0, with_b
         return mesh_target(reconstruction.positions, reconstruction.faces, name, face_reflectivity, with_bvh)
     attributes = reconstruction.attributes
     return surfel_target(reconstruction.positions, name, colors, radius_scale,
-                         scales=attributes.get("scale"), rotations=attributes.get("rotation"), with_bvh=with_bvh)
+                         scales=attributes.get("scale"), rotations=attributes.get("rotation"), with_bvh=with_bvh,
+                         opacities=attributes.get("opacity"))
