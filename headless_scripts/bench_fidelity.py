@@ -64,17 +64,17 @@ def class_meshes(choice: str) -> dict:
     meshes = {}
     for kind, path in paths.items():
         recon = load_reconstruction(path)
-        meshes[kind] = (recon.positions.astype(np.float64), recon.faces, path.name, obj_see_through(path))
+        meshes[kind] = (recon.positions.astype(np.float64), recon.faces, path.name,
+                        obj_see_through(path, len(recon.faces)))
     return meshes
 
 
-def obj_see_through(path: Path) -> np.ndarray:
-    """(F,) bool per face of an OBJ (in the order trimesh reads it): its material is glass
-    by name or by the .mtl's dissolve ``d`` < 1 (trimesh drops ``d``); all False for
-    other files."""
+def obj_see_through(path: Path, faces: int) -> np.ndarray:
+    """(faces,) bool per face of an OBJ (in the order trimesh reads it): its material is
+    glass by name or by the .mtl's dissolve ``d`` < 1 (trimesh drops ``d``); all False
+    for other files."""
     import trimesh
 
-    faces = len(load_reconstruction(path).faces)
     if path.suffix.lower() != ".obj":
         return np.zeros(faces, bool)
     alphas = {}
@@ -95,10 +95,10 @@ def obj_see_through(path: Path) -> np.ndarray:
 
 
 def box_mesh() -> tuple:
-    corners = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
-    faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
-    return corners, faces, "box", np.zeros(len(faces), bool)
+    import trimesh
+
+    box = trimesh.creation.box()  # the unit cube: placed() scales it to the labelled box
+    return box.vertices, box.faces, "box", np.zeros(len(box.faces), bool)
 
 
 def placed(mesh: tuple, centre, dims, heading) -> np.ndarray:

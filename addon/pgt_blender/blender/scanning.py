@@ -91,8 +91,9 @@ def _target_inputs(obj: bpy.types.Object, radius_scale: float):
         return ("surfels", vertices, colors, radius_scale, opacities), \
             lambda: surfel_target(vertices, obj.name, colors, radius_scale, opacities=opacities)
     triangles, polygon_index = mesh_triangles(mesh)
-    reflectivity = _face_reflectivity(obj, triangles)
-    see_through = _face_see_through(obj, len(triangles))
+    slots = _triangle_slots(obj, len(triangles))
+    reflectivity = _face_reflectivity(obj, triangles, slots)
+    see_through = _face_see_through(obj, slots)
 
     def build():
         target = mesh_target(vertices, triangles, obj.name, reflectivity, face_see_through=see_through)
@@ -149,65 +150,65 @@ def point_colors(mesh: bpy.types.Mesh):
     return srgb(attribute) if attribute is not None and attribute.domain == "POINT" else None
 
 
-def _face_reflectivity(obj: bpy.types.Object, triangles: np.ndarray):
+def _triangle_slots(obj: bpy.types.Object, triangles: int):
+    """(T,) int32 material slot of each triangle, or None when no slot holds a material."""
+    if not any(slot.material for slot in obj.material_slots):
+        return None
+    slots = read(obj.data.loop_triangles, "material_index", triangles, np.int32)
+    return np.clip(slots, 0, len(obj.material_slots) - 1)
+
+
+def _face_reflectivity(obj: bpy.types.Object, triangles: np.ndarray, slots):
     """(T,) reflectivity per triangle: the mean over its corners of the colour
-    attribute, else its material's base colour, else None (the core's default)."""
+    attribute, else its material's base colour (``slots``: _triangle_slots), else None
+    (the core's default)."""
     mesh = obj.data
     attribute = color_attribute(mesh)
     if attribute is not None:
         corners = (triangles if attribute.domain == "POINT"
                    else read(mesh.loop_triangles, "loops", triangles.size, np.int32).reshape(-1, 3))
         return reflectivity_from_srgb(srgb(attribute))[corners].mean(axis=1)
-    per_slot = _material_reflectivity(obj)
-    if per_slot is None:
-        return None
-    material_index = read(mesh.loop_triangles, "material_index", len(triangles), np.int32)
-    return per_slot[np.clip(material_index, 0, len(per_slot) - 1)]
+    return None if slots is None else _material_reflectivity(obj)[slots]
 
 
-def _face_see_through(obj: bpy.types.Object, triangles: int):
+def _face_see_through(obj: bpy.types.Object, slots):
     """(T,) bool per triangle whose material is glass (targets.see_through_materials: by
-    name, or an alpha below 1), or None when no material is."""
-    materials = [slot.material for slot in obj.material_slots]
-    if not any(materials):
+    name, or an alpha below 1), or None when none is."""
+    if slots is None:
         return None
+    materials = [slot.material for slot in obj.material_slots]
     per_slot = see_through_materials([material.name if material else "" for material in materials],
                                      [material_alpha(material) if material else 1.0 for material in materials])
-    if not per_slot.any():
-        return None
-    material_index = read(obj.data.loop_triangles, "material_index", triangles, np.int32)
-    return per_slot[np.clip(material_index, 0, len(per_slot) - 1)]
+    return per_slot[slots] if per_slot[slots].any() else None
 
 
-def material_alpha(material: bpy.types.Material) -> float:
-    """The first Principled BSDF's Alpha, else the viewport colour's alpha."""
-    if material.use_nodes and material.node_tree:
-        for node in material.node_tree.nodes:
-            if node.type == "BSDF_PRINCIPLED":
-                return float(node.inputs["Alpha"].default_value)
-    return float(material.diffuse_color[3])
-
-
-def _material_reflectivity(obj: bpy.types.Object):
-    """(S,) float32 reflectivity per material slot (the core's default for an empty
-    slot), or None when no slot holds a material."""
+def _material_reflectivity(obj: bpy.types.Object) -> np.ndarray:
+    """(S,) float32 reflectivity per material slot (the core's default for an empty slot)."""
     materials = [slot.material for slot in obj.material_slots]
     used = [index for index, material in enumerate(materials) if material]
-    if not used:
-        return None
     reflectivity = np.full(len(materials), DEFAULT_REFLECTIVITY, np.float32)
     linear = np.array([base_color(materials[index]) for index in used], np.float64)
     reflectivity[used] = reflectivity_from_linear(linear)
     return reflectivity
 
 
+def _principled(material: bpy.types.Material):
+    """The material's first Principled BSDF node, or None (no node tree)."""
+    if material.use_nodes and material.node_tree:
+        return next((node for node in material.node_tree.nodes if node.type == "BSDF_PRINCIPLED"), None)
+    return None
+
+
 def base_color(material: bpy.types.Material) -> tuple:
     """Linear RGB: the first Principled BSDF's Base Color, else the viewport colour."""
-    if material.use_nodes and material.node_tree:
-        for node in material.node_tree.nodes:
-            if node.type == "BSDF_PRINCIPLED":
-                return tuple(node.inputs["Base Color"].default_value)[:3]
-    return tuple(material.diffuse_color)[:3]
+    node = _principled(material)
+    return tuple(node.inputs["Base Color"].default_value if node else material.diffuse_color)[:3]
+
+
+def material_alpha(material: bpy.types.Material) -> float:
+    """The first Principled BSDF's Alpha, else the viewport colour's alpha."""
+    node = _principled(material)
+    return float(node.inputs["Alpha"].default_value if node else material.diffuse_color[3])
 
 
 def ramp(values: np.ndarray) -> np.ndarray:

@@ -14,7 +14,7 @@ counter-clockwise (OpenPCDet's box3d_lidar convention).
 import numpy as np
 
 from ..scan.sensors import FORWARD, SWEEP_INTERVAL_S
-from ..scan.sweeps import SWEEPS_PER_SAMPLE, sample_ego_motion, sample_motion
+from ..scan.sweeps import SWEEPS_PER_SAMPLE, Motion, sample_ego_motion, sample_motion
 from .config import BankConfig, grid_values
 from .ground import sample_ground
 
@@ -73,11 +73,12 @@ def object_entries(config: BankConfig, object_index: int, class_name: str, dims:
     keep = np.ones(len(entries), bool)
     forward, interval = np.array(FORWARD[config.dataset]), SWEEP_INTERVAL_S[config.dataset]
     direction = np.column_stack([np.cos(entries["heading"]), np.sin(entries["heading"])])
+    motions = Motion(entries["speed"], entries["acceleration"])  # every entry at once
+    egos = Motion(entries["ego_speed"], entries["ego_acceleration"])
     for sweep in range(sweeps_of(config)):  # the ego never drives through the object, in any sweep
         t = -sweep * interval
-        travelled = entries["speed"] * t + entries["acceleration"] * t**2 / 2
-        ego = (entries["ego_speed"] * t + entries["ego_acceleration"] * t**2 / 2)[:, None] * forward
-        centre = np.column_stack([entries["x"], entries["y"]]) + travelled[:, None] * direction - ego
+        centre = np.column_stack([entries["x"], entries["y"]]) + motions.displacement(t)[:, None] * direction \
+            - egos.displacement(t)[:, None] * forward
         keep &= footprint_distance(centre[:, 0], centre[:, 1], entries["heading"], variants[:, 0], variants[:, 1]) \
             > config.ego_clearance
     if config.max_distance:

@@ -53,7 +53,8 @@ EGO_MOTION = {"nuscenes": (0.3, 5.0, 3.0, 0.8), "lyft": (0.2, 8.0, 4.0, 0.8), "k
 
 @dataclass(frozen=True)
 class Motion:
-    """Speed (m/s, along the heading; negative = reversing) and acceleration (m/s^2)."""
+    """Speed (m/s, along the heading; negative = reversing) and acceleration (m/s^2);
+    arrays of them work too (displacement is elementwise)."""
 
     speed: float = 0.0
     acceleration: float = 0.0
