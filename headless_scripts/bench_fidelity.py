@@ -4,15 +4,16 @@ scene is scanned once (objects occlude each other), and each object's simulated 
 are compared with its real ones.
 
     .venv/bin/python headless_scripts/bench_fidelity.py [KITTI_FOLDER] [--meshes chrono|samples|FOLDER]
-        [--sensor kitti] [--min-points 1] [--out bench/fidelity]
+        [--sensor kitti] [--min-points 1] [--no-glass] [--no-drop] [--out bench/fidelity]
 
 KITTI_FOLDER (default ../shared/data/kitti_scans) holds velodyne/*.bin, label_2/*.txt and
 calib/*.txt. Meshes by class: ``chrono`` (default) takes ../shared/data/chrono_vehicles
 (sedan for Car, VW van for Van, truck for Truck), ``samples`` the built-in parametric
 vehicles (truck for Truck, bicycle for Cyclist), a FOLDER ``<class>.obj|.ply`` by KITTI
 class name in lower case; a class without a mesh is scanned as its box (column "mesh":
-box). The scan: the sensor preset, one revolution from the origin, range noise on,
-seeded; intensity the physical default.
+box). The scan: the sensor preset, one revolution from the origin, range noise and
+the sensor's ray drop on (``--no-drop``: off), seeded; intensity the sensor's law
+(physical_intensity.py).
 
 Per object (real = the scan's points inside the labelled box, simulated = the returns
 off its mesh): points and their ratio sim / real; rings hit (real rings from scan order,
@@ -36,98 +37,24 @@ from scipy.stats import wasserstein_distance  # noqa: E402
 from pgt_blender import cli  # noqa: E402
 from pgt_blender.core.boxes import box_frame  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
-from pgt_blender.core.importing import load_reconstruction  # noqa: E402
 from pgt_blender.core.intensity.objects import kitti_frames  # noqa: E402
-from pgt_blender.core.samples import sample_vehicle  # noqa: E402
-from pgt_blender.core.scan import sensor_fit  # noqa: E402
+from pgt_blender.core.scan import replay  # noqa: E402
 from pgt_blender.core.scan.raycast import ScanOptions, cast_rays  # noqa: E402
 from pgt_blender.core.scan.sensors import sensor_from_name  # noqa: E402
-from pgt_blender.core.scan.targets import mesh_target, see_through_materials  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
-CHRONO = {"car": "sedan/sedan_chassis_vis.obj", "van": "VW_microbus/van_chassis.obj",
-          "truck": "truck/truck_chassis.obj"}
-SAMPLES = {"truck": "truck", "cyclist": "bicycle"}
 RATIO_BAND = 0.35  # the issue's "within +-35 %"
 TOP_SHARE = 0.4  # top 40 % of the box height
 
 
-def class_meshes(choice: str) -> dict:
-    """KITTI class (lower case) -> (vertices (V, 3), faces (F, 3), name, see-through (F,)
-    bool) in the mesh's own frame."""
-    if choice == "samples":
-        return {kind: (vehicle.vertices, vehicle.faces, f"sample {name}", np.zeros(len(vehicle.faces), bool))
-                for kind, name in SAMPLES.items() for vehicle in [sample_vehicle(name)]}
-    folder = SHARED / "chrono_vehicles" / "data" / "vehicle" if choice == "chrono" else Path(choice)
-    paths = {kind: folder / path for kind, path in CHRONO.items()} if choice == "chrono" else \
-        {path.stem.lower(): path for path in sorted(folder.glob("*")) if path.suffix.lower() in (".obj", ".ply")}
-    meshes = {}
-    for kind, path in paths.items():
-        recon = load_reconstruction(path)
-        meshes[kind] = (recon.positions.astype(np.float64), recon.faces, path.name,
-                        obj_see_through(path, len(recon.faces)))
-    return meshes
-
-
-def obj_see_through(path: Path, faces: int) -> np.ndarray:
-    """(faces,) bool per face of an OBJ (in the order trimesh reads it): its material is
-    glass by name or by the .mtl's dissolve ``d`` < 1 (trimesh drops ``d``); all False
-    for other files."""
-    import trimesh
-
-    if path.suffix.lower() != ".obj":
-        return np.zeros(faces, bool)
-    alphas = {}
-    for library in path.parent.glob("*.mtl"):
-        name = None
-        for line in library.read_text(errors="replace").splitlines():
-            words = line.split()
-            if words[:1] == ["newmtl"] and len(words) > 1:
-                name = words[1]
-            elif words[:1] == ["d"] and name and len(words) > 1:
-                alphas[name] = float(words[1])
-    scene = trimesh.load(str(path), process=False)
-    parts = scene.geometry.values() if isinstance(scene, trimesh.Scene) else [scene]
-    names = [getattr(getattr(part.visual, "material", None), "name", "") or "" for part in parts]
-    flags = see_through_materials(names, [alphas.get(name, 1.0) for name in names])
-    per_face = np.repeat(flags, [len(part.faces) for part in parts])
-    return per_face if len(per_face) == faces else np.zeros(faces, bool)  # an order we cannot match: no glass
-
-
-def box_mesh() -> tuple:
-    import trimesh
-
-    box = trimesh.creation.box()  # the unit cube: placed() scales it to the labelled box
-    return box.vertices, box.faces, "box", np.zeros(len(box.faces), bool)
-
-
-def placed(mesh: tuple, centre, dims, heading) -> np.ndarray:
-    """The mesh's vertices scaled to fill ``dims`` and placed at the box, sensor frame."""
-    vertices = mesh[0]
-    low, high = vertices.min(axis=0), vertices.max(axis=0)
-    local = (vertices - (low + high) / 2) / np.maximum(high - low, 1e-9) * dims
-    cos, sin = np.cos(heading), np.sin(heading)
-    return local @ np.array([[cos, sin, 0.0], [-sin, cos, 0.0], [0.0, 0.0, 1.0]]) + centre
-
-
-def frame_objects(rows, labels, sensor, meshes, seed: int, glass: bool = True) -> list:
+def frame_objects(rows, labels, sensor, meshes, options: ScanOptions, glass: bool = True) -> list:
     """One frame: the scene of meshes scanned once, then per labelled object its real and
     simulated points (box frame), rings, columns and intensities."""
-    chosen = [meshes.get(kind.lower(), box_mesh()) for kind, *_ in labels]
-    vertices, faces, offsets = [], [], [0]
-    for mesh, (_, centre, dims, heading) in zip(chosen, labels):
-        faces.append(mesh[1] + sum(len(v) for v in vertices))
-        vertices.append(placed(mesh, centre, dims, heading))
-        offsets.append(offsets[-1] + len(mesh[1]))
-    see_through = np.concatenate([mesh[3] for mesh in chosen])
-    scene = mesh_target(np.concatenate(vertices), np.concatenate(faces), "scene",
-                        face_see_through=see_through if glass else None)
-    scan = cast_rays(scene, sensor, np.eye(4), ScanOptions(window=False, range_noise=True, seed=seed))
-    owner = np.searchsorted(offsets, scan.returns["face"], side="right") - 1
-    fit = sensor_fit.fit_lasers([rows])
-    ring_of_laser = np.argsort(np.argsort(fit.elevations_deg))
-    real_rings = ring_of_laser[sensor_fit.scan_order_lasers(rows)]
-    real_columns = np.floor(np.mod(np.degrees(np.arctan2(rows[:, 1], rows[:, 0])), 360.0) / sensor.azimuth_step_deg)
+    scene, owner_of_face, chosen = replay.labelled_scene(labels, meshes, glass)
+    scan = cast_rays(scene, sensor, np.eye(4), options)
+    owner = owner_of_face[scan.returns["face"]]
+    rings = replay.real_rings(rows)
+    columns = replay.azimuth_columns(rows, sensor)
     found = []
     for index, ((kind, centre, dims, heading), mesh) in enumerate(zip(labels, chosen)):
         local = box_frame(rows[:, :3], centre, heading)
@@ -137,7 +64,7 @@ def frame_objects(rows, labels, sensor, meshes, seed: int, glass: bool = True) -
         found.append({"class": kind, "mesh": mesh[2], "distance": float(np.hypot(*centre[:2])), "dims": dims,
                       "real": local[inside], "sim": sim_local, "real_intensity": rows[inside, 3],
                       "sim_intensity": mine["intensity"].astype(np.float64),
-                      "real_cells": (real_rings[inside], real_columns[inside]),
+                      "real_cells": (rings[inside], columns[inside]),
                       "sim_cells": (mine["ring"].astype(np.int64), mine["column"].astype(np.int64))})
     return found
 
@@ -231,16 +158,18 @@ def main(argv: list) -> int:
     parser.add_argument("--sensor", default="kitti", help="sensor preset or TOML")
     parser.add_argument("--min-points", type=int, default=1, help="real points an object needs to be scored")
     parser.add_argument("--no-glass", action="store_true", help="scan glass materials as solid surfaces")
+    parser.add_argument("--no-drop", action="store_true", help="scan without the sensor's ray-drop model")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "fidelity")
     args = parser.parse_args(argv)
     sensor = sensor_from_name(args.sensor)
     if sensor.dataset != "kitti":
         raise InputError(args.sensor, f"is a {sensor.dataset} sensor; the scans are KITTI's")
-    meshes = class_meshes(args.meshes)
+    meshes = replay.class_meshes(args.meshes, SHARED / "chrono_vehicles" / "data" / "vehicle")
+    options = ScanOptions(window=False, range_noise=True, ray_drop=not args.no_drop, seed=args.seed)
     start = time.perf_counter()
     objects = [obj for _, rows, labels in kitti_frames(args.folder) if labels
-               for obj in frame_objects(rows, labels, sensor, meshes, args.seed, not args.no_glass)
+               for obj in frame_objects(rows, labels, sensor, meshes, options, not args.no_glass)
                if len(obj["real"]) >= args.min_points]
     if not objects:
         raise InputError(args.folder, f"no labelled object has {args.min_points} real points")

@@ -1,20 +1,25 @@
 """How close estimated LiDAR intensities come to real ones, per class, on real objects
-held out from training: constant class mean, the scanner's physical default, histogram
-matching to the real class histogram, and the learned CycleGAN estimator.
+held out from every fit (leave one scan out): constant class mean, the sensor's fitted
+physical law (the default without a checkpoint), histogram matching to the real class
+histogram, and the learned CycleGAN estimator.
 
     .venv/bin/python headless_scripts/bench_intensity.py [--quick] [--steps N]
-        [--checkpoint PATH] [--holdout 000001] [--out bench/intensity]
+        [--checkpoint PATH] [--holdout 000001 ...] [--out bench/intensity]
 
-Real objects: the KITTI scans in ../shared/data/kitti_scans cut by their labels; the
-scans named by --holdout are never trained on and are what every method is judged
-against. RGB objects: scans (KITTI sensor, the 12 poses of objects.RGB_POSES) of the
-Chrono meshes with their material colours (sedan, SUV, van as car; truck, MAN as
-truck; city bus as bus) and of the built-in samples. With --merge-classes (the
-default: the shared data has one or two real objects per class) every class trains as
-one, "object"; predictions still go per original class.
+Real objects: the KITTI scans in ../shared/data/kitti_scans cut by their labels. Each
+scan in turn (or those named by --holdout) is held out: the physical law
+(physical_intensity.py) is fitted on the other scans' labelled objects (replay.py, as
+fit_returns.py does), the CycleGAN is trained on them (unless --checkpoint), and every
+method is judged on the held-out scan's objects. RGB objects: scans (KITTI sensor with
+the fold's law and its noise, the 12 poses of objects.RGB_POSES) of the Chrono meshes
+with their material colours (sedan, SUV, van as car; truck, MAN as truck; city bus as
+bus) and of the built-in samples. With --merge-classes (the default: the shared data
+has one or two real objects per class) every class trains as one, "object";
+predictions still go per original class. nuScenes is not measured: the shared nuScenes
+sample's 100-point subsets hold no point of a labelled object.
 
-Metric, per class: Wasserstein-1 between the pooled per-point intensities of the
-predictions (on that class's RGB objects) and of the held-out real objects, and W1
+Metric, per class and fold: Wasserstein-1 between the pooled per-point intensities of
+the predictions (on that class's RGB objects) and of the held-out real objects, and W1
 between their ball-patch mean intensities (16 farthest-point centres, radius 0.5 in the
 [-1, 1]^3 box frame). Intensities are KITTI's 0..1. Lower is better.
 """
@@ -34,6 +39,7 @@ from scipy.stats import wasserstein_distance  # noqa: E402
 
 from pgt_blender import cli  # noqa: E402
 from pgt_blender.core.intensity import losses, objects  # noqa: E402
+from pgt_blender.core.scan import replay  # noqa: E402
 from pgt_blender.core.scan.sensors import PRESETS  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
@@ -110,39 +116,65 @@ def evaluate(held_out: list, rgb: list, train_real: list, estimator, merged: boo
 
 
 def table(rows: list) -> str:
-    lines = ["| class | method | W1 points | W1 patch means | mean | real mean | real objects / points | rgb objects |",
-             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| held out | class | method | W1 points | W1 patch means | mean | real mean | real objects / points "
+             "| rgb objects |", "|---|---|---|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
-        lines.append(f"| {r['class']} | {r['method']} | {r['w1_points']:.4f} | {r['w1_patch_means']:.4f} "
+        lines.append(f"| {r['fold']} | {r['class']} | {r['method']} | {r['w1_points']:.4f} | {r['w1_patch_means']:.4f} "
                      f"| {r['mean']:.3f} | {r['real_mean']:.3f} | {r['real_objects']} / {r['real_points']} "
                      f"| {r['rgb_objects']} |")
     return "\n".join(lines)
 
 
-def draw(rows):
+def summary_table(averaged: list) -> str:
+    lines = ["| class | method | W1 points, mean over folds | / constant class mean | folds |",
+             "|---|---|---:|---:|---|"]
+    lines += [f"| {r['class']} | {r['method']} | {r['w1_points']:.4f} | {r['vs_constant']:.2f} | "
+              f"{', '.join(r['folds'])} |" for r in averaged]
+    return "\n".join(lines)
+
+
+def draw(averaged: list):
     def figure(plt):
-        classes = sorted({r["class"] for r in rows})
+        classes = sorted({r["class"] for r in averaged})
         fig, axes = plt.subplots(1, len(classes), figsize=(5 * len(classes), 4), squeeze=False)
         for ax, class_name in zip(axes[0], classes):
-            mine = [r for r in rows if r["class"] == class_name]
-            ax.bar(range(len(mine)), [r["w1_points"] for r in mine], 0.4, label="W1 per point")
-            ax.bar(np.arange(len(mine)) + 0.4, [r["w1_patch_means"] for r in mine], 0.4, label="W1 patch means")
-            ax.set_xticks(np.arange(len(mine)) + 0.2, [r["method"].split(" (")[0] for r in mine], rotation=20)
-            ax.set_title(f"{class_name}: {mine[0]['real_objects']} held-out real object(s)")
-            ax.set_ylabel("Wasserstein-1 to real (KITTI 0..1), lower is better")
-            ax.legend()
+            mine = [r for r in averaged if r["class"] == class_name]
+            ax.bar(range(len(mine)), [r["w1_points"] for r in mine])
+            ax.set_xticks(range(len(mine)), [r["method"].split(" (")[0] for r in mine], rotation=20)
+            ax.set_title(f"{class_name}: held out in {', '.join(mine[0]['folds'])}")
+            ax.set_ylabel("W1 per point to real (KITTI 0..1), lower is better")
         return fig
     return figure
+
+
+def fold_law(frames: list, held_out: str, sensor) -> tuple:
+    """The intensity law fitted on the replayed frames other than ``held_out``."""
+    return replay.fit_frames_intensity_law([frame for frame in frames if frame["frame"] != held_out], sensor)
+
+
+def summary(rows: list) -> list:
+    """Per class: each method's W1 per point averaged over the folds that held it out,
+    and its ratio to the constant class mean's."""
+    found = []
+    for class_name in sorted({row["class"] for row in rows}):
+        constant = np.mean([row["w1_points"] for row in rows
+                            if row["class"] == class_name and row["method"] == METHODS[0]])
+        for method in METHODS:
+            w1 = np.mean([row["w1_points"] for row in rows if row["class"] == class_name and row["method"] == method])
+            found.append({"class": class_name, "method": method, "w1_points": float(w1),
+                          "vs_constant": float(w1 / constant) if constant > 0 else None,
+                          "folds": sorted({row["fold"] for row in rows if row["class"] == class_name})})
+    return found
 
 
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="bench_intensity.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--kitti", type=Path, default=SHARED / "kitti_scans")
-    parser.add_argument("--holdout", nargs="+", default=["000001"], help="KITTI scan ids never trained on")
+    parser.add_argument("--holdout", nargs="+", help="KITTI scan ids held out in turn (default: every scan)")
     parser.add_argument("--min-points", type=int, default=64, help="real training objects' minimum points")
     parser.add_argument("--steps", type=int, help="training steps (default: TrainConfig's)")
     parser.add_argument("--per-class", action="store_true", help="train classes apart instead of merged")
-    parser.add_argument("--checkpoint", type=Path, help="evaluate this model instead of training one")
+    parser.add_argument("--checkpoint", type=Path, help="evaluate this model instead of training one per fold")
     parser.add_argument("--quick", action="store_true", help="few objects and steps (a smoke test)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "intensity")
     args = parser.parse_args(argv)
@@ -151,36 +183,48 @@ def main(argv: list) -> int:
 
     sensor = PRESETS["kitti"]
     real = objects.kitti_scan_objects(args.kitti)
-    held_out = [o for o in real if o.name.split(":")[0] in args.holdout]
-    train_real = [o for o in real if o.name.split(":")[0] not in args.holdout]
-    rgb = rgb_domain(sensor, args.quick)
+    frames = replay.replay_frames(((scan.stem, rows, labels) for scan, rows, labels in objects.kitti_frames(args.kitti)),
+                                  sensor, replay.class_meshes("chrono", SHARED / "chrono_vehicles" / "data" / "vehicle"))
+    scans = args.holdout or [frame["frame"] for frame in frames]
     merged = not args.per_class
     relabel = (lambda items: [replace(o, class_name="object") for o in items]) if merged else (lambda items: items)
     config = TrainConfig(steps=args.steps or (20 if args.quick else TrainConfig.steps))
     start = time.perf_counter()
-    with tempfile.TemporaryDirectory() as scratch:
-        checkpoint = args.checkpoint
-        if checkpoint is None:
-            real_set, rgb_set = objects.paired_sets(relabel(train_real), relabel(rgb), "kitti", args.min_points,
-                                                    config.points)
-            checkpoint = train(real_set, rgb_set, config, Path(scratch), progress=not args.quick)
-        estimator = IntensityEstimator.load(checkpoint)
-        rows = evaluate(held_out, rgb, train_real, estimator, merged)
+    rows, folds = [], []
+    for scan in scans:
+        held_out = [o for o in real if o.name.split(":")[0] == scan]
+        train_real = [o for o in real if o.name.split(":")[0] != scan]
+        law = fold_law(frames, scan, sensor)
+        rgb = rgb_domain(replace(sensor, intensity_law=law), args.quick)
+        with tempfile.TemporaryDirectory() as scratch:
+            checkpoint = args.checkpoint
+            if checkpoint is None:
+                real_set, rgb_set = objects.paired_sets(relabel(train_real), relabel(rgb), "kitti", args.min_points,
+                                                        config.points)
+                checkpoint = train(real_set, rgb_set, config, Path(scratch), progress=not args.quick)
+            fold_rows = evaluate(held_out, rgb, train_real, IntensityEstimator.load(checkpoint), merged)
+        rows += [row | {"fold": scan} for row in fold_rows]
+        folds.append({"held_out": scan, "law": law, "held_out_objects": [f"{o.name} ({len(o.points)} pts)"
+                                                                        for o in held_out],
+                      "scored_classes": sorted({row["class"] for row in fold_rows})})
+    averaged = summary(rows)
     results = {
         "machine": cli.machine(numpy=np.__version__, torch=__import__("torch").__version__),
-        "inputs": {"real": str(args.kitti), "held_out_scans": args.holdout,
-                   "held_out_objects": [f"{o.name} ({len(o.points)} pts)" for o in held_out],
-                   "train_real_objects": [f"{o.name} ({len(o.points)} pts)" for o in train_real
-                                          if len(o.points) >= args.min_points],
-                   "rgb_objects": len(rgb), "merged_classes": merged, "min_points": args.min_points,
+        "inputs": {"real": str(args.kitti), "folds": folds, "rgb_objects_per_fold": len(rgb),
+                   "merged_classes": merged, "min_points": args.min_points,
                    "train_config": vars(config) | {"checkpoint": str(args.checkpoint) if args.checkpoint else "trained"}},
         "seconds": time.perf_counter() - start,
         "rows": rows,
+        "summary": averaged,
     }
-    print(table(rows))
-    cli.write_results(args.out, results, draw(rows))
+    for fold in folds:
+        print(f"held out {fold['held_out']}: {', '.join(fold['held_out_objects'])}; law fitted on the others "
+              f"{tuple(round(value, 4) for value in fold['law'])}; scored classes "
+              f"{', '.join(fold['scored_classes']) or 'none (no RGB object of its classes)'}")
+    print("\n" + table(rows) + "\n\n" + summary_table(averaged))
+    cli.write_results(args.out, results, draw(averaged))
     args.out.with_suffix(".md").write_text("# LiDAR intensity: estimates against held-out real objects\n\n"
-                                           + table(rows) + "\n")
+                                           + table(rows) + "\n\n" + summary_table(averaged) + "\n")
     return 0
 
 

@@ -8,7 +8,8 @@ intensity); a folder stands for its *.bin files. The model and the fit are in
 pgt_blender/core/scan/sensor_fit.py. It prints each laser's fit and z residual, then,
 with two or more scans, each scan's elevation error when the table is fitted on the
 others (leave one out) beside the --base preset's, and writes a sensor TOML (``base``
-plus the fitted keys) that --sensor and the bank config take. Bad input: a one-line
+plus the fitted keys) that --sensor and the bank config take. What returns look like
+(ray drop, intensity) is fitted on labelled frames by fit_returns.py. Bad input: a one-line
 error and exit code 1.
 """
 
@@ -42,17 +43,18 @@ def rms(values: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(values))))
 
 
-def leave_one_out(scans: list, base_elevations: np.ndarray) -> list:
+def leave_one_out(scans: list, base) -> list:
     """Per scan: RMS elevation error (deg) of the table fitted on the other scans, and of
-    the base preset's table (matched to the lasers by elevation rank, no offsets)."""
+    the ``base`` sensor's table (matched to the lasers by elevation rank)."""
     rows = []
     for index, scan in enumerate(scans):
         fit = sensor_fit.fit_lasers([other for other_index, other in enumerate(scans) if other_index != index])
         rank = np.argsort(np.argsort(fit.elevations_deg))
-        base = sensor_fit.elevation_errors(fit, scan, base_elevations[rank], np.zeros(len(rank))) \
-            if len(base_elevations) == len(rank) else None
+        base_errors = sensor_fit.elevation_errors(fit, scan, np.asarray(base.elevations_deg)[rank],
+                                                  np.asarray(base.vertical_offsets_m)[rank]) \
+            if base.beams == len(rank) else None
         rows.append({"fitted_rms_deg": rms(sensor_fit.elevation_errors(fit, scan)),
-                     "base_rms_deg": None if base is None else rms(base)})
+                     "base_rms_deg": None if base_errors is None else rms(base_errors)})
     return rows
 
 
@@ -87,7 +89,7 @@ def main(argv: list) -> int:
     fit = sensor_fit.fit_lasers(scans, files)
     base = PRESETS[args.base]
     sensor = sensor_fit.fitted_sensor(base, fit, args.out.stem if args.out else base.name)
-    held_out = leave_one_out(scans, np.asarray(base.elevations_deg)) if len(scans) > 1 else []
+    held_out = leave_one_out(scans, base) if len(scans) > 1 else []
     result = {"scans": [str(path) for path in files], "columns": fit.columns,
               "lasers": [{"laser": index, "elevation_deg": float(elevation), "vertical_offset_m": float(offset),
                           "residual_m": float(residual), "points": int(points)}

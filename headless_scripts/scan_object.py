@@ -78,7 +78,7 @@ def learned_intensity(result, recon, bounds: np.ndarray, sensor, class_name: str
 def scan(args):
     sensor = sensor_from_name(args.sensor)
     recon = load_reconstruction(args.object, with_cameras=False)
-    options = ScanOptions(range_noise=args.noise, drop_rate=args.drop_rate, seed=args.seed)
+    options = ScanOptions(range_noise=args.noise, drop_rate=args.drop_rate, ray_drop=args.ray_drop, seed=args.seed)
     heading = np.radians(args.heading)
     class_name = args.class_name or sidecar_class(args.object)
     if args.surface == "range-view":
@@ -152,6 +152,8 @@ def main(argv: list) -> int:
                         help="intensity.pt of train_intensity.py: learned intensities instead of the physical default")
     parser.add_argument("--noise", action="store_true", help="add the sensor's range noise")
     parser.add_argument("--drop-rate", type=finite, default=0.0, help="random ray drop probability")
+    parser.add_argument("--ray-drop", action="store_true", help="drop returns with the sensor's fitted ray-drop "
+                                                                 "model (kitti has one)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, required=True, help=f"output file ({', '.join(OUTPUT_SUFFIXES)})")
     args = parser.parse_args(argv)

@@ -236,25 +236,36 @@ def test_point_cloud_scans_as_surfels(scene):
 @pytest.mark.parametrize("use_nodes", [False, True])
 def test_material_colour_gives_the_reflectivity(scene, use_nodes):
     """No colour attribute: a face's reflectivity is its material's base colour (the
-    Principled BSDF's, else the viewport colour)."""
+    Principled BSDF's, else the viewport colour), relative to the object's mean
+    (targets.relative_reflectivity): a white and a dark material keep their contrast."""
     vertices, faces = box_geometry()
     obj = mesh_object(scene, "Box", vertices, faces)
-    material = bpy.data.materials.new("white")
-    material.diffuse_color = (0.9, 0.9, 0.9, 1.0)  # scene-linear
-    if use_nodes:
-        material.diffuse_color = (0.1, 0.1, 0.1, 1.0)  # ignored: the node tree decides
-        material.use_nodes = True
-        material.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (0.9, 0.9, 0.9, 1.0)
-    obj.data.materials.append(material)
+    for name, linear in (("white", 0.9), ("dark", 0.1)):
+        material = bpy.data.materials.new(name)
+        material.diffuse_color = (linear, linear, linear, 1.0)  # scene-linear
+        if use_nodes:
+            material.diffuse_color = (0.5, 0.5, 0.5, 1.0)  # ignored: the node tree decides
+            material.use_nodes = True
+            material.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (linear, linear, linear, 1)
+        obj.data.materials.append(material)
+    corners = np.asarray(vertices)[faces]
+    sides = np.round(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), 6)
+    _, side = np.unique(np.sign(sides), axis=0, return_inverse=True)
+    slots = np.zeros(len(faces), np.int32)
+    for index in range(side.max() + 1):
+        slots[np.flatnonzero(side == index)[1:]] = 1  # each side's two triangles: one white, one dark
+    obj.data.polygons.foreach_set("material_index", slots)
     settings = scene.pgt_scan
     settings.sensor = "kitti"  # float intensities: no rounding to hide a difference
     bpy.ops.object.pgt_scan()
-    albedo = reflectivity_from_srgb(np.array([[1.055 * 0.9 ** (1 / 2.4) - 0.055] * 3]))
-    expected = core_scan(mesh_target(np.float32(vertices), faces, "Box", np.repeat(albedo, len(faces))), settings)
+    albedo = reflectivity_from_srgb(np.array([[1.055 * 0.9 ** (1 / 2.4) - 0.055] * 3,
+                                              [1.055 * 0.1 ** (1 / 2.4) - 0.055] * 3]))
+    expected = core_scan(mesh_target(np.float32(vertices), faces, "Box", albedo[slots]), settings)
     stored = scan_columns(bpy.data.objects["Box Scan"])
     np.testing.assert_allclose(stored["intensity"], expected.returns["intensity"], rtol=1e-5)
-    grey = core_scan(mesh_target(np.float32(vertices), faces, "Box"), settings).returns["intensity"]
-    assert stored["intensity"].mean() > 1.5 * grey.mean()
+    white = slots[stored["face"]] == 0
+    assert white.any() and (~white).any()
+    assert stored["intensity"][white].mean() > 4 * stored["intensity"][~white].mean()
 
 
 @pytest.mark.parametrize("glass", ["named", "transparent"])

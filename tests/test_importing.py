@@ -242,3 +242,20 @@ def test_colmap_folder_without_model(statue, tmp_path):
     (tmp_path / "sparse" / "0").mkdir(parents=True)
     with pytest.raises(InputError, match=r"no COLMAP model files .* \(try its sparse/0 sub-folder\)"):
         load_reconstruction(tmp_path)
+
+
+def test_material_meshes_carry_colours_and_glass(shared_data, tmp_path):
+    from pgt_blender.core.importing.mesh import read_material_mesh
+
+    sedan = read_material_mesh(shared_data / "chrono_vehicles/data/vehicle/sedan/sedan_chassis_vis.obj")
+    assert len(sedan.faces) == len(sedan.face_srgb) == len(sedan.see_through) > 30000
+    assert 0 < sedan.see_through.mean() < 0.5  # windows and lights (dissolve d < 1), not the body
+    red = np.isclose(sedan.face_srgb, np.array([0.400594, 0.022045, 0.003914]), atol=1 / 255).all(axis=1)
+    assert red.any() and not sedan.see_through[red].any()  # the body paint (Material.001, d 1)
+    (tmp_path / "part.obj").write_text("mtllib part.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl paint\nf 1 2 3\n")
+    (tmp_path / "part.mtl").write_text("newmtl paint\nKd 0.5 0.5 0.5\nd half\n")
+    with pytest.raises(InputError, match="part.mtl: material paint: dissolve 'd' must be a number"):
+        read_material_mesh(tmp_path / "part.obj")
+    (tmp_path / "part.mtl").write_text("newmtl paint\nKd 0.5 0.5 0.5\n")
+    plain = read_material_mesh(tmp_path / "part.obj")
+    assert plain.faces.tolist() == [[0, 1, 2]] and not plain.see_through.any()

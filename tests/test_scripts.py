@@ -36,7 +36,7 @@ def test_import_splat_json(donut):
 @pytest.mark.parametrize("script", ["import_reconstruction.py", "demo.py", "bench_import.py", "build_extension.py",
                                     "scan_object.py", "bench_scan.py", "train_intensity.py", "bench_intensity.py",
                                     "export_bank.py", "mix_bank.py", "bench_bank.py", "fit_ground.py",
-                                    "fit_sensor.py", "bench_fidelity.py"])
+                                    "fit_sensor.py", "fit_returns.py", "bench_fidelity.py"])
 def test_help(script):
     result = run_script(script, "--help")
     assert result.returncode == 0 and result.stdout.startswith("usage:")
@@ -85,6 +85,8 @@ def test_bench_fidelity_on_the_shared_kitti_scans(shared_data, tmp_path):
     assert {row["class"] for row in results["objects"]} == {"Pedestrian", "Truck", "Car", "Cyclist", "Misc"}
     assert results["totals"]["mean_ring_jaccard"] >= 0.8  # the fitted kitti table hits the rings the scans do
     assert "| Truck | truck_chassis.obj | 69.7 |" in result.stdout
+    truck = next(row for row in results["objects"] if row["class"] == "Truck")
+    assert 0.65 <= truck["ratio"] <= 1.35  # the meshed truck, with the fitted ray drop, within +-35 % of real
     assert "W1" in result.stdout and results["machine"]["cores"]
 
 

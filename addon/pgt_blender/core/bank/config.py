@@ -28,7 +28,8 @@
 
     [scan]
     range_noise = true          # Gaussian range noise with the sensor's sigma
-    drop_rate = 0.0
+    drop_rate = 0.0             # extra random drop on top of ray_drop
+    ray_drop = true             # the sensor's fitted ray-drop model (ray_drop.py; kitti has one)
     max_incidence_deg = 90.0
     engine = "bvh"              # bvh (Blender's BVHTree) or embree (embreex: about 2x the entries/s)
     ego_motion = true           # multi-sweep entries seen from a moving ego vehicle (sweeps.EGO_MOTION)
@@ -92,6 +93,7 @@ class BankConfig:
     size_variants: int = 8
     range_noise: bool = True
     drop_rate: float = 0.0
+    ray_drop: bool = True
     max_incidence_deg: float = 90.0
     engine: str = "bvh"
     ego_motion: bool = True
@@ -163,6 +165,7 @@ _KEYS = {
     "jitter.size_variants": ("size_variants", _positive_int, "an integer >= 1"),
     "scan.range_noise": ("range_noise", lambda v: isinstance(v, bool), "true or false"),
     "scan.drop_rate": ("drop_rate", lambda v: _number(v) and 0 <= v < 1, "a fraction in [0, 1)"),
+    "scan.ray_drop": ("ray_drop", lambda v: isinstance(v, bool), "true or false"),
     "scan.max_incidence_deg": ("max_incidence_deg", lambda v: _number(v) and 0 < v <= 90, "degrees in (0, 90]"),
     "scan.engine": ("engine", lambda v: v in ENGINES, f"one of {', '.join(ENGINES)}"),
     "scan.ego_motion": ("ego_motion", lambda v: isinstance(v, bool), "true or false"),

@@ -66,7 +66,8 @@ def scan_entry(cache: TargetCache, sensor, entry, config: BankConfig):
     grid.ENTRY_DTYPE row; ``scan.box`` is the (9,) box, sensor frame."""
     target, bounds = cache.get(int(entry["object"]), int(entry["variant"]))
     options = ScanOptions(range_noise=config.range_noise, max_incidence_deg=config.max_incidence_deg,
-                          drop_rate=config.drop_rate, seed=int(entry["noise_seed"]), engine=config.engine)
+                          drop_rate=config.drop_rate, ray_drop=config.ray_drop, seed=int(entry["noise_seed"]),
+                          engine=config.engine)
     scan = scan_sweeps(target, sensor, float(entry["x"]), float(entry["y"]), float(entry["heading"]),
                        Motion(float(entry["speed"]), float(entry["acceleration"])), sweeps_of(config),
                        options, bounds, box_margin=BOX_TOLERANCE,

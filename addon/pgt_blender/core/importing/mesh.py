@@ -1,5 +1,6 @@
 """Mesh files (OBJ, PLY with faces, GLB/GLTF, STL) -> Reconstruction, through trimesh."""
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -49,3 +50,72 @@ def _require_declared_counts(path: Path, vertices: int, triangles: int) -> None:
     if declared.get("vertex", vertices) != vertices or declared.get("face", 0) > triangles:
         raise InputError(path, f"the header declares {declared.get('vertex')} vertices and {declared.get('face')} "
                                f"faces but the body holds {vertices} vertices and {triangles} triangles")
+
+
+@dataclass(frozen=True)
+class MaterialMesh:
+    """A mesh with its per-face appearance, in the file's frame and units.
+
+    vertices (V, 3) float64; faces (F, 3) int64; face_srgb (F, 3) float32 sRGB in [0, 1]
+    (the material's diffuse colour ``Kd``, else the mean of the face's vertex colours;
+    NaN where the file gives no colour); see_through (F,) bool (glass: the material's
+    name, or an .mtl dissolve ``d`` < 1, which trimesh does not keep; see
+    scan/targets.see_through_materials)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    face_srgb: np.ndarray
+    see_through: np.ndarray
+
+
+def read_material_mesh(path) -> MaterialMesh:
+    """``path`` (OBJ + MTL, GLB/GLTF, PLY, STL) with its parts' transforms applied,
+    through trimesh; InputError naming the file when it has no faces or cannot be read."""
+    import trimesh
+
+    from ..scan.targets import see_through_materials
+
+    path = Path(path)
+    try:
+        scene = trimesh.load(str(path), process=False, force="scene")
+    except Exception as error:  # trimesh raises many types for corrupt files
+        raise InputError(path, f"could not be read as a mesh: {error}") from None
+    parts = [geometry for geometry in scene.dump() if len(getattr(geometry, "faces", ()))]
+    if not parts:
+        raise InputError(path, "mesh has no faces")
+    alphas = _mtl_dissolves(path) if path.suffix.lower() == ".obj" else {}
+    vertices, faces, colours, names, offset = [], [], [], [], 0
+    for part in parts:
+        material = getattr(part.visual, "material", None)
+        if material is not None:
+            colour = np.tile(np.asarray(material.main_color[:3], np.float32) / 255, (len(part.faces), 1))
+        elif part.visual.kind is not None:
+            colour = np.asarray(part.visual.face_colors[:, :3], np.float32) / 255
+        else:
+            colour = np.full((len(part.faces), 3), np.nan, np.float32)
+        vertices.append(np.asarray(part.vertices, np.float64))
+        faces.append(np.asarray(part.faces, np.int64) + offset)
+        colours.append(colour)
+        names.append(getattr(material, "name", "") or "")
+        offset += len(part.vertices)
+    flags = see_through_materials(names, [alphas.get(name, 1.0) for name in names])
+    return MaterialMesh(checked_positions(path, np.concatenate(vertices), "vertices"), np.concatenate(faces),
+                        np.concatenate(colours), np.repeat(flags, [len(part.faces) for part in parts]))
+
+
+def _mtl_dissolves(path: Path) -> dict:
+    """Material name -> dissolve ``d`` of the .mtl libraries beside an OBJ."""
+    alphas = {}
+    for library in path.parent.glob("*.mtl"):
+        name = None
+        for line in library.read_text(errors="replace").splitlines():
+            words = line.split()
+            if words[:1] == ["newmtl"] and len(words) > 1:
+                name = words[1]
+            elif words[:1] == ["d"] and name and len(words) > 1:
+                try:
+                    alphas[name] = float(words[1])
+                except ValueError:
+                    raise InputError(library, f"material {name}: dissolve 'd' must be a number, got "
+                                              f"{words[1]!r}") from None
+    return alphas

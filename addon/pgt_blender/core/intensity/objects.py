@@ -212,14 +212,15 @@ RGB_POSES = tuple((distance, azimuth, heading) for distance in (8.0, 15.0, 25.0)
 def scanned_rgb_objects(target, element_rgb: np.ndarray, class_name: str, name: str, sensor,
                         poses=RGB_POSES) -> list:
     """One RGB object per pose: ``target`` (a core.scan ScanTarget, object frame) scanned
-    by ``sensor`` at (distance, azimuth, heading) poses; each return takes the sRGB
-    colour ``element_rgb`` (E, 3) of the face or point it hit (the scan's ``face``)."""
-    from ..scan.raycast import scan_object
+    by ``sensor`` with its noise (range noise, intensity spread; seeded by the pose's
+    index) at (distance, azimuth, heading) poses; each return takes the sRGB colour
+    ``element_rgb`` (E, 3) of the face or point it hit (the scan's ``face``)."""
+    from ..scan.raycast import ScanOptions, scan_object
 
     objects = []
-    for distance, azimuth, heading in poses:
+    for index, (distance, azimuth, heading) in enumerate(poses):
         x, y = distance * np.cos(np.radians(azimuth)), distance * np.sin(np.radians(azimuth))
-        scan = scan_object(target, sensor, x, y, np.radians(heading))
+        scan = scan_object(target, sensor, x, y, np.radians(heading), ScanOptions(range_noise=True, seed=index))
         rgb = np.asarray(element_rgb, np.float32)[scan.returns["face"], :3]
         objects.append(LidarObject(f"{name}@{distance:g}m/{azimuth:g}/{heading:g}", class_name.lower(),
                                    scan.box_frame_points(target.bounds), target.size, rgb,
@@ -273,31 +274,15 @@ def prepared_rgb_objects(folder, sensor, poses=RGB_POSES) -> list:
 
 def material_mesh_rgb_objects(path, class_name: str, sensor, poses=RGB_POSES) -> list:
     """Scans of a mesh whose parts carry material colours (e.g. OBJ + MTL ``Kd``), in the
-    object frame (+x forward, +z up, m); each face takes its material's main colour."""
-    import trimesh
-
+    object frame (+x forward, +z up, m); each face takes its material's main colour
+    (importing.mesh.read_material_mesh; grey where the file has none)."""
+    from ..importing.mesh import read_material_mesh
     from ..scan.targets import mesh_target, reflectivity_from_srgb
 
-    path = Path(path)
-    try:
-        scene = trimesh.load(str(path), process=False, force="scene")
-    except Exception as error:  # trimesh raises many types for corrupt files
-        raise InputError(path, f"could not be read as a mesh: {error}") from None
-    parts = [geometry for geometry in scene.dump() if len(getattr(geometry, "faces", ()))]
-    if not parts:
-        raise InputError(path, "mesh has no faces")
-    vertices, faces, face_rgb, offset = [], [], [], 0
-    for part in parts:
-        material = getattr(part.visual, "material", None)
-        colour = (np.asarray(material.main_color[:3], np.float32) / 255 if material is not None
-                  else np.asarray(part.visual.face_colors[:, :3], np.float32).mean(axis=0) / 255)
-        vertices.append(part.vertices)
-        faces.append(part.faces + offset)
-        face_rgb.append(np.tile(colour, (len(part.faces), 1)))
-        offset += len(part.vertices)
-    face_rgb = np.concatenate(face_rgb)
-    target = mesh_target(np.concatenate(vertices), np.concatenate(faces), path.name, reflectivity_from_srgb(face_rgb))
-    return scanned_rgb_objects(target, face_rgb, class_name, path.stem, sensor, poses)
+    mesh = read_material_mesh(path)
+    face_rgb = np.where(np.isnan(mesh.face_srgb), 0.5, mesh.face_srgb).astype(np.float32)
+    target = mesh_target(mesh.vertices, mesh.faces, Path(path).name, reflectivity_from_srgb(face_rgb))
+    return scanned_rgb_objects(target, face_rgb, class_name, Path(path).stem, sensor, poses)
 
 
 def real_objects(source, dataset: str, convention: str = "openpcdet") -> list:

@@ -24,6 +24,7 @@ from itertools import chain, repeat
 import numpy as np
 
 from .physical_intensity import dataset_intensity, relative_intensity
+from .ray_drop import drop_probability
 from .returns import RETURN_DTYPE, Scan
 from .sensors import Sensor
 from .targets import ScanTarget
@@ -38,10 +39,12 @@ SEE_THROUGH_STEP = 1e-4  # m: how far past a see-through hit the ray goes on
 class ScanOptions:
     """Sensor effects beyond geometry, all off by default (the exact scan).
 
-    range_noise:       add Gaussian range noise with the sensor's sigma.
+    range_noise:       add the sensor's noise: Gaussian range noise with its sigma and
+                       its intensity law's spread (physical_intensity.py).
     max_incidence_deg: drop returns hitting the surface more obliquely than this.
     min_intensity:     drop returns whose relative intensity (0..1) is below this.
     drop_rate:         drop each remaining return with this probability.
+    ray_drop:          drop returns with the sensor's ray-drop model (ray_drop.py), if it has one.
     seed:              the seed of the noise and the random drop.
     window:            cast only cells that can meet the box (False: full revolution).
     engine:            "bvh" (Blender's BVHTree, one call per ray: exact, everywhere) or
@@ -53,6 +56,7 @@ class ScanOptions:
     max_incidence_deg: float = 90.0
     min_intensity: float = 0.0
     drop_rate: float = 0.0
+    ray_drop: bool = False
     seed: int = 0
     window: bool = True
     engine: str = "bvh"
@@ -330,16 +334,23 @@ def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflect
                   cos_incidence: np.ndarray, faces: np.ndarray, options: ScanOptions, sweep: int = 0) -> np.ndarray:
     """Rows of RETURN_DTYPE for returns at ``ranges`` (M,) m along the rays of ``cells``
     (M,), after the min/max range gate and the options' drops and noise. Random draws
-    are one per candidate return in cell order, from a generator seeded by (seed, sweep)."""
+    are one per candidate return in cell order, from a generator seeded by (seed, sweep):
+    drop, range noise, intensity spread."""
     keep = (ranges >= sensor.min_range) & (ranges <= sensor.max_range)
     noisy = ranges
-    if options.drop_rate or options.range_noise:
+    drop = options.drop_rate
+    if options.ray_drop and sensor.ray_drop:
+        drop = 1.0 - (1.0 - drop) * (1.0 - drop_probability(sensor.ray_drop, reflectivity, cos_incidence, ranges))
+    spread = options.range_noise and len(sensor.intensity_law) == 3 and sensor.intensity_law[2] > 0
+    normal = None
+    if options.drop_rate or options.ray_drop or options.range_noise:
         rng = np.random.default_rng([options.seed, sweep])
-        keep &= rng.random(len(cells)) >= options.drop_rate
+        keep &= rng.random(len(cells)) >= drop
         if options.range_noise:
             noisy = ranges + rng.normal(0.0, sensor.range_noise_sigma, len(cells))
             keep &= noisy > 0
-    relative = relative_intensity(reflectivity, cos_incidence, ranges)
+        normal = rng.standard_normal(len(cells)) if spread else None
+    relative = relative_intensity(reflectivity, cos_incidence, ranges, sensor.intensity_law, normal)
     if options.max_incidence_deg < 90:
         keep &= np.abs(cos_incidence) >= np.cos(np.radians(options.max_incidence_deg))
     if options.min_intensity:

@@ -18,6 +18,11 @@ ray starts at ``vertical_offsets_m[b] * (-sin e * a + cos e * z) +
 horizontal_offsets_m[b] * (z x a)``, with ``e`` the beam's elevation, ``a`` the cell's
 horizontal azimuth unit vector and ``z`` up: the origin turns with the head. A return is
 that origin + range * direction; the range is measured from the laser.
+
+``ray_drop`` = (a, k) is the sensor's ray-drop model (ray_drop.py): the chance that a
+ray meeting a surface returns nothing, fitted to real scans (empty: none known).
+``intensity_law`` = (scale, range_exponent, spread) sets its physical intensity
+(physical_intensity.py; empty: the unfitted default).
 """
 
 import tomllib
@@ -46,6 +51,8 @@ SWEEP_INTERVAL_S = {"nuscenes": 0.05, "kitti": 0.1, "lyft": 0.2}
 FORWARD = {"nuscenes": (0.0, 1.0), "kitti": (1.0, 0.0), "lyft": (1.0, 0.0)}
 
 
+# Fitted sensor models (tuples of numbers): what their numbers are.
+_MODELS = {"ray_drop": "(a, k)", "intensity_law": "(scale, range_exponent, spread)"}
 PER_BEAM = ("elevations_deg", "azimuth_offsets_deg", "firing_us", "vertical_offsets_m", "horizontal_offsets_m")
 
 
@@ -67,6 +74,8 @@ class Sensor:
     vertical_offsets_m: tuple = ()
     horizontal_offsets_m: tuple = ()
     start_azimuth_deg: float = -180.0
+    ray_drop: tuple = ()
+    intensity_law: tuple = ()
     direction: int = -1  # -1 clockwise seen from above, as Velodyne and Hesai spin
     dataset: str = "nuscenes"
     note: str = field(default="", compare=False)
@@ -82,6 +91,12 @@ class Sensor:
                                  f"{getattr(self, name)!r}") from None
             object.__setattr__(self, name, values or ((0.0,) * len(self.elevations_deg) if name != "elevations_deg"
                                                       else ()))
+        for name, meaning in _MODELS.items():
+            try:
+                object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
+            except (TypeError, ValueError):
+                raise ValueError(f"sensor {self.name!r}: {name} must be {meaning}, got "
+                                 f"{getattr(self, name)!r}") from None
         validate(self)
 
     @property
@@ -208,6 +223,12 @@ def validate(sensor: Sensor) -> None:
         problems.append("min_range must be >= 0 and below max_range")
     if not sensor.mounting_height >= 0 or not sensor.range_noise_sigma >= 0:
         problems.append("mounting_height and range_noise_sigma must be >= 0")
+    for name, meaning in _MODELS.items():
+        values = getattr(sensor, name)
+        if values and (len(values) != len(meaning.split(",")) or not np.isfinite(values).all()):
+            problems.append(f"{name} must be empty or {meaning}, got {list(values)}")
+    if len(sensor.intensity_law) == 3 and not (sensor.intensity_law[0] > 0 and min(sensor.intensity_law[1:]) >= 0):
+        problems.append("intensity_law needs scale > 0, range_exponent >= 0 and spread >= 0")
     if sensor.direction not in (-1, 1):
         problems.append("direction must be -1 (clockwise) or 1 (counter-clockwise)")
     if sensor.dataset not in DATASETS:
@@ -222,7 +243,7 @@ def _hdl32e() -> Sensor:
     firing = np.where(np.arange(32) < 16, 2 * np.arange(32), 2 * (np.arange(32) - 16) + 1) * 1.152
     return Sensor("nuscenes", tuple(np.round(elevations, 2)), columns=1080, rate_hz=20.0,
                   min_range=1.0, max_range=70.0, mounting_height=1.84, range_noise_sigma=0.02,
-                  firing_us=tuple(firing), dataset="nuscenes",
+                  firing_us=tuple(firing), intensity_law=NUSCENES_INTENSITY_LAW, dataset="nuscenes",
                   note="Velodyne HDL-32E as on nuScenes LIDAR_TOP: 32 beams -30.67..+10.67 deg "
                        "every 4/3 deg, 20 Hz, 1080 columns (0.333 deg)")
 
@@ -246,6 +267,17 @@ KITTI_VERTICAL_OFFSETS_M = (
     0.2000, 0.2004, 0.2008, 0.2013, 0.2016, 0.2021, 0.2025, 0.2030, 0.2034, 0.2038, 0.2043, 0.2047, 0.2051, 0.2056,
     0.2060, 0.2064, 0.2068, 0.2073, 0.2077, 0.2082, 0.2086, 0.2090)
 KITTI_COLUMNS = 2000  # fitted: the scans step 0.180 deg in azimuth
+# Ray drop (a, k) fitted on the labelled objects of the same frames (fit_sensor.py --drop,
+# ray_drop.py): a surface of reflectivity 0.5 met head-on loses 2 % of its returns at 10 m,
+# 12 % at 35 m, 25 % at 60 m.
+KITTI_RAY_DROP = (-4.541, 0.800)
+# Intensity laws (scale, range_exponent, spread), physical_intensity.py, fitted by
+# fit_returns.py: KITTI on the labelled objects of the shared frames (mean 0.165, no
+# range falloff across objects); nuScenes on the nuScenes format sample's 600 points
+# (scene points: no labelled object has a point in that subset, so the scale is the
+# scene's mean, 8.9 of 255, which real objects exceed).
+KITTI_INTENSITY_LAW = (0.7067, 0.0, 1.0398)
+NUSCENES_INTENSITY_LAW = (0.0640, 0.0, 1.2007)
 
 
 def _hdl64e() -> Sensor:
@@ -253,7 +285,8 @@ def _hdl64e() -> Sensor:
     firing = np.tile(np.arange(32), 2) * (1e6 / (10.0 * KITTI_COLUMNS) / 32)
     return Sensor("kitti", KITTI_ELEVATIONS_DEG, columns=KITTI_COLUMNS, rate_hz=10.0, min_range=2.0,
                   max_range=120.0, mounting_height=1.73, range_noise_sigma=0.02,
-                  firing_us=tuple(firing), vertical_offsets_m=KITTI_VERTICAL_OFFSETS_M, dataset="kitti",
+                  firing_us=tuple(firing), vertical_offsets_m=KITTI_VERTICAL_OFFSETS_M, ray_drop=KITTI_RAY_DROP,
+                  intensity_law=KITTI_INTENSITY_LAW, dataset="kitti",
                   note="Velodyne HDL-64E as on KITTI: 64 beams -25.0..+1.94 deg with per-laser vertical offsets "
                        "fitted to KITTI's raw scans, 10 Hz, 2000 columns (0.18 deg)")
 

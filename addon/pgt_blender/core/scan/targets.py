@@ -54,7 +54,9 @@ class ScanTarget:
                   points); the ray window uses it.
     planes:       (P, 4) float64 per polygon: unit normal n and offset n . v, so a hit's
                   range is refined in float64 on its polygon's plane.
-    reflectivity: (P,) float32 in [0, 1] per polygon, for the physical intensity.
+    reflectivity: (P,) float32 in [0, 1] per polygon, relative to the object (its
+                  area-weighted mean is DEFAULT_REFLECTIVITY: relative_reflectivity),
+                  for the physical intensity and the ray drop.
     source_index: (P,) int32: the mesh face (or point) each polygon came from; the
                   scan's ``face`` column.
     kind:         "mesh" or "surfels".
@@ -109,6 +111,20 @@ def _planes(normals: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.column_stack([normals, np.einsum("ij,ij->i", normals, points)])
 
 
+def relative_reflectivity(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(N,) float32: ``values`` (N,) scaled so that their ``weights``-weighted (areas)
+    mean is DEFAULT_REFLECTIVITY, then clipped to [0, 1]; DEFAULT_REFLECTIVITY everywhere
+    for an all-black object. Colours set the contrast within an object and the sensor's
+    intensity law (fitted at DEFAULT_REFLECTIVITY) the level: a photo's exposure and
+    white balance, or a material file's colour convention, say little about a surface's
+    near-infrared reflectivity."""
+    values = np.clip(np.asarray(values, np.float64), 0, 1)
+    mean = np.average(values, weights=weights) if np.sum(weights) > 0 else values.mean()
+    if not mean > 0:
+        return np.full(len(values), DEFAULT_REFLECTIVITY, np.float32)
+    return np.clip(values * (DEFAULT_REFLECTIVITY / mean), 0, 1).astype(np.float32)
+
+
 def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
                 face_reflectivity: np.ndarray | None = None, with_bvh: bool = True,
                 face_see_through: np.ndarray | None = None) -> ScanTarget:
@@ -137,11 +153,12 @@ def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
     used = faces[kept]
     corners = corners[kept]
     normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    reflectivity = np.full(len(faces), DEFAULT_REFLECTIVITY, np.float32)
+    reflectivity = np.full(len(kept), DEFAULT_REFLECTIVITY, np.float32)
     if face_reflectivity is not None:
-        reflectivity = np.clip(np.asarray(face_reflectivity, np.float32).reshape(-1), 0, 1)
-        if len(reflectivity) != len(faces):
-            raise InputError(name, f"{len(reflectivity)} face reflectivities for {len(faces)} faces")
+        given = np.asarray(face_reflectivity, np.float32).reshape(-1)
+        if len(given) != len(faces):
+            raise InputError(name, f"{len(given)} face reflectivities for {len(faces)} faces")
+        reflectivity = relative_reflectivity(given[kept], doubled_area[kept])
     see_through = None
     if face_see_through is not None:
         see_through = np.asarray(face_see_through, bool).reshape(-1)
@@ -151,7 +168,7 @@ def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
     bvh = bvhtree_class().FromPolygons(vertices.tolist(), used.tolist(), all_triangles=True, epsilon=0.0) \
         if with_bvh else None
     bounds = np.stack([vertices[used].reshape(-1, 3).min(0), vertices[used].reshape(-1, 3).max(0)])
-    return ScanTarget(bvh, bounds, bounds, _planes(normals, corners[:, 0]), reflectivity[kept],
+    return ScanTarget(bvh, bounds, bounds, _planes(normals, corners[:, 0]), reflectivity,
                       kept.astype(np.int32), "mesh", name, vertices.astype(np.float32), used.astype(np.int32),
                       np.arange(len(kept), dtype=np.int32), see_through=see_through)
 
@@ -227,7 +244,7 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
     bvh = bvhtree_class().FromPolygons(corners.reshape(-1, 3).tolist(), polygons.tolist(),
                                        all_triangles=False, epsilon=0.0) if with_bvh else None
     reflectivity = (np.full(len(positions), DEFAULT_REFLECTIVITY, np.float32) if colors is None
-                    else reflectivity_from_srgb(colors))
+                    else relative_reflectivity(reflectivity_from_srgb(colors), semi_axes.prod(axis=1)))
     flat = corners.reshape(-1, 3)
     normals = np.cross(tangents[:, :, 0], tangents[:, :, 1])
     fan = np.array([[0, side, side + 1] for side in range(1, SURFEL_SIDES - 1)])  # a hexagon as 4 triangles
