@@ -15,7 +15,7 @@ Output by suffix: .bin float32 in the dataset's columns (KITTI x y z intensity;
 nuScenes/Lyft x y z intensity time_lag), .ply every column, .npy the structured rows
 (columns: pgt_blender/core/scan/returns.py). With --sweeps N the object moves as its
 class's motion model draws (seeded; class from --class or the sidecar <object>.json),
-or at --speed/--acceleration. Intensity: the physical default, or with
+or at --speed/--acceleration. Intensity: the sensor's physical law, or with
 --intensity-checkpoint the learned estimator (train_intensity.py) on each return's
 colour (the file's vertex or point colours) for the object's class. Bad input: a
 one-line error and exit code 1.
@@ -33,7 +33,7 @@ from pgt_blender.cli import run_main, script_argv  # noqa: E402
 from pgt_blender.core.authoring.prepare import read_sidecar  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
 from pgt_blender.core.importing import load_reconstruction  # noqa: E402
-from pgt_blender.core.learning import TORCH_REQUIREMENT  # noqa: E402
+from pgt_blender.core.intensity.estimator import scan_intensity  # noqa: E402
 from pgt_blender.core.scan.range_view import range_view_scan  # noqa: E402
 from pgt_blender.core.scan.raycast import ScanOptions, placement  # noqa: E402
 from pgt_blender.core.scan.returns import OUTPUT_SUFFIXES, write_scan  # noqa: E402
@@ -49,30 +49,6 @@ def sidecar_class(path: Path) -> str | None:
     if not sidecar.is_file():
         return None
     return read_sidecar(sidecar).get("class")
-
-
-def learned_intensity(result, recon, bounds: np.ndarray, sensor, class_name: str, checkpoint: Path) -> str:
-    """Replace the scan's intensities, in place, by the estimator's for ``class_name``:
-    each return in the frame of the box ``bounds`` (2, 3) at the pose its sweep saw,
-    with the colour of the face or point it hit. Returns a note on what was used."""
-    from pgt_blender.core.intensity.estimator import IntensityEstimator
-    from pgt_blender.core.scan.physical_intensity import dataset_intensity
-
-    if not class_name:
-        raise InputError(recon.source, "the learned intensity needs the object's class: give --class")
-    try:
-        import torch  # noqa: F401  (only whether it imports)
-    except ImportError:
-        return f"physical default: PyTorch ({TORCH_REQUIREMENT}) is not installed, so {checkpoint} was not used"
-    estimator = IntensityEstimator.load(checkpoint, dataset=sensor.dataset)
-    element_rgb = element_colors(recon)
-    rows, local = result.returns, result.box_frame_points(bounds)
-    for sweep in range(len(result.poses)):  # each sweep is the object at another pose
-        mine = rows["sweep"] == sweep
-        relative = estimator.predict(local[mine], bounds[1] - bounds[0], element_rgb[rows["face"][mine]], class_name,
-                                     recon.name)
-        rows["intensity"][mine] = dataset_intensity(relative, sensor.dataset)
-    return f"learned ({estimator.last_rate:,.0f} points/s)"
 
 
 def scan(args):
@@ -91,9 +67,10 @@ def scan(args):
         result = range_view_scan(positions, sensor, pose, bounds, reflectivity, options=options)
     else:
         result, bounds = ray_cast(args, recon, sensor, heading, class_name, options)
-    note = "physical default"
-    if args.intensity_checkpoint:
-        note = learned_intensity(result, recon, bounds, sensor, class_name, args.intensity_checkpoint)
+    if args.intensity_checkpoint and not class_name:
+        raise InputError(recon.source, "the learned intensity needs the object's class: give --class")
+    result.returns["intensity"], note = scan_intensity(result, bounds, element_colors(recon), class_name,
+                                                       args.intensity_checkpoint, name=recon.name)
     return result, sensor, note
 
 
@@ -149,7 +126,7 @@ def main(argv: list) -> int:
                         help="auto: mesh when the file has faces, else surfels")
     parser.add_argument("--radius-scale", type=finite, default=1.0, help="surfel radius / local point spacing")
     parser.add_argument("--intensity-checkpoint", type=Path,
-                        help="intensity.pt of train_intensity.py: learned intensities instead of the physical default")
+                        help="intensity.pt of train_intensity.py: learned intensities instead of the physical law")
     parser.add_argument("--noise", action="store_true", help="add the sensor's range noise")
     parser.add_argument("--drop-rate", type=finite, default=0.0, help="random ray drop probability")
     parser.add_argument("--ray-drop", action="store_true", help="drop returns with the sensor's fitted ray-drop "

@@ -106,7 +106,7 @@ def test_another_dataset_or_class_is_refused(scene, preferences, checkpoint):
     bpy.ops.object.pgt_scan()
     preview = bpy.data.objects["Box Scan"]
     bpy.context.view_layer.objects.active = preview
-    with pytest.raises(RuntimeError, match="trained on nuscenes intensities, the scan is kitti's"):
+    with pytest.raises(RuntimeError, match="trained on nuscenes intensities, not kitti's"):
         bpy.ops.object.pgt_apply_intensity()
     scene.pgt_scan.sensor = "nuscenes"
     bpy.context.view_layer.objects.active = obj

@@ -13,10 +13,10 @@ import pytest
 
 from pgt_blender.core.errors import InputError
 from pgt_blender.core.intensity import losses
-from pgt_blender.core.intensity.estimator import DEFAULT_COS_INCIDENCE, estimate_intensity
+from pgt_blender.core.intensity.estimator import scan_intensity
 from pgt_blender.core.intensity.objects import ObjectSet
-from pgt_blender.core.scan.physical_intensity import relative_intensity
-from pgt_blender.core.scan.targets import reflectivity_from_srgb
+from pgt_blender.core.scan.physical_intensity import dataset_intensity
+from pgt_blender.core.scan.returns import RETURN_DTYPE, Scan
 
 ROOT = Path(__file__).resolve().parents[1]
 CLASSES = ("car", "truck")
@@ -210,35 +210,57 @@ def test_predictions_are_per_point_in_range_and_batched_like_single(trained):
         assert values.dtype == np.float32 and (values >= 0).all() and (values <= 1).all()
         np.testing.assert_allclose(estimator.predict(*obj), values, atol=1e-5)
         np.testing.assert_array_equal(estimator.predict(*obj), estimator.predict(*obj))  # deterministic
-    xyz, dims, rgb = an_object(700, 2)
-    values, reason = estimate_intensity(xyz, dims, rgb, "car", trained / "intensity.pt", "kitti")
-    assert reason is None
-    np.testing.assert_array_equal(values, estimator.predict(xyz, dims, rgb, "car"))
+    scan, bounds, face_rgb = a_scan(700, 2)
+    half = np.arange(700) % 2 == 0
+    values, note = scan_intensity(scan, bounds, face_rgb, "car", trained / "intensity.pt", half)
+    assert note.startswith("learned (")
+    expected = estimator.predict(scan.box_frame_points(bounds)[half], bounds[1] - bounds[0], face_rgb[half], "car")
+    np.testing.assert_array_equal(values, dataset_intensity(expected, "kitti"))
 
 
-def test_without_a_checkpoint_the_physical_default_and_a_reason(tmp_path):
-    xyz, dims, rgb = an_object(50)
-    expected = relative_intensity(reflectivity_from_srgb(rgb), DEFAULT_COS_INCIDENCE, 10.0)
-    values, reason = estimate_intensity(xyz, dims, rgb, "car")
-    np.testing.assert_allclose(values, expected, rtol=1e-6)
-    assert reason == "no intensity checkpoint given: physical default used"
+def a_scan(count: int, seed: int = 0, dataset: str = "kitti") -> tuple:
+    """(scan, bounds, element sRGB): an_object's points as the returns of a two-sweep scan
+    whose second sweep saw the object 1 m further along x; each return hit its own element."""
+    xyz, dims, rgb = an_object(count, seed)
+    rows = np.zeros(count, RETURN_DTYPE)
+    rows["sweep"] = np.arange(count) % 2
+    rows["x"], rows["y"], rows["z"] = (xyz + rows["sweep"][:, None] * [1.0, 0, 0]).T
+    rows["face"] = np.arange(count)
+    rows["intensity"] = 0.25
+    shifted = np.eye(4)
+    shifted[0, 3] = 1.0
+    return Scan(rows, np.zeros(9), count, 0.0, dataset, [np.eye(4), shifted]), np.stack([-dims / 2, dims / 2]), rgb
+
+
+def test_sweeps_go_to_the_box_frame_of_their_pose():
+    scan, bounds, _ = a_scan(10)
+    np.testing.assert_allclose(scan.box_frame_points(bounds), an_object(10)[0], atol=1e-12)
+
+
+def test_without_a_checkpoint_the_scan_keeps_its_physical_intensities(tmp_path):
+    scan, bounds, rgb = a_scan(50)
+    values, note = scan_intensity(scan, bounds, rgb, "car")
+    assert np.array_equal(values, scan.returns["intensity"]) and note == "physical law (no intensity checkpoint given)"
     missing = tmp_path / "none.pt"
-    values, reason = estimate_intensity(xyz, dims, rgb, "car", missing, cos_incidence=np.ones(50),
-                                        ranges=np.full(50, 20.0))
-    np.testing.assert_allclose(values, reflectivity_from_srgb(rgb) / 2, rtol=1e-6)  # falloff 10 / 20
-    assert reason == f"no intensity checkpoint at {missing}: physical default used"
+    with pytest.raises(InputError, match="none.pt: no intensity-estimator checkpoint here"):
+        scan_intensity(scan, bounds, rgb, "car", missing)
 
 
-def test_without_torch_the_physical_default_and_a_reason(trained):
+def test_without_torch_the_physical_law_and_a_reason(trained):
     code = ("import sys; sys.modules['torch'] = None; sys.path.insert(0, sys.argv[1])\n"
-            "from pgt_blender.core.intensity.estimator import estimate_intensity\n"
-            "values, reason = estimate_intensity([[0.0, 0, 0]], [4, 2, 1.5], [[1.0, 1, 1]], 'car', sys.argv[2])\n"
-            "print(f'{values[0]:.3f}', reason)\n")
+            "import numpy as np\n"
+            "from pgt_blender.core.intensity.estimator import scan_intensity\n"
+            "from pgt_blender.core.scan.returns import RETURN_DTYPE, Scan\n"
+            "rows = np.zeros(1, RETURN_DTYPE); rows['intensity'] = 0.5\n"
+            "scan = Scan(rows, np.zeros(9), 1, 0.0, 'kitti', [np.eye(4)])\n"
+            "values, note = scan_intensity(scan, np.array([[-2, -1, 0], [2, 1, 1.5]]), np.ones((1, 3)), 'car', "
+            "sys.argv[2])\n"
+            "print(f'{values[0]:.3f}', note)\n")
     result = subprocess.run([sys.executable, "-c", code, str(ROOT / "addon"), str(trained / "intensity.pt")],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
-    assert result.stdout.strip() == (f"0.500 PyTorch (torch==2.13.0) is not installed: physical default used "
-                                     f"instead of {trained / 'intensity.pt'}")
+    assert result.stdout.strip() == (f"0.500 physical law: PyTorch (torch==2.13.0) is not installed, so "
+                                     f"{trained / 'intensity.pt'} was not used")
 
 
 # --- bad input ---------------------------------------------------------------------------
@@ -299,10 +321,12 @@ def test_bad_checkpoints_classes_datasets_and_arrays(trained, tmp_path):
     with pytest.raises(InputError, match=f"^{path}: was trained on kitti intensities, not nuscenes's$"):
         IntensityEstimator.load(path, "nuscenes")
     xyz, dims, rgb = an_object(20)
+    scan, bounds, face_rgb = a_scan(20)
     with pytest.raises(InputError, match=r"has no class 'bus' \(trained for car, truck\)"):
-        estimate_intensity(xyz, dims, rgb, "bus", path)
-    with pytest.raises(InputError, match="not nuscenes's"):
-        estimate_intensity(xyz, dims, rgb, "car", path, "nuscenes")
+        scan_intensity(scan, bounds, face_rgb, "bus", path)
+    for checkpoint in (path, IntensityEstimator.load(path)):
+        with pytest.raises(InputError, match="not nuscenes's"):
+            scan_intensity(a_scan(20, dataset="nuscenes")[0], bounds, face_rgb, "car", checkpoint)
     estimator = IntensityEstimator.load(path)
     bad_arrays = {
         r"colours have shape \(20, 4\), expected \(20, 3\)": (xyz, dims, np.ones((20, 4))),

@@ -216,5 +216,5 @@ def test_scan_object_without_torch_keeps_the_physical_intensity(truck_sample, tm
                              *map(str, args), "--intensity-checkpoint", tmp_path / "model.pt",
                              "--out", tmp_path / "fallback.bin"], capture_output=True, text=True, timeout=600)
     assert plain.returncode == result.returncode == 0, result.stderr
-    assert "intensity: physical default: PyTorch (torch==2.13.0) is not installed" in result.stdout
+    assert "intensity: physical law: PyTorch (torch==2.13.0) is not installed" in result.stdout
     assert (tmp_path / "fallback.bin").read_bytes() == (tmp_path / "plain.bin").read_bytes()

@@ -8,32 +8,17 @@ estimator wants each return in the source's *box frame* (box centre at the origi
 ``source.matrix_world @ inverse(sensor_from_object)``), then minus the box centre.
 """
 
-import functools
-from pathlib import Path
-
 import bpy
 import numpy as np
 
-from ..core.errors import InputError
-from ..core.intensity.estimator import IntensityEstimator
-from ..core.scan.physical_intensity import dataset_intensity
+from ..core.intensity.estimator import cached_estimator, scan_intensity
+from ..core.scan.returns import RETURN_DTYPE, Scan
 from ..core.scan.sensors import INTENSITY_MAX
 from ..core.scan.targets import srgb_from_linear
 from . import scanning
 from .authoring import positions
 
 GREY = (0.5, 0.5, 0.5)
-
-
-def load(path) -> IntensityEstimator:
-    """The estimator at ``path``, loaded once and kept while the file is unchanged."""
-    status = Path(path).stat() if Path(path).is_file() else None
-    return _load(str(path), status and (status.st_mtime_ns, status.st_size))
-
-
-@functools.lru_cache(maxsize=2)
-def _load(path: str, stamp) -> IntensityEstimator:
-    return IntensityEstimator.load(path)
 
 
 def source_of(preview: bpy.types.Object):
@@ -68,24 +53,34 @@ def element_rgb(source: bpy.types.Object) -> np.ndarray:
     return per_slot[np.clip(index, 0, len(per_slot) - 1)]
 
 
-def apply_estimator(preview: bpy.types.Object, estimator: IntensityEstimator, class_name: str, settings) -> float:
-    """Overwrite the preview's ``intensity`` attribute (and its colours when the scan
-    ``settings``, ``Scene.pgt_scan``, show intensity) with ``estimator``'s values for
-    ``class_name``; returns points per second."""
-    source = source_of(preview)
-    dataset = preview[scanning.DATASET_TAG]
-    if estimator.dataset != dataset:
-        raise InputError(estimator.path, f"trained on {estimator.dataset} intensities, the scan is {dataset}'s")
-    target = scanning.scan_target(source, settings.surfel_scale)
+def preview_scan(preview: bpy.types.Object, source: bpy.types.Object) -> Scan:
+    """The preview's returns as a one-sweep core Scan: points and intensities in the
+    sensor frame, the ``face`` each hit, and the pose sensor_from_object the two objects'
+    matrices imply (see the module docstring)."""
     mesh = preview.data
-    faces = scanning.read(mesh.attributes["face"].data, "value", len(mesh.vertices), np.int32)
-    to_object = np.array(source.matrix_world.inverted() @ preview.matrix_world)
-    local = positions(preview).astype(np.float64) @ to_object[:3, :3].T + to_object[:3, 3]
-    box = local - target.bounds.mean(axis=0)
-    relative = estimator.predict(box, target.size, element_rgb(source)[faces], class_name, source.name)
-    values = dataset_intensity(relative, dataset)
+    count = len(mesh.vertices)
+    rows = np.zeros(count, RETURN_DTYPE)
+    rows["x"], rows["y"], rows["z"] = positions(preview).astype(np.float64).T
+    rows["face"] = scanning.read(mesh.attributes["face"].data, "value", count, np.int32)
+    rows["intensity"] = scanning.read(mesh.attributes["intensity"].data, "value", count, np.float32)
+    object_from_sensor = np.array(source.matrix_world.inverted() @ preview.matrix_world)
+    return Scan(rows, np.zeros(9), count, 0.0, preview[scanning.DATASET_TAG], [np.linalg.inv(object_from_sensor)])
+
+
+def apply_estimator(preview: bpy.types.Object, checkpoint, class_name: str, settings) -> float:
+    """Overwrite the preview's ``intensity`` attribute (and its colours when the scan
+    ``settings``, ``Scene.pgt_scan``, show intensity) with the estimator at
+    ``checkpoint`` (intensity/estimator.scan_intensity); ``class_name`` "" takes the
+    checkpoint's only class. Returns points per second; InputError as the core's."""
+    source = source_of(preview)
+    estimator = cached_estimator(checkpoint)
+    class_name = class_name or (estimator.classes[0] if len(estimator.classes) == 1 else "")
+    scan = preview_scan(preview, source)
+    bounds = scanning.scan_target(source, settings.surfel_scale).bounds
+    values, _ = scan_intensity(scan, bounds, element_rgb(source), class_name, estimator, name=source.name)
+    mesh = preview.data
     mesh.attributes["intensity"].data.foreach_set("value", values)
     if settings.colour_by == "INTENSITY":
-        mesh.color_attributes["color"].data.foreach_set("color", scanning.ramp(values / INTENSITY_MAX[dataset]).ravel())
+        mesh.color_attributes["color"].data.foreach_set("color", scanning.ramp(values / INTENSITY_MAX[scan.dataset]).ravel())
     mesh.update()
     return estimator.last_rate

@@ -271,9 +271,7 @@ class OBJECT_OT_pgt_apply_intensity(bpy.types.Operator):
         preview = context.active_object
         source = intensity.source_of(preview)
         try:
-            estimator = intensity.load(checkpoint)
-            class_name = source.pgt.class_name or (estimator.classes[0] if len(estimator.classes) == 1 else "")
-            rate = intensity.apply_estimator(preview, estimator, class_name, context.scene.pgt_scan)
+            rate = intensity.apply_estimator(preview, checkpoint, source.pgt.class_name, context.scene.pgt_scan)
         except InputError as error:  # no torch, bad checkpoint, other dataset or class
             self.report({"ERROR"}, f"{error} (the scan keeps its physical intensities)")
             return {"CANCELLED"}

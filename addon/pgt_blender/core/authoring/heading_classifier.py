@@ -22,7 +22,6 @@ without it; without it they raise :class:`InputError` with a one-line reason.
 """
 
 import hashlib
-import io
 import platform
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +30,7 @@ import numpy as np
 
 from .. import learning
 from ..errors import InputError
-from ..files import atomic_output, read_float32_rows
+from ..files import read_float32_rows
 from ..safe_pickle import load_pickle
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[2] / "models" / "heading_pointnet.pt"
@@ -269,35 +268,23 @@ def train(sets: list, seed: int = 0, steps: int = 3000, points: int = 512, batch
 
 
 def save_checkpoint(path, classifier: HeadingClassifier) -> None:
-    """Write ``{"format", "state_dict", "config"}`` with ``torch.save`` atomically. The
-    archive is built in memory first: torch names its inner folder after the file it
-    writes, which would put the temporary file's name into the bytes."""
-    torch = require_torch(path)
-    buffer = io.BytesIO()
-    torch.save({"format": FORMAT, "state_dict": classifier.model.state_dict(), "config": classifier.config}, buffer)
-    with atomic_output(path) as stream:
-        stream.write(buffer.getvalue())
+    """Write ``{"format", "state_dict", "config"}`` (learning.save_checkpoint)."""
+    learning.save_checkpoint(require_torch(path), path, {"format": FORMAT, "state_dict": classifier.model.state_dict(),
+                                                        "config": classifier.config})
 
 
 def load_checkpoint(path=DEFAULT_CHECKPOINT) -> HeadingClassifier:
     """The classifier saved at ``path``; InputError when torch is missing or the file
-    is missing or not such a checkpoint. Loads tensors and plain data only."""
-    path = Path(path)
+    is missing or not such a checkpoint (learning.load_checkpoint)."""
     torch = require_torch(path)
-    if not path.is_file():
-        raise InputError(path, "no heading-classifier checkpoint here "
-                               "(train one with headless_scripts/train_heading.py)")
-    try:
-        saved = torch.load(path, map_location="cpu", weights_only=True)
-        if saved.get("format") != FORMAT:
-            raise ValueError(f"format {saved.get('format')!r}, expected {FORMAT!r}")
+
+    def build(saved):
         model = _network(torch)
         model.load_state_dict(saved["state_dict"])
-    except Exception as error:  # torch raises many types for a damaged archive
-        reason = str(error).split("\n")[0][:200]  # torch's messages run to paragraphs
-        raise InputError(path, f"not a readable heading-classifier checkpoint "
-                               f"({type(error).__name__}: {reason})") from None
-    return HeadingClassifier(model.eval(), saved["config"])
+        return HeadingClassifier(model.eval(), saved["config"])
+
+    return learning.load_checkpoint(torch, path, FORMAT, "heading-classifier",
+                                    "train one with headless_scripts/train_heading.py", build)
 
 
 def front_probability(points, dims, checkpoint=DEFAULT_CHECKPOINT, resamplings: int = 4, seed: int = 0) -> float:

@@ -30,7 +30,6 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import atomic_output
-from ..scan.physical_intensity import dataset_intensity
 from ..scan.sensors import INTENSITY_MAX, sensor_from_name
 from ..scan.sweeps import motion_class
 from .config import BankConfig
@@ -316,17 +315,18 @@ def _estimator(config: BankConfig):
 
 
 def _learned_intensity(config: BankConfig, cache: TargetCache, entry, obj: BankObject, scan, keep) -> np.ndarray:
-    """The estimator's intensities (dataset scale) for the kept returns, each in the box
-    frame of the pose its sweep saw, with the colour of the element it hit (grey
-    without colours). One object per call: the same numbers whatever the chunking."""
+    """The estimator's intensities (dataset scale) for the kept returns
+    (intensity/estimator.scan_intensity). One object per call: the same numbers whatever
+    the chunking."""
     import torch
+
+    from ..intensity.estimator import scan_intensity
 
     torch.set_num_threads(1)  # float sums in a fixed order: the same bytes on any machine load
     _, bounds = cache.get(int(entry["object"]), int(entry["variant"]))
-    rgb = cache.element_rgb(int(entry["object"]))[scan.returns["face"][keep]]
-    relative = _estimator(config).predict(scan.box_frame_points(bounds)[keep], bounds[1] - bounds[0], rgb,
-                                          obj.class_name, obj.name)
-    return dataset_intensity(relative, config.dataset)
+    values, _ = scan_intensity(scan, bounds, cache.element_rgb(int(entry["object"])), obj.class_name,
+                               _estimator(config), keep, obj.name)
+    return values
 
 
 def assemble(out: Path, data_root=None) -> dict:

@@ -1,5 +1,5 @@
-"""LiDAR intensity for coloured points: the trained rgb -> int generator, or the physical
-default when PyTorch or a checkpoint is missing.
+"""LiDAR intensity for coloured points: the trained rgb -> int generator; a scan keeps
+its physical intensity when PyTorch or a checkpoint is missing (``scan_intensity``).
 
 Input per object: xyz (N, 3) in its box frame (origin at the box centre, +x the heading,
 +z up, metres), the box dims (3,) l w h in metres, sRGB (N, 3) in [0, 1] and the class
@@ -21,15 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..learning import TORCH_REQUIREMENT
-from ..scan.physical_intensity import REFERENCE_RANGE, relative_intensity
-from ..scan.targets import reflectivity_from_srgb
+from ..learning import TORCH_REQUIREMENT, load_checkpoint
+from ..scan.physical_intensity import dataset_intensity
 from . import model
 from .losses import farthest_point_centres
 
-# The fallback's |cos(incidence)| when the caller has none: its mean over surface
-# normals uniformly distributed on the sphere.
-DEFAULT_COS_INCIDENCE = 0.5
 BATCH_OBJECTS = 64  # objects per forward pass in predict_many
 
 
@@ -49,23 +45,14 @@ class IntensityEstimator:
         torch is missing, the file is missing, damaged or not such a checkpoint, or it
         was trained on another ``dataset``'s intensities (when one is given)."""
         path = Path(path)
-        torch = model.require_torch(path)
-        if not path.is_file():
-            raise InputError(path, "no intensity-estimator checkpoint here "
-                                   "(train one with headless_scripts/train_intensity.py)")
-        try:
-            saved = torch.load(path, map_location="cpu", weights_only=True)
-            found = saved.get("format") if isinstance(saved, dict) else None
-            if found != model.FORMAT:
-                raise ValueError(f"format {found!r}, expected {model.FORMAT!r}")
-            config = saved["config"]
-            network = model.generator(len(config["classes"]), 3, 1)
+
+        def build(saved):
+            network = model.generator(len(saved["config"]["classes"]), 3, 1)
             network.load_state_dict(saved["state_dict"])
-        except Exception as error:  # torch raises many types for a damaged archive
-            reason = str(error).split("\n")[0][:200]  # torch's messages run to paragraphs
-            raise InputError(path, f"not a readable intensity-estimator checkpoint "
-                                   f"({type(error).__name__}: {reason})") from None
-        estimator = cls(network.eval(), config, path)
+            return cls(network.eval(), saved["config"], path)
+
+        estimator = load_checkpoint(model.require_torch(path), path, model.FORMAT, "intensity-estimator",
+                                    "train one with headless_scripts/train_intensity.py", build)
         if dataset is not None and dataset != estimator.dataset:
             raise InputError(path, f"was trained on {estimator.dataset} intensities, not {dataset}'s")
         return estimator
@@ -157,47 +144,47 @@ def _supports(clouds: list, points: int) -> list:
     return supports
 
 
+def cached_estimator(path, dataset: str | None = None) -> IntensityEstimator:
+    """``IntensityEstimator.load(path, dataset)``, loaded once per version of the file (its
+    modification time and size) and kept while it is unchanged."""
+    path = Path(path).resolve()
+    status = path.stat() if path.is_file() else None
+    return _cached(path, dataset, status and (status.st_mtime_ns, status.st_size))
+
+
 @functools.lru_cache(maxsize=4)
 def _cached(path: Path, dataset: str | None, stamp: tuple) -> IntensityEstimator:
-    """One load per checkpoint file version (``stamp``: its mtime and size)."""
     return IntensityEstimator.load(path, dataset)
 
 
-def physical_default(rgb, cos_incidence=None, ranges=None) -> np.ndarray:
-    """(N,) float32 in [0, 1]: ``relative_intensity`` of the sRGB colours' reflectivity,
-    with |cos(incidence)| DEFAULT_COS_INCIDENCE and range REFERENCE_RANGE (no range
-    falloff) where ``cos_incidence`` / ``ranges`` (N,) are not given."""
-    reflectivity = reflectivity_from_srgb(np.asarray(rgb, np.float64).reshape(-1, 3))
-    cos = DEFAULT_COS_INCIDENCE if cos_incidence is None else np.asarray(cos_incidence, np.float64)
-    distance = REFERENCE_RANGE if ranges is None else np.asarray(ranges, np.float64)
-    return relative_intensity(reflectivity, cos, distance).astype(np.float32)
+def scan_intensity(scan, bounds: np.ndarray, element_rgb: np.ndarray, class_name: str, checkpoint=None,
+                   rows=None, name: str = "object") -> tuple:
+    """(values (K,) float32 in the dataset's scale, note): the intensities of the returns
+    ``rows`` (a bool mask or indices; default all) of ``scan`` (scan.returns.Scan), and a
+    one-line note on what made them. The one way any route applies a learned estimate.
 
-
-def estimate_intensity(xyz, dims, rgb, class_name: str, checkpoint=None, dataset: str | None = None,
-                       cos_incidence=None, ranges=None, name: str = "object") -> tuple:
-    """(intensities (N,) float32 in [0, 1], reason) for one object.
-
-    ``checkpoint``: an IntensityEstimator, a path to intensity.pt (loaded once and kept
-    while the file is unchanged) or None. The learned estimate when it can be had
-    (reason None); the physical default (``physical_default``) with a one-line reason
-    when torch is not installed or there is no checkpoint. InputError for bad arrays, a
-    damaged checkpoint, one without ``class_name`` or one of another ``dataset``.
-    """
-    checked_object(xyz, dims, rgb, name)
+    ``checkpoint``: an IntensityEstimator, a path to intensity.pt (loaded once while the
+    file is unchanged) or None. With one and PyTorch: one prediction over all the rows,
+    every sweep at once (the object as a ground-truth database stores it), each return
+    in the box frame of the pose its sweep saw (``bounds`` (2, 3) object frame, m) with
+    the sRGB colour ``element_rgb`` (E, 3) of the face or point it hit. Without a
+    checkpoint, or without PyTorch, the scan's own physical intensities. InputError for
+    a missing or damaged checkpoint, one without ``class_name`` or of another dataset,
+    and bad arrays."""
+    rows = np.arange(scan.hits) if rows is None else rows
+    physical = scan.returns["intensity"][rows]
     if checkpoint is None:
-        return physical_default(rgb, cos_incidence, ranges), "no intensity checkpoint given: physical default used"
+        return physical, "physical law (no intensity checkpoint given)"
     if not isinstance(checkpoint, IntensityEstimator):
         path = Path(checkpoint).resolve()
         try:
             model.require_torch(path)
         except InputError:
-            return physical_default(rgb, cos_incidence, ranges), (
-                f"PyTorch ({TORCH_REQUIREMENT}) is not installed: physical default used instead of {path}")
-        if not path.is_file():
-            return (physical_default(rgb, cos_incidence, ranges),
-                    f"no intensity checkpoint at {path}: physical default used")
-        status = path.stat()
-        checkpoint = _cached(path, dataset, (status.st_mtime_ns, status.st_size))
-    elif dataset is not None and dataset != checkpoint.dataset:
-        raise InputError(checkpoint.path, f"was trained on {checkpoint.dataset} intensities, not {dataset}'s")
-    return checkpoint.predict(xyz, dims, rgb, class_name, name), None
+            return physical, f"physical law: PyTorch ({TORCH_REQUIREMENT}) is not installed, so {path} was not used"
+        checkpoint = cached_estimator(path, scan.dataset)
+    elif checkpoint.dataset != scan.dataset:
+        raise InputError(checkpoint.path, f"was trained on {checkpoint.dataset} intensities, not {scan.dataset}'s")
+    faces = scan.returns["face"][rows]
+    relative = checkpoint.predict(scan.box_frame_points(bounds)[rows], bounds[1] - bounds[0],
+                                  np.asarray(element_rgb, np.float32)[faces, :3], class_name, name)
+    return dataset_intensity(relative, scan.dataset), f"learned ({checkpoint.last_rate:,.0f} points/s)"

@@ -35,7 +35,6 @@ import hashlib
 import io
 import json
 import platform
-import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -44,6 +43,7 @@ import numpy as np
 from ..classes import DATASETS
 from ..errors import InputError
 from ..files import atomic_output
+from ..learning import load_checkpoint, save_checkpoint
 from . import losses, model
 
 TRAINING_FORMAT = "pgt_blender.intensity_training/1"
@@ -245,29 +245,6 @@ def train_step(torch, nets: _Networks, rgb: _Domain, real: _Domain, rgb_rows, re
     return {key: float(value.detach()) for key, value in out.items()}
 
 
-def _canonical(value):
-    """A copy of nested dicts, lists and tuples with every string interned. Pickle
-    writes an object seen before as a reference to it, by identity: a resumed run's
-    strings come from a loaded file while a fresh run's are shared literals, so
-    without this the same values would pickle to different bytes."""
-    if isinstance(value, str):
-        return sys.intern(value)
-    if isinstance(value, dict):
-        return {_canonical(key): _canonical(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return type(value)(_canonical(item) for item in value)
-    return value
-
-
-def _save(torch, path: Path, payload: dict) -> None:
-    """torch.save into memory, then an atomic write: torch names the archive's inner
-    folder after the file it writes, which would put the temporary name into the bytes."""
-    buffer = io.BytesIO()
-    torch.save(_canonical(payload), buffer)
-    with atomic_output(path) as stream:
-        stream.write(buffer.getvalue())
-
-
 def _write_text(path: Path, text: str) -> None:
     with atomic_output(path) as stream:
         stream.write(text.encode())
@@ -285,14 +262,7 @@ def _resume_state(torch, out_dir: Path, config: dict) -> tuple:
     """(training state dict, loss rows up to its step) of out_dir's checkpoint; InputError
     when it is unreadable or from a different run (any setting but ``steps`` differs)."""
     path = out_dir / "checkpoint.pt"
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-        if not isinstance(state, dict) or state.get("format") != TRAINING_FORMAT:
-            raise ValueError(f"format {state.get('format') if isinstance(state, dict) else None!r}, "
-                             f"expected {TRAINING_FORMAT!r}")
-    except Exception as error:  # torch raises many types for a damaged archive
-        raise InputError(path, f"not a readable intensity training checkpoint "
-                               f"({type(error).__name__}: {str(error).splitlines()[0][:200]})") from None
+    state = load_checkpoint(torch, path, TRAINING_FORMAT, "intensity training", "train without --resume")
     saved = state["config"]
     changed = sorted(key for key in set(saved) | set(config) if key != "steps" and saved.get(key) != config.get(key))
     if changed:
@@ -374,7 +344,7 @@ def train(real, rgb, config: TrainConfig, out_dir, resume: bool = False, progres
                 bar.set_postfix(generator=rows[-1][1], group=rows[-1][6], refresh=False)
             if step % config.checkpoint_every == 0 or step == config.steps:
                 _write_text(out_dir / "losses.csv", _csv_text(rows))
-                _save(torch, out_dir / "checkpoint.pt",
+                save_checkpoint(torch, out_dir / "checkpoint.pt",
                       {"format": TRAINING_FORMAT, "config": record, "step": step, **nets.state()})
         if bar is not None:
             bar.close()
@@ -382,5 +352,5 @@ def train(real, rgb, config: TrainConfig, out_dir, resume: bool = False, progres
         torch.set_num_threads(previous[0])
         torch.use_deterministic_algorithms(previous[1])
     final = out_dir / "intensity.pt"
-    _save(torch, final, {"format": model.FORMAT, "config": record, "state_dict": nets.g.state_dict()})
+    save_checkpoint(torch, final, {"format": model.FORMAT, "config": record, "state_dict": nets.g.state_dict()})
     return final

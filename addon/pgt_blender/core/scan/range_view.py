@@ -51,10 +51,11 @@ def range_view_scan(positions: np.ndarray, sensor: Sensor, sensor_from_object: n
                     options: ScanOptions = ScanOptions(), sweep: int = 0, velocity=(0.0, 0.0)) -> Scan:
     """Range-view scan of (N, 3) object-frame points placed by ``sensor_from_object``.
 
-    reflectivity: (N,) in [0, 1] (default 0.5); normals: (N, 3) object frame for the
+    reflectivity: (N,) in [0, 1] (default 0.5), taken relative to the object's mean as
+    targets do (targets.relative_reflectivity); normals: (N, 3) object frame for the
     incidence term (default: local PCA normals). ``bounds`` (2, 3) is the object's box.
     """
-    from .targets import DEFAULT_REFLECTIVITY, local_frames
+    from .targets import DEFAULT_REFLECTIVITY, local_frames, relative_reflectivity
 
     start = time.perf_counter()
     positions = np.asarray(positions, np.float64)
@@ -72,7 +73,7 @@ def range_view_scan(positions: np.ndarray, sensor: Sensor, sensor_from_object: n
     directions = sensor.directions[cells[kept]]
     cos_incidence = np.einsum("ij,ij->i", surface_normals, directions)
     reflectivity = (np.full(len(positions), DEFAULT_REFLECTIVITY, np.float32) if reflectivity is None
-                    else np.asarray(reflectivity, np.float32))
+                    else relative_reflectivity(reflectivity, np.ones(len(positions))))
     returns = build_returns(sensor, cells[kept], ranges[kept], reflectivity[kept], cos_incidence,
                             kept.astype(np.int32), options, sweep)
     return Scan(returns, placed_box(bounds, sensor_from_object, velocity), len(positions),
