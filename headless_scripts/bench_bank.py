@@ -71,6 +71,7 @@ sys.path.insert(0, str(ROOT / "addon"))
 import numpy as np  # noqa: E402
 
 from pgt_blender import cli  # noqa: E402
+from pgt_blender.core.authoring.prepare import read_sidecar  # noqa: E402
 
 CHRONO_TRUCK = ROOT.parent / "shared" / "data" / "chrono_vehicles" / "data" / "vehicle" / "truck" / "truck_chassis.obj"
 TARGET_ENTRIES_PER_S = 300.0
@@ -304,12 +305,12 @@ def make_objects(scratch: Path, chrono: Path, subdivided: bool = True) -> dict:
     shutil.copy(paths["reconstruction.ply"], sample / paths["reconstruction.ply"].name)
     folder = scratch / "sample_truck"
     prepare(["--in", sample, "--class", "truck", "--out", folder, "--up", "+z"])
-    points = json.loads(next(folder.glob("*.json")).read_text())["points"]
+    points = read_sidecar(next(folder.glob("*.json")))["points"]
     objects["sample truck (surfels)"] = {"folder": folder, "source": "core.samples.write_sample(dir, 'truck') "
                                          "reconstruction.ply, prepare_objects.py --class truck --up +z",
                                          "faces": 0, "points": points}
     for entry in objects.values():
-        entry["dims_m"] = [round(v, 3) for v in json.loads(next(entry["folder"].glob("*.json")).read_text())["dims"]]
+        entry["dims_m"] = [round(v, 3) for v in read_sidecar(next(entry["folder"].glob("*.json")))["dims"]]
     return objects
 
 
@@ -392,7 +393,7 @@ def full_grid_poses(objects: dict) -> dict:
     config = BankConfig()
     counts = {}
     for name, entry in objects.items():
-        sidecar = json.loads(next(entry["folder"].glob("*.json")).read_text())
+        sidecar = read_sidecar(next(entry["folder"].glob("*.json")))
         counts[name] = len(object_entries(config, 0, sidecar["class"], np.asarray(sidecar["dims"], float)))
     return counts
 

@@ -28,10 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import learning
+from .. import gt_database, learning
 from ..errors import InputError
-from ..files import read_float32_rows
-from ..safe_pickle import load_pickle
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[2] / "models" / "heading_pointnet.pt"
 FORMAT = "pgt_blender.heading_pointnet/1"
@@ -125,60 +123,10 @@ def mesh_folder_point_sets(directory) -> list:
 
 
 def read_gt_database(path, convention: str, min_points: int = 5) -> list:
-    """The objects of an mmdetection3d or OpenPCDet ground-truth database as point sets.
-
-    ``path`` is a ``*_dbinfos_*.pkl``: {class: [info, ...]}, each info with ``path``
-    (a float32 .bin of the object's points, relative to the pickle's folder),
-    ``box3d_lidar`` [x, y, z, dx, dy, dz, heading, ...] and ``num_points_in_gt``.
-    Both tools store points translated by the box (never rotated): OpenPCDet by the box
-    centre, mmdetection3d (``convention="mmdet3d"``) by its bottom centre. Points are
-    rotated by -heading about z (so the heading is +x) and shifted to the box centre.
-    Objects with fewer than ``min_points`` points are skipped. The pickle is read
-    without running code (safe_pickle).
-    """
-    if convention not in ("mmdet3d", "openpcdet"):
-        raise ValueError(f"unknown ground-truth database convention '{convention}' (mmdet3d, openpcdet)")
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as error:
-        raise InputError(path, f"cannot read the ground-truth database ({error.strerror})") from None
-    infos = load_pickle(path, data)
-    if not isinstance(infos, dict) or not all(isinstance(v, list) for v in infos.values()):
-        raise InputError(path, "not a ground-truth database pickle (expected {class name: [info, ...]})")
-    source = f"gt_database:{path.name} ({convention}) sha256:{_sha256(data)}"
-    sets = []
-    for class_name, class_infos in sorted(infos.items()):
-        for info in class_infos:
-            try:
-                box = np.asarray(info["box3d_lidar"], np.float64)[:7]
-                count = int(info["num_points_in_gt"])
-                relative = info["path"]
-            except (KeyError, TypeError, ValueError) as error:
-                raise InputError(path, f"a {class_name} info lacks box3d_lidar, num_points_in_gt or path "
-                                       f"({error})") from None
-            if box.shape != (7,):
-                raise InputError(path, f"a {class_name} box3d_lidar has {box.size} values, expected 7 or more")
-            if count < max(min_points, 1):
-                continue
-            sets.append(_gt_object(path.parent / relative, box, count, convention, str(class_name), relative, source))
-    return sets
-
-
-def _gt_object(path: Path, box: np.ndarray, count: int, convention: str, class_name: str, relative: str,
-               source: str) -> PointSet:
-    values = read_float32_rows(path).ravel()
-    if not (box[3:6] > 0).all():
-        raise InputError(path, f"its box has non-positive dims {box[3:6].tolist()}")
-    if len(values) < 3 * count or len(values) % count:
-        raise InputError(path, f"{len(values)} floats do not split into the {count} points its info declares")
-    columns = values.reshape(count, -1)
-    points = columns[:, :3].astype(np.float64)  # x, y, z, then intensity etc.
-    if convention == "mmdet3d":
-        points[:, 2] -= box[5] / 2  # bottom centre -> centre
-    cos, sin = np.cos(box[6]), np.sin(box[6])
-    points[:, :2] = points[:, :2] @ np.array([[cos, -sin], [sin, cos]])  # rows rotated by -heading
-    return PointSet(f"{class_name}:{relative}", points, box[3:6].copy(), source, columns[:, 3:].copy(), class_name)
+    """The objects of an mmdetection3d or OpenPCDet ground-truth database
+    (gt_database.read_objects) as point sets, their front at +x."""
+    return [PointSet(obj.name, obj.points, obj.dims, obj.source, obj.features, obj.class_name)
+            for obj in gt_database.read_objects(path, convention, min_points)]
 
 
 def normalise(points: np.ndarray, dims) -> np.ndarray:

@@ -28,10 +28,9 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import atomic_output
-from ..safe_pickle import load_pickle
+from ..gt_database import load_infos
 from .export import info_path_root
 
-REQUIRED_KEYS = ("name", "path", "image_idx", "gt_idx", "box3d_lidar", "num_points_in_gt")
 BOX_LAYOUTS = {7: "KITTI layout", 9: "nuScenes layout"}
 
 
@@ -139,33 +138,6 @@ def _output_path(path, bank_root: Path, root: Path) -> str:
     # Resolved on both sides, so a symlinked folder does not hide that the file is under root.
     file = (bank_root / path).resolve()
     return file.relative_to(root).as_posix() if file.is_relative_to(root) else str(file)
-
-
-def load_infos(path: Path) -> dict:
-    """The info pickle at ``path``: a dict of class name -> list of info dicts, each
-    with REQUIRED_KEYS; InputError otherwise."""
-    if not path.is_file():
-        raise InputError(path, "no such file")
-    infos = load_pickle(path)
-    if not (isinstance(infos, dict) and all(isinstance(name, str) and isinstance(entries, list)
-                                            for name, entries in infos.items())):
-        raise InputError(path, "not an info database: expected a dict of class name -> list of infos")
-    for name, entries in infos.items():
-        for index, info in enumerate(entries):
-            if not isinstance(info, dict):
-                raise InputError(path, f"info {index} of '{name}' is a {type(info).__name__}, not a dict")
-            missing = [key for key in REQUIRED_KEYS if key not in info]
-            if missing:
-                raise InputError(path, f"info {index} of '{name}' lacks {', '.join(missing)}")
-            box = np.asarray(info["box3d_lidar"])
-            if box.dtype.kind not in "fiu" or box.ndim != 1 or box.size < 7 or not np.isfinite(box).all():
-                raise InputError(path, f"info {index} of '{name}': box3d_lidar must be 7 or more finite numbers, "
-                                       f"got {info['box3d_lidar']!r}")
-            count = info["num_points_in_gt"]
-            if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 0:
-                raise InputError(path, f"info {index} of '{name}': num_points_in_gt must be a count >= 0, "
-                                       f"got {count!r}")
-    return infos
 
 
 def _check_compatible(real_path: Path, real: dict, bank_path: Path, bank: dict) -> None:

@@ -29,7 +29,7 @@ from ..files import atomic_output, read_float32_rows
 from ..scan.sensors import BIN_COLUMNS, INTENSITY_MAX
 from .config import DATASET_GRIDS, grid_values
 from .export import INTENSITY_BINS, WORK, chunk_record, chunk_record_path, read_identity
-from .merge import load_infos
+from ..gt_database import load_infos
 
 DISTANCE_RING = 10.0  # m: width of the distance bins
 QUANTILES = (0.5, 0.1, 0.9)  # median, p10, p90

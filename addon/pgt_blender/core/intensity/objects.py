@@ -75,16 +75,15 @@ def _intensities(path, values: np.ndarray, dataset: str) -> np.ndarray:
 def gt_database_objects(path, convention: str, dataset: str, min_points: int = 1) -> list:
     """Real objects of an OpenPCDet (``convention="openpcdet"``, points about the box
     centre) or mmdetection3d (``"mmdet3d"``, about its bottom centre) ``*_dbinfos_*.pkl``
-    whose .bin files carry x, y, z, intensity[, ...] columns."""
-    from ..authoring.heading_classifier import read_gt_database
+    whose .bin files carry x, y, z, intensity[, ...] columns (gt_database.py)."""
+    from ..gt_database import read_objects
 
     objects = []
-    for point_set in read_gt_database(path, convention, min_points):
-        if point_set.features.shape[1] < 1:
-            raise InputError(path, f"{point_set.name} has no intensity column (3 columns per point)")
-        values = _intensities(f"{path}: {point_set.name}", point_set.features[:, 0], dataset)
-        objects.append(LidarObject(point_set.name, point_set.class_name.lower(), point_set.points,
-                                   point_set.dims, values))
+    for obj in read_objects(path, convention, min_points):
+        if obj.features.shape[1] < 1:
+            raise InputError(path, f"{obj.name} has no intensity column (3 columns per point)")
+        values = _intensities(f"{path}: {obj.name}", obj.features[:, 0], dataset)
+        objects.append(LidarObject(obj.name, obj.class_name.lower(), obj.points, obj.dims, values))
     return objects
 
 
@@ -247,8 +246,7 @@ def builtin_rgb_objects(sensor, classes=None, poses=RGB_POSES) -> list:
 def prepared_rgb_objects(folder, sensor, poses=RGB_POSES) -> list:
     """Scans of the coloured prepared objects in ``folder``: <name>.ply in the object
     frame with a <name>.json sidecar naming its class (prepare_objects.py's output)."""
-    import json
-
+    from ..authoring.prepare import read_sidecar
     from ..importing import load_reconstruction
     from ..scan.targets import element_colors, target_from_reconstruction
 
@@ -258,10 +256,9 @@ def prepared_rgb_objects(folder, sensor, poses=RGB_POSES) -> list:
         model = sidecar.with_suffix(".ply")
         if not model.is_file():
             continue
-        try:
-            class_name = json.loads(sidecar.read_text())["class"]
-        except (json.JSONDecodeError, KeyError, TypeError):
-            raise InputError(sidecar, "sidecar has no class") from None
+        class_name = read_sidecar(sidecar).get("class")
+        if not class_name:
+            raise InputError(sidecar, "sidecar has no class")
         recon = load_reconstruction(model, with_cameras=False)
         if recon.colors is None:
             raise InputError(model, "has no colours, so it cannot be an RGB-domain object")

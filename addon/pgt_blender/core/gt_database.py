@@ -1,0 +1,104 @@
+"""Ground-truth databases as OpenPCDet and mmdetection3d write them, read (the bank's
+writer is bank/formats.py): an info pickle ``*_dbinfos_*.pkl`` = {class name: [info,
+...]}, each info naming a float32 ``.bin`` of the object's points (``path``, relative to
+the dataset root: the pickle's folder unless a bank manifest says otherwise) with its
+``box3d_lidar`` [x, y, z, dx, dy, dz, heading, (vx, vy)] and ``num_points_in_gt``.
+
+Both tools store the points translated by the box (never rotated): OpenPCDet by the
+box centre, mmdetection3d by its bottom centre. Pickles are read without running code
+(safe_pickle); every problem is an InputError naming the file.
+"""
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .files import read_float32_rows
+from .safe_pickle import load_pickle
+
+REQUIRED_KEYS = ("name", "path", "image_idx", "gt_idx", "box3d_lidar", "num_points_in_gt")
+OBJECT_KEYS = ("path", "box3d_lidar", "num_points_in_gt")  # what reading the objects needs
+CONVENTIONS = ("mmdet3d", "openpcdet")
+
+
+@dataclass
+class DatabaseObject:
+    """One object of a database in its box frame: ``points`` (N, 3) float64 metres,
+    origin at the box centre, +x its heading; ``dims`` (3,) length, width, height;
+    ``features`` (N, C) float32 the file's columns after x, y, z (intensity, ...);
+    ``name`` "<class>:<path>"; ``source`` the pickle with its checksum."""
+
+    name: str
+    class_name: str
+    points: np.ndarray
+    dims: np.ndarray
+    features: np.ndarray
+    source: str
+
+
+def load_infos(path, required: tuple = REQUIRED_KEYS) -> dict:
+    """The info pickle at ``path``: a dict of class name -> list of info dicts, each with
+    the ``required`` keys, a finite box3d_lidar of 7 or more values and a count >= 0."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such file")
+    infos = load_pickle(path)
+    if not (isinstance(infos, dict) and all(isinstance(name, str) and isinstance(entries, list)
+                                            for name, entries in infos.items())):
+        raise InputError(path, "not an info database: expected a dict of class name -> list of infos")
+    for name, entries in infos.items():
+        for index, info in enumerate(entries):
+            if not isinstance(info, dict):
+                raise InputError(path, f"info {index} of '{name}' is a {type(info).__name__}, not a dict")
+            missing = [key for key in required if key not in info]
+            if missing:
+                raise InputError(path, f"info {index} of '{name}' lacks {', '.join(missing)}")
+            box = np.asarray(info["box3d_lidar"])
+            if box.dtype.kind not in "fiu" or box.ndim != 1 or box.size < 7 or not np.isfinite(box).all():
+                raise InputError(path, f"info {index} of '{name}': box3d_lidar must be 7 or more finite numbers, "
+                                       f"got {info['box3d_lidar']!r}")
+            count = info["num_points_in_gt"]
+            if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 0:
+                raise InputError(path, f"info {index} of '{name}': num_points_in_gt must be a count >= 0, "
+                                       f"got {count!r}")
+    return infos
+
+
+def read_objects(path, convention: str, min_points: int = 5) -> list:
+    """DatabaseObject per info of the pickle at ``path`` with at least ``min_points``
+    points (sorted by class, then as listed), each turned into its box frame: moved by
+    the box centre (``convention`` "openpcdet") or bottom centre ("mmdet3d"), rotated by
+    -heading about z. Object files are relative to the pickle's folder."""
+    if convention not in CONVENTIONS:
+        raise ValueError(f"unknown ground-truth database convention '{convention}' ({', '.join(CONVENTIONS)})")
+    path = Path(path)
+    infos = load_infos(path, OBJECT_KEYS)
+    source = f"gt_database:{path.name} ({convention}) sha256:{hashlib.sha256(path.read_bytes()).hexdigest()}"
+    found = []
+    for class_name, class_infos in sorted(infos.items()):
+        for info in class_infos:
+            count = int(info["num_points_in_gt"])
+            if count >= max(min_points, 1):
+                found.append(_object(path.parent / info["path"], np.asarray(info["box3d_lidar"], np.float64)[:7],
+                                     count, convention, class_name, info["path"], source))
+    return found
+
+
+def _object(path: Path, box: np.ndarray, count: int, convention: str, class_name: str, relative: str,
+            source: str) -> DatabaseObject:
+    values = read_float32_rows(path).ravel()
+    if not (box[3:6] > 0).all():
+        raise InputError(path, f"its box has non-positive dims {box[3:6].tolist()}")
+    if len(values) < 3 * count or len(values) % count:
+        raise InputError(path, f"{len(values)} floats do not split into the {count} points its info declares")
+    columns = values.reshape(count, -1)
+    points = columns[:, :3].astype(np.float64)
+    if convention == "mmdet3d":
+        points[:, 2] -= box[5] / 2  # bottom centre -> centre
+    cos, sin = np.cos(box[6]), np.sin(box[6])
+    points[:, :2] = points[:, :2] @ np.array([[cos, -sin], [sin, cos]])  # rows rotated by -heading
+    return DatabaseObject(f"{class_name}:{relative}", class_name, points, box[3:6].copy(), columns[:, 3:].copy(),
+                          source)
