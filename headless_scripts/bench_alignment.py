@@ -27,13 +27,13 @@ import scipy  # noqa: E402
 import trimesh  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from pgt_blender import cli  # noqa: E402
+from pgt_blender import cli, dev  # noqa: E402
 from pgt_blender.core.authoring.alignment import align_axes  # noqa: E402
 from pgt_blender.core.authoring.heading_classifier import NO_FRONT  # noqa: E402
 from pgt_blender.core.classes import MINORITY_CLASSES  # noqa: E402
 from pgt_blender.core.samples import random_rotation, sample_vehicle  # noqa: E402
 
-CHRONO = ROOT.parent / "shared" / "data" / "chrono_vehicles"
+CHRONO = dev.SHARED_DATA / "chrono_vehicles"
 DEFAULT = {"points": 20000, "noise": 0.005, "outliers": 0.05}
 SWEEPS = {"points": (1000, 3000, 10000, 30000, 100000),
           "noise": (0.0, 0.0025, 0.005, 0.01, 0.02),
@@ -123,7 +123,7 @@ def main(argv: list) -> int:
     per_object = [per_object_row(name, mesh, [r for r in default if r["object"] == name])
                   for name, mesh in objects]
 
-    machine = cli.machine(numpy=np.__version__, scipy=scipy.__version__, trimesh=trimesh.__version__)
+    machine = dev.machine(numpy=np.__version__, scipy=scipy.__version__, trimesh=trimesh.__version__)
     inputs = {name: [round(float(e), 3) for e in mesh.extents] for name, mesh in objects}
     config = {"default": DEFAULT, "sweeps": sweeps, "trials_per_object": trials,
               "translation_sigma_m": TRANSLATION_M, "seeds": "sample_surface seed=1000*object+trial, "
@@ -131,7 +131,7 @@ def main(argv: list) -> int:
               "timed": "align_axes with the up prior, time.perf_counter"}
     print(f"machine: {machine}\n\ninputs (box l x w x h m): {inputs}\n\nsettings: {config}\n")
     print_tables(rows, per_object)
-    cli.write_results(args.out, {"machine": machine, "inputs": inputs, "settings": config, "rows": rows,
+    dev.write_results(args.out, {"machine": machine, "inputs": inputs, "settings": config, "rows": rows,
                                  "per_object": per_object}, lambda plt: plot(plt, rows))
     return 0
 
@@ -188,4 +188,4 @@ def plot(plt, rows: list):
 
 
 if __name__ == "__main__":
-    sys.exit(main(cli.script_argv()))
+    sys.exit(cli.run_main(main, cli.script_argv()))

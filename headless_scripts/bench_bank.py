@@ -70,10 +70,13 @@ sys.path.insert(0, str(ROOT / "addon"))
 
 import numpy as np  # noqa: E402
 
-from pgt_blender import cli  # noqa: E402
+from pgt_blender import cli, dev  # noqa: E402
+from pgt_blender.core import boxes  # noqa: E402
 from pgt_blender.core.authoring.prepare import read_sidecar  # noqa: E402
+from pgt_blender.core.bank import export, formats  # noqa: E402
+from pgt_blender.core.scan import raycast, sweeps, targets  # noqa: E402
 
-CHRONO_TRUCK = ROOT.parent / "shared" / "data" / "chrono_vehicles" / "data" / "vehicle" / "truck" / "truck_chassis.obj"
+CHRONO_TRUCK = dev.CHRONO_VEHICLES / "truck" / "truck_chassis.obj"
 TARGET_ENTRIES_PER_S = 300.0
 TARGET_OBJECT = "chrono truck 176k"
 SUBSET = {"chunk_size": 32, "headings_deg": [-180.0, 180.0, 90.0], "x": [-50.0, 50.0, 10.0],
@@ -84,16 +87,15 @@ PAPER_BANK = {"truck": 36_960, "construction_vehicle": 52_800, "bus": 12_960, "t
               "motorcycle": 25_279, "bicycle": 4_300}  # the paper's nuScenes bank, kept entries per class
 MIB = 2**20
 NOISE = 0.02  # a peak RSS difference under 2 % between two runs is taken as run-to-run noise
-PROFILE_STAGES = {  # stage -> (file suffix, function): its cumulative seconds
-    "all chunks (export.write_chunk)": ("core/bank/export.py", "write_chunk"),
-    "  BVH builds, 8 size variants (targets.target_from_reconstruction)": ("core/scan/targets.py",
-                                                                           "target_from_reconstruction"),
-    "  10 sweeps per pose (sweeps.scan_sweeps)": ("core/scan/sweeps.py", "scan_sweeps"),
-    "    ray casting (raycast.trace_rays)": ("core/scan/raycast.py", "trace_rays"),
-    "    returns, noise (raycast.build_returns)": ("core/scan/raycast.py", "build_returns"),
-    "  box filter (boxes.inside_box)": ("core/boxes.py", "inside_box"),
-    "  format records (formats.database_record)": ("core/bank/formats.py", "database_record"),
-    "  file writes (export._write_bytes)": ("core/bank/export.py", "_write_bytes"),
+PROFILE_STAGES = {  # stage -> the function whose cumulative seconds it is (a rename fails here, loudly)
+    "all chunks (export.write_chunk)": export.write_chunk,
+    "  BVH builds, 8 size variants (targets.target_from_reconstruction)": targets.target_from_reconstruction,
+    "  10 sweeps per pose (sweeps.scan_sweeps)": sweeps.scan_sweeps,
+    "    ray casting (raycast.trace_rays)": raycast.trace_rays,
+    "    returns, noise (raycast.build_returns)": raycast.build_returns,
+    "  box filter (boxes.inside_box)": boxes.inside_box,
+    "  format records (formats.database_record)": formats.database_record,
+    "  file writes (export._write_bytes)": export._write_bytes,
 }
 
 
@@ -162,10 +164,7 @@ def disk_usage(out: Path) -> dict:
 
 def child(spec: dict) -> dict:
     """One export as ``spec`` says, measured; runs in its own process."""
-    from pgt_blender.core.scan import targets
-
     targets.bvhtree_class()  # bpy first: its import-time helper process is the RUSAGE_CHILDREN baseline
-    from pgt_blender.core.bank import export
     from pgt_blender.core.bank.config import BankConfig
     from pgt_blender.core.bank.entries import TargetCache
     from pgt_blender.core.bank.inputs import checked_objects, prepared_objects
@@ -245,9 +244,9 @@ def profile_summary(profiler, seconds: float) -> dict:
 
     stats = pstats.Stats(profiler).stats  # (file, line, name) -> (cc, nc, tt, ct, callers)
     stages = {}
-    for stage, (suffix, name) in PROFILE_STAGES.items():
-        stages[stage] = sum(ct for (file, _, func), (_, _, _, ct, _) in stats.items()
-                            if func == name and file.replace(os.sep, "/").endswith(suffix))
+    for stage, function in PROFILE_STAGES.items():
+        code = function.__code__
+        stages[stage] = stats.get((code.co_filename, code.co_firstlineno, code.co_name), (0, 0, 0, 0.0))[3]
     top = sorted(stats.items(), key=lambda item: -item[1][2])[:12]
     return {"seconds_profiled": seconds, "stages_cumulative_s": stages,
             "top_own_time": [{"function": f"{Path(file).name}:{line}({func})", "calls": nc, "own_s": tt,
@@ -663,7 +662,7 @@ def main(argv: list) -> int:
     targets.bvhtree_class()  # loads bpy outside Blender (its version; each export process loads its own)
     import bpy
 
-    machine = cli.machine(numpy=np.__version__, scipy=scipy.__version__, trimesh=trimesh.__version__,
+    machine = dev.machine(numpy=np.__version__, scipy=scipy.__version__, trimesh=trimesh.__version__,
                           bpy=bpy.app.version_string)
     print(f"machine: {machine}\n", flush=True)
     load_before = [round(x, 2) for x in os.getloadavg()]
@@ -766,10 +765,10 @@ def report(results: dict, out: Path) -> None:
     header = markdown_header(results["machine"], results["inputs"], results["settings"])
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".md").write_text(f"{header}\n**{line}**\n\n{body}")
-    cli.write_results(out, results | {"target": target, "memory_summary": summary, "projection": projected},
+    dev.write_results(out, results | {"target": target, "memory_summary": summary, "projection": projected},
                       plot(throughput, series, name))
     print(f"wrote {out.with_suffix('.md')}")
 
 
 if __name__ == "__main__":
-    sys.exit(main(cli.script_argv()))
+    sys.exit(cli.run_main(main, cli.script_argv()))

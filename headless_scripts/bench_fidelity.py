@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT / "addon"))
 import numpy as np  # noqa: E402
 from scipy.stats import wasserstein_distance  # noqa: E402
 
-from pgt_blender import cli  # noqa: E402
+from pgt_blender import cli, dev  # noqa: E402
 from pgt_blender.core.boxes import box_frame  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
 from pgt_blender.core.intensity.objects import kitti_frames  # noqa: E402
@@ -42,7 +42,6 @@ from pgt_blender.core.scan import replay  # noqa: E402
 from pgt_blender.core.scan.raycast import ScanOptions, cast_rays  # noqa: E402
 from pgt_blender.core.scan.sensors import sensor_from_name  # noqa: E402
 
-SHARED = ROOT.parent / "shared" / "data"
 RATIO_BAND = 0.35  # the "within +-35 %"
 TOP_SHARE = 0.4  # top 40 % of the box height
 
@@ -153,7 +152,7 @@ def draw(rows: list):
 
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="bench_fidelity.py", description=__doc__.split("\n\n")[0])
-    parser.add_argument("folder", type=Path, nargs="?", default=SHARED / "kitti_scans", help="KITTI frames")
+    parser.add_argument("folder", type=Path, nargs="?", default=dev.SHARED_DATA / "kitti_scans", help="KITTI frames")
     parser.add_argument("--meshes", default="chrono", help="chrono, samples or a folder of <class>.obj/.ply")
     parser.add_argument("--sensor", default="kitti", help="sensor preset or TOML")
     parser.add_argument("--min-points", type=int, default=1, help="real points an object needs to be scored")
@@ -165,7 +164,7 @@ def main(argv: list) -> int:
     sensor = sensor_from_name(args.sensor)
     if sensor.dataset != "kitti":
         raise InputError(args.sensor, f"is a {sensor.dataset} sensor; the scans are KITTI's")
-    meshes = replay.class_meshes(args.meshes, SHARED / "chrono_vehicles" / "data" / "vehicle")
+    meshes = replay.class_meshes(args.meshes, dev.CHRONO_VEHICLES)
     options = ScanOptions(window=False, range_noise=True, ray_drop=not args.no_drop, seed=args.seed)
     start = time.perf_counter()
     objects = [obj for _, rows, labels in kitti_frames(args.folder) if labels
@@ -176,7 +175,7 @@ def main(argv: list) -> int:
     rows, totals = measure(objects)
     import scipy
 
-    machine = cli.machine(numpy=np.__version__, scipy=scipy.__version__)
+    machine = dev.machine(numpy=np.__version__, scipy=scipy.__version__)
     print(f"machine: {machine}\ninputs: {args.folder}, meshes {args.meshes} (glass "
           f"{'solid' if args.no_glass else 'seen through'}), sensor {sensor.name}, seed {args.seed}; "
           f"{time.perf_counter() - start:.1f} s\n")
@@ -185,7 +184,7 @@ def main(argv: list) -> int:
           f"{number(100 * totals['within_35_percent'], 0)} % within +-35 %, mean ring Jaccard "
           f"{number(totals['mean_ring_jaccard'])}; intensity W1 {number(totals['mean_w1_sim'], 3)} simulated vs "
           f"{number(totals['mean_w1_constant'], 3)} constant mean ({totals['constant_intensity']:.3f})")
-    cli.write_results(args.out, {"machine": machine, "inputs": {"folder": str(args.folder), "meshes": args.meshes,
+    dev.write_results(args.out, {"machine": machine, "inputs": {"folder": str(args.folder), "meshes": args.meshes,
                                                                 "glass": not args.no_glass, "sensor": sensor.name,
                                                                 "seed": args.seed},
                                  "objects": rows, "totals": totals}, draw(rows))

@@ -26,11 +26,11 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import trimesh  # noqa: E402
 
-from pgt_blender import cli  # noqa: E402
+from pgt_blender import cli, dev  # noqa: E402
 from pgt_blender.core.authoring import heading_classifier as hc  # noqa: E402
 from pgt_blender.core.authoring.heading import profile_front_score  # noqa: E402
 
-CHRONO = ROOT.parent / "shared" / "data" / "chrono_vehicles"
+CHRONO = dev.SHARED_DATA / "chrono_vehicles"
 DENSITIES = (64, 256, 1024, 4096)
 NOISE_LEVELS = (0.0, 0.01, 0.03)
 METHODS = ("baseline", "classifier")
@@ -96,7 +96,7 @@ def main(argv: list) -> int:
              for p in DENSITIES for n in NOISE_LEVELS]
     per_mesh = [{"mesh": m.name, "source": m.source.split(" sha256:")[0],
                  **{k: mean(rows, k, mesh=m.name) for k in METHODS}} for m in meshes]
-    machine = cli.machine(torch_threads=args.threads, torch=str(torch.__version__), numpy=np.__version__,
+    machine = dev.machine(torch_threads=args.threads, torch=str(torch.__version__), numpy=np.__version__,
                           trimesh=trimesh.__version__)
     settings = {"held_out_meshes": len(meshes), "training_steps": steps,
                 "training": "train_heading.py defaults but steps and threads, seed 0",
@@ -115,7 +115,7 @@ def main(argv: list) -> int:
     print("|---|---|---:|---:|")
     for m in per_mesh:
         print(f"| {m['mesh']} | {m['source']} | {m['baseline']:.3f} | {m['classifier']:.3f} |")
-    cli.write_results(args.out, {"machine": machine, "settings": settings, "inputs": inputs, "cells": cells,
+    dev.write_results(args.out, {"machine": machine, "settings": settings, "inputs": inputs, "cells": cells,
                                  "per_mesh": per_mesh, "rows": rows}, lambda plt: plot(plt, cells, len(meshes)))
     print(f"in {seconds:.0f} s")
     return 0

@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 import bpy  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pgt_blender import cli  # noqa: E402
+from pgt_blender import cli, dev  # noqa: E402
 from pgt_blender.blender import headless, objects  # noqa: E402
 from pgt_blender.core.importing import load_reconstruction  # noqa: E402
 from pgt_blender.core.importing.ply import write_ply  # noqa: E402
@@ -75,7 +75,7 @@ def main(argv: list) -> int:
                              "read_s": read, "build_s": build, "total_s": read + build,
                              "points_per_s": count / (read + build)})
                 path.unlink()
-    machine = cli.machine(blender=bpy.app.version_string, numpy=np.__version__, repeats=args.repeats,
+    machine = dev.machine(blender=bpy.app.version_string, numpy=np.__version__, repeats=args.repeats,
                           statistic="median")
     print(f"machine: {machine}\n")
     print("| input | points | file MB | read s | Blender build s | total s | points/s |")
@@ -83,7 +83,7 @@ def main(argv: list) -> int:
     for r in rows:
         print(f"| {r['kind']} | {r['points']:,} | {r['file_mb']:.1f} | {r['read_s']:.4f} | "
               f"{r['build_s']:.4f} | {r['total_s']:.4f} | {r['points_per_s']:,.0f} |")
-    cli.write_results(args.out, {"machine": machine, "rows": rows}, lambda plt: plot(plt, rows))
+    dev.write_results(args.out, {"machine": machine, "rows": rows}, lambda plt: plot(plt, rows))
     return 0
 
 
@@ -102,4 +102,4 @@ def plot(plt, rows: list):
 
 
 if __name__ == "__main__":
-    sys.exit(main(headless.script_argv()))
+    sys.exit(cli.run_main(main, cli.script_argv()))

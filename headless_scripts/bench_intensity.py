@@ -37,12 +37,11 @@ sys.path.insert(0, str(ROOT / "addon"))
 import numpy as np  # noqa: E402
 from scipy.stats import wasserstein_distance  # noqa: E402
 
-from pgt_blender import cli  # noqa: E402
+from pgt_blender import cli, dev  # noqa: E402
 from pgt_blender.core.intensity import losses, objects  # noqa: E402
 from pgt_blender.core.scan import replay  # noqa: E402
 from pgt_blender.core.scan.sensors import PRESETS  # noqa: E402
 
-SHARED = ROOT.parent / "shared" / "data"
 CHRONO = {"car": ("sedan/sedan_chassis_vis.obj", "Nissan_Patrol/suv_chassis.obj", "VW_microbus/van_chassis.obj"),
           "truck": ("truck/truck_chassis.obj", "MAN_Kat1/meshes/MAN_10t_chassis.obj"),
           "bus": ("citybus/CityBus_Vis.obj",)}
@@ -58,7 +57,7 @@ def rgb_domain(sensor, quick: bool) -> list:
         warnings.simplefilter("ignore")  # the Chrono meshes' zero-area faces
         for class_name, paths in CHRONO.items():
             for relative in paths[:1] if quick else paths:
-                path = SHARED / "chrono_vehicles" / "data" / "vehicle" / relative
+                path = dev.CHRONO_VEHICLES / relative
                 found += objects.material_mesh_rgb_objects(path, class_name, sensor)
     return found + ([] if quick else objects.builtin_rgb_objects(sensor))
 
@@ -169,7 +168,7 @@ def summary(rows: list) -> list:
 
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="bench_intensity.py", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--kitti", type=Path, default=SHARED / "kitti_scans")
+    parser.add_argument("--kitti", type=Path, default=dev.SHARED_DATA / "kitti_scans")
     parser.add_argument("--holdout", nargs="+", help="KITTI scan ids held out in turn (default: every scan)")
     parser.add_argument("--min-points", type=int, default=64, help="real training objects' minimum points")
     parser.add_argument("--steps", type=int, help="training steps (default: TrainConfig's)")
@@ -184,7 +183,7 @@ def main(argv: list) -> int:
     sensor = PRESETS["kitti"]
     real = objects.kitti_scan_objects(args.kitti)
     frames = replay.replay_frames(((scan.stem, rows, labels) for scan, rows, labels in objects.kitti_frames(args.kitti)),
-                                  sensor, replay.class_meshes("chrono", SHARED / "chrono_vehicles" / "data" / "vehicle"))
+                                  sensor, replay.class_meshes("chrono", dev.CHRONO_VEHICLES))
     scans = args.holdout or [frame["frame"] for frame in frames]
     merged = not args.per_class
     relabel = (lambda items: [replace(o, class_name="object") for o in items]) if merged else (lambda items: items)
@@ -209,7 +208,7 @@ def main(argv: list) -> int:
                       "scored_classes": sorted({row["class"] for row in fold_rows})})
     averaged = summary(rows)
     results = {
-        "machine": cli.machine(numpy=np.__version__, torch=__import__("torch").__version__),
+        "machine": dev.machine(numpy=np.__version__, torch=__import__("torch").__version__),
         "inputs": {"real": str(args.kitti), "folds": folds, "rgb_objects_per_fold": len(rgb),
                    "merged_classes": merged, "min_points": args.min_points,
                    "train_config": vars(config) | {"checkpoint": str(args.checkpoint) if args.checkpoint else "trained"}},
@@ -222,11 +221,11 @@ def main(argv: list) -> int:
               f"{tuple(round(value, 4) for value in fold['law'])}; scored classes "
               f"{', '.join(fold['scored_classes']) or 'none (no RGB object of its classes)'}")
     print("\n" + table(rows) + "\n\n" + summary_table(averaged))
-    cli.write_results(args.out, results, draw(averaged))
+    dev.write_results(args.out, results, draw(averaged))
     args.out.with_suffix(".md").write_text("# LiDAR intensity: estimates against held-out real objects\n\n"
                                            + table(rows) + "\n\n" + summary_table(averaged) + "\n")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main(cli.script_argv()))
+    sys.exit(cli.run_main(main, cli.script_argv()))

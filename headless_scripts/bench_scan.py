@@ -45,13 +45,13 @@ sys.path.insert(0, str(ROOT / "addon"))
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
-from pgt_blender import cli  # noqa: E402
+from pgt_blender import cli, dev  # noqa: E402
 from pgt_blender.core.samples import sample_vehicle  # noqa: E402
 from pgt_blender.core.scan import raycast, targets  # noqa: E402
 from pgt_blender.core.scan.range_view import range_view_scan  # noqa: E402
 from pgt_blender.core.scan.sensors import PRESETS  # noqa: E402
 
-CHRONO_TRUCK = ROOT.parent / "shared" / "data" / "chrono_vehicles" / "data" / "vehicle" / "truck" / "truck_chassis.obj"
+CHRONO_TRUCK = dev.CHRONO_VEHICLES / "truck" / "truck_chassis.obj"
 SEED = 2024
 SPHERE_RADIUS = 1.5
 SPHERE_SUBDIVISIONS = 4
@@ -633,7 +633,7 @@ def main(argv: list) -> int:
     engine = embree_engine()
     versions = {"numpy": np.__version__, "trimesh": trimesh.__version__, "bpy": bpy.app.version_string,
                 "ray_engine": engine[1] if engine else "none installed (embreex, open3d)"}
-    machine = cli.machine(**versions)
+    machine = dev.machine(**versions)
     everything = {"full", "engine", "surfels", "range view"}
     plan = []
     for obj in objects:
@@ -687,11 +687,11 @@ def main(argv: list) -> int:
     print("\n" + body + "\n" + line)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".md").write_text(f"{header}\n**{line}**\n\n{body}")
-    cli.write_results(args.out, {"machine": machine, "inputs": inputs, "settings": settings, "target": target,
+    dev.write_results(args.out, {"machine": machine, "inputs": inputs, "settings": settings, "target": target,
                                  "rows": rows}, lambda plt: plot(plt, rows))
     print(f"wrote {args.out.with_suffix('.md')}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main(cli.script_argv()))
+    sys.exit(cli.run_main(main, cli.script_argv()))

@@ -55,8 +55,8 @@ def download_wheels(platform: str, destination: Path) -> list:
 
 def stage(directory: Path, platforms: list, wheels: list) -> None:
     """Lay out the package as Blender's builder expects: manifest beside __init__.py."""
-    shutil.copytree(ROOT / "addon" / "pgt_blender", directory,
-                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    shutil.copytree(ROOT / "addon" / "pgt_blender", directory,  # dev.py serves the repository's scripts only
+                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "dev.py"))
     manifest = (ROOT / "blender_manifest.toml").read_text()
     header, table, rest = manifest.partition("\n[")  # top-level keys must precede tables
     listing = lambda items: "[" + ", ".join(f'"{item}"' for item in items) + "]"  # noqa: E731

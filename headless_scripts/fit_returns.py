@@ -34,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 
 from scipy.stats import wasserstein_distance  # noqa: E402
 
+from pgt_blender import dev  # noqa: E402
 from pgt_blender.cli import run_main, script_argv  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
 from pgt_blender.core.files import atomic_output, read_float32_rows  # noqa: E402
@@ -42,7 +43,6 @@ from pgt_blender.core.scan import ray_drop, replay  # noqa: E402
 from pgt_blender.core.scan.physical_intensity import relative_intensity  # noqa: E402
 from pgt_blender.core.scan.sensors import PRESETS, sensor_from_name  # noqa: E402
 
-CHRONO = Path(__file__).resolve().parents[2] / "shared" / "data" / "chrono_vehicles" / "data" / "vehicle"
 
 
 def fitted_models(frames: list, sensor, real: dict | None, folder: Path) -> tuple:
@@ -110,7 +110,7 @@ def main(argv: list) -> int:
     args = parser.parse_args(argv)
     sensor = sensor_from_name(args.sensor)
     frames = replay.replay_frames(((scan.stem, rows, labels) for scan, rows, labels in kitti_frames(args.folder)),
-                                  sensor, replay.class_meshes(args.meshes, CHRONO))
+                                  sensor, replay.class_meshes(args.meshes, dev.CHRONO_VEHICLES))
     if not frames:
         raise InputError(args.folder, "has no labelled frames")
     law_sensor, real = sensor, None

@@ -24,12 +24,13 @@ sys.path.insert(0, str(ROOT / "addon"))
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from pgt_blender import dev  # noqa: E402
 from pgt_blender.blender import headless  # noqa: E402
 from pgt_blender.cli import run_main  # noqa: E402
 from pgt_blender.core.authoring import heading_classifier as hc  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
 
-DEFAULT_CHRONO = ROOT.parent / "shared" / "data" / "chrono_vehicles"
+DEFAULT_CHRONO = dev.SHARED_DATA / "chrono_vehicles"
 
 
 def training_sets(args) -> list:

@@ -32,12 +32,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "addon"))
 
+from pgt_blender import dev  # noqa: E402
 from pgt_blender.cli import run_main, script_argv  # noqa: E402
 from pgt_blender.core.intensity import model  # noqa: E402
 from pgt_blender.core.intensity.estimator import IntensityEstimator  # noqa: E402
 from pgt_blender.core.intensity.training import TrainConfig, train  # noqa: E402
 
-DEFAULT_REAL = ROOT.parent / "shared" / "data" / "kitti_scans"
+DEFAULT_REAL = dev.SHARED_DATA / "kitti_scans"
 
 
 def load_sets(args) -> tuple:

@@ -4,7 +4,8 @@ Markers are set here from what a test uses, so ``pytest -m "not blender and not 
 (``make test-core``) is a fast loop over the core:
 
 - ``blender``: needs headless bpy (the ``registered`` / ``scene`` fixtures);
-- ``data``: reads ../shared/data (the ``shared_data`` fixture; skipped without it);
+- ``data``: reads the shared data (``SHARED_DATA``: $PGT_SHARED_DATA, else ../shared/data; the
+  ``shared_data`` fixture, skipped without it);
 - ``torch``: trains or loads a network (TORCH_MODULES);
 - ``slow``: runs the scripts as subprocesses, builds banks or runs the detectors' code
   (SLOW_MODULES).
@@ -18,8 +19,9 @@ from pathlib import Path
 
 import pytest
 
+from pgt_blender.dev import SHARED_DATA  # noqa: F401  (the one setting: $PGT_SHARED_DATA or ../shared/data)
+
 ROOT = Path(__file__).resolve().parents[1]
-SHARED_DATA = ROOT.parent / "shared" / "data"
 
 
 def run_script(name: str, *args, check: bool = False, blender_style: bool = False, timeout: float = 600, **kwargs):

@@ -34,6 +34,7 @@ from pgt_blender.core.bank.inputs import checked_objects, prepared_objects
 from pgt_blender.core.boxes import inside_box
 from pgt_blender.core.importing import load_reconstruction
 from pgt_blender.core.samples import write_sample
+from pgt_blender.dev import SHARED_DATA
 from tests.detectors import databases, openpcdet
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -186,7 +187,7 @@ def dataset_root(work: Path, framework: str, dataset: str, banks: Path, pcdet) -
     real_name = REAL_PICKLES[framework][dataset]
     folder = "gt_database" if framework == "openpcdet" else f"{dataset}_gt_database"
     if dataset == "kitti":
-        real = databases.kitti_database(pcdet, SHARED / "kitti_scans", root, real_name, folder, framework)
+        real = databases.kitti_database(pcdet, SHARED_DATA / "kitti_scans", root, real_name, folder, framework)
     else:
         classes = openpcdet.CLASS_NAMES[dataset]
         real = databases.standin_database(dataset, classes, root, real_name, folder, framework)
@@ -199,7 +200,6 @@ def dataset_root(work: Path, framework: str, dataset: str, banks: Path, pcdet) -
     return root
 
 
-SHARED = ROOT.parent / "shared" / "data"
 
 
 def test_a_bank_is_retargeted_to_a_data_root_and_a_missing_root_is_refused(banks, tmp_path):
@@ -258,10 +258,10 @@ def check_pasted(points: np.ndarray, boxes: np.ndarray, names: np.ndarray, scene
 
 def scene_of(dataset: str, class_names: list) -> dict:
     if dataset == "kitti":
-        return openpcdet.kitti_scene(SHARED / "kitti_scans", "000001", class_names)
+        return openpcdet.kitti_scene(SHARED_DATA / "kitti_scans", "000001", class_names)
     if dataset == "nuscenes":
-        return openpcdet.nuscenes_scene(SHARED / "nuscenes_format_sample", class_names=class_names)
-    return openpcdet.lyft_scene(SHARED / "nuscenes_format_sample")
+        return openpcdet.nuscenes_scene(SHARED_DATA / "nuscenes_format_sample", class_names=class_names)
+    return openpcdet.lyft_scene(SHARED_DATA / "nuscenes_format_sample")
 
 
 # --- OpenPCDet ----------------------------------------------------------------------

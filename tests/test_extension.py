@@ -46,6 +46,7 @@ def test_bundled_wheels_are_the_runtime_dependencies(extension_zip):
     assert "blender_manifest.toml" in names and "__init__.py" in names
     assert "models/heading_pointnet.pt" in names  # the shipped heading classifier
     assert not any("__pycache__" in n for n in names)
+    assert "dev.py" not in names and "cli.py" in names  # nothing benchmark-only ships
 
 
 # Runs in a fresh interpreter with HOME in a temporary folder (Blender's user config

@@ -1,12 +1,8 @@
 """Plumbing of headless_scripts/ that needs no bpy: the same script runs as
-``blender -b [file.blend] -P script.py -- ARGS`` and as ``python script.py ARGS``;
-the benchmarks state their machine and write <out>.json and <out>.png alike."""
+``blender -b [file.blend] -P script.py -- ARGS`` and as ``python script.py ARGS``,
+and reports bad input as one line and exit code 1 (benchmark helpers: dev.py)."""
 
-import json
-import os
-import platform
 import sys
-from pathlib import Path
 
 
 def script_argv() -> list:
@@ -27,35 +23,3 @@ def run_main(main, argv: list) -> int:
     except OSError as error:
         print(f"error: {error.filename or '-'}: {error.strerror or error}", file=sys.stderr)
     return 1
-
-
-def machine(**details) -> dict:
-    """The benchmark machine: CPU model, core count, Python version, then ``details``
-    (library versions, settings)."""
-    return {"cpu": _cpu_name(), "cores": os.cpu_count(), "python": platform.python_version(), **details}
-
-
-def _cpu_name() -> str:
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.exists():
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.processor() or platform.machine()
-
-
-def write_results(out: Path, results: dict, draw) -> None:
-    """Write ``results`` to <out>.json and the figure ``draw(pyplot)`` returns to
-    <out>.png (Agg backend: no screen needed), then say where they are."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(results, indent=2))
-    figure = draw(plt)
-    figure.tight_layout()
-    figure.savefig(out.with_suffix(".png"), dpi=100)
-    print(f"\nwrote {out.with_suffix('.json')} and {out.with_suffix('.png')}")

@@ -33,7 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-SOURCE = Path(__file__).resolve().parents[2].parent / "shared" / "consumers" / "OpenPCDet"
+from pgt_blender.dev import SHARED_DATA
+
+SOURCE = SHARED_DATA.parent / "consumers" / "OpenPCDet"
 CONFIGS = SOURCE / "tools" / "cfgs"
 KITTI_IMAGE_SHAPE = (375, 1242)  # rows, columns: KittiDataset.get_image_shape of the shared frames
 

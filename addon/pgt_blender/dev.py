@@ -1,0 +1,48 @@
+"""Helpers of the repository's scripts and tests, not shipped in the extension
+(build_extension.py leaves this file out): where the third-party test data lies, and
+how benchmarks state their machine and write <out>.json and <out>.png.
+
+The shared data (real scans, meshes, COLMAP, splats, calibration tables, the detector
+consumers) is ``$PGT_SHARED_DATA`` when set, else ``../shared/data`` beside the
+repository: the one setting every script default and test reads.
+"""
+
+import json
+import os
+import platform
+from pathlib import Path
+
+SHARED_DATA = Path(os.environ.get("PGT_SHARED_DATA") or Path(__file__).resolve().parents[3] / "shared" / "data")
+CHRONO_VEHICLES = SHARED_DATA / "chrono_vehicles" / "data" / "vehicle"
+
+
+def machine(**details) -> dict:
+    """The benchmark machine: CPU model, core count, Python version, then ``details``
+    (library versions, settings)."""
+    return {"cpu": _cpu_name(), "cores": os.cpu_count(), "python": platform.python_version(), **details}
+
+
+def _cpu_name() -> str:
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.exists():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
+def write_results(out: Path, results: dict, draw) -> None:
+    """Write ``results`` to <out>.json and the figure ``draw(pyplot)`` returns to
+    <out>.png (Agg backend: no screen needed), then say where they are."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(results, indent=2))
+    figure = draw(plt)
+    figure.tight_layout()
+    figure.savefig(out.with_suffix(".png"), dpi=100)
+    print(f"\nwrote {out.with_suffix('.json')} and {out.with_suffix('.png')}")
