@@ -22,7 +22,7 @@ full default grid (5,677 poses per truck, chunk_size 64) once per object on all 
 the rate at nuScenes settings, and the check of the steady-state model below.
 
 Every export runs in a fresh Python process (so its memory is its own), which loads the
-objects, plans the entries, exports them (export.run_local: the timed part, poses/s =
+objects, plans the entries, exports them (export.run_plan: the timed part, poses/s =
 poses scanned and written per second, kept/s = entries that reach the bank, >= 16
 points; CPU ms/pose = user + system time of the process and its workers), assembles
 the info pickles and the manifest, and then reports: its own peak RSS (getrusage
@@ -73,7 +73,7 @@ import numpy as np  # noqa: E402
 from pgt_blender import cli, dev  # noqa: E402
 from pgt_blender.core import boxes  # noqa: E402
 from pgt_blender.core.authoring.prepare import read_sidecar  # noqa: E402
-from pgt_blender.core.bank import export, formats  # noqa: E402
+from pgt_blender.core.bank import export, folder, formats  # noqa: E402
 from pgt_blender.core.scan import raycast, sweeps, targets  # noqa: E402
 
 CHRONO_TRUCK = dev.CHRONO_VEHICLES / "truck" / "truck_chassis.obj"
@@ -95,7 +95,7 @@ PROFILE_STAGES = {  # stage -> the function whose cumulative seconds it is (a re
     "    returns, noise (raycast.build_returns)": raycast.build_returns,
     "  box filter (boxes.inside_box)": boxes.inside_box,
     "  format records (formats.database_record)": formats.database_record,
-    "  file writes (export._write_bytes)": export._write_bytes,
+    "  file writes (folder.write_file)": folder.write_file,
 }
 
 
@@ -175,16 +175,12 @@ def child(spec: dict) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench_bank_") as scratch:
         start = time.perf_counter()
         objects = []
-        for folder in spec["folders"]:
-            objects += checked_objects(*prepared_objects(folder), False, folder)
+        for source in spec["folders"]:
+            objects += checked_objects(*prepared_objects(source), False, source)
         result["load_s"] = time.perf_counter() - start
         out = Path(scratch) / "bank"
         start = time.perf_counter()
-        job = export.new_job(objects, config, out)
-        entries = job.entries()
-        chunks = job.chunks(entries)
-        export.prepare_folder(out, export.identity(job, len(chunks)), False, False)
-        pending = export.pending_chunks(out, len(chunks))
+        plan = export.plan_bank(objects, config, out)
         result["plan_s"] = time.perf_counter() - start
         baseline_children = _maxrss(resource.RUSAGE_CHILDREN)  # bpy's and numpy's import-time helpers
         result["load_average_1min"] = os.getloadavg()[0]
@@ -197,7 +193,7 @@ def child(spec: dict) -> dict:
             profiler = cProfile.Profile()
             profiler.enable()
         start, cpu = time.perf_counter(), _cpu_s()
-        poses = sum(export.run_local(job, chunks, pending, spec["workers"]))
+        poses = sum(export.run_plan(plan, spec["workers"]))
         result["export_s"] = time.perf_counter() - start
         result["export_cpu_s"] = _cpu_s() - cpu  # the pool is shut down (its workers reaped) by now
         if profiler:
@@ -213,7 +209,7 @@ def child(spec: dict) -> dict:
         result["assemble_s"] = time.perf_counter() - start
         after = _status()
         result |= {
-            "objects": len(objects), "poses": int(poses), "chunks": len(chunks), "kept": manifest["entries"],
+            "objects": len(objects), "poses": int(poses), "chunks": len(plan.chunks), "kept": manifest["entries"],
             "parent_max_rss": _maxrss(resource.RUSAGE_SELF), "workers_max_rss": _maxrss(resource.RUSAGE_CHILDREN),
             "children_baseline_rss": baseline_children, "workers_vmhwm_polled": poll.peak,
             "rss_before_assembly": before.get("VmRSS"), "assembly_peak_rss": after.get("VmHWM"),
@@ -714,7 +710,7 @@ def main(argv: list) -> int:
                       "(21 x 21), minus the ego clearance; one run per object on all cores")
                      if not args.quick else "not run (--quick)",
         "runs": f"median of {repeats} run(s) per object and worker count, each a fresh process; timed: "
-                "export.run_local (scan + .bin writes + chunk records); planning (job.entries) and assembly apart",
+                "export.run_plan (scan + .bin writes + chunk records); planning (export.plan_bank) and assembly apart",
         "workers": f"{workers}: 1 = in the parent process, {workers[-1]} = a fork pool of that many",
         "memory": "parent = RUSAGE_SELF ru_maxrss of the export process; worker = the largest VmHWM of its pool "
                   "workers, polled from /proc every 50 ms (VmHWM only grows, so the poll misses at most a worker's "

@@ -32,7 +32,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 
 from pgt_blender.cli import script_argv  # noqa: E402
-from pgt_blender.core.bank import export  # noqa: E402
+from pgt_blender.core.bank import export, folder  # noqa: E402
 from pgt_blender.core.bank.config import BankConfig, load_config  # noqa: E402
 from pgt_blender.core.bank.inputs import checked_objects, prepared_objects  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
@@ -56,9 +56,9 @@ def gather(args) -> tuple[list, Path]:
     if blend:
         found, missing = _blend_objects(blend, args.blend is not None)
         objects, incomplete, sources = objects + found, incomplete + missing, sources + [blend]
-    for folder in args.objects:
-        found, missing = prepared_objects(folder)
-        objects, incomplete, sources = objects + found, incomplete + missing, sources + [folder]
+    for source in args.objects:
+        found, missing = prepared_objects(source)
+        objects, incomplete, sources = objects + found, incomplete + missing, sources + [source]
     if not sources:
         raise InputError(".", "no input: give --blend FILE, --objects DIR, or run in Blender with a .blend")
     return checked_objects(objects, incomplete, args.skip_incomplete, sources[0]), sources[0]
@@ -92,9 +92,9 @@ def _blend_objects(path: Path, open_it: bool) -> tuple:
 
 def export_bank(args) -> int:
     if args.assemble:
-        reference = real_reference(args, export.read_identity(args.out)["config"])
+        reference = real_reference(args, folder.read_identity(args.out)["config"])
         for shard in args.shard_dirs:
-            export.copy_shard(shard, args.out)
+            folder.copy_shard(shard, args.out)
         return finish(args, export.assemble(args.out, args.data_root), reference, 0.0)
     config = load_config(args.config) if args.config else BankConfig()
     reference = real_reference(args, config.to_dict())

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pgt_blender.core.bank.export import INTENSITY_BINS
+from pgt_blender.core.bank.folder import INTENSITY_BINS
 from pgt_blender.core.bank.report import (REPORT_MD, REPORT_PNG, _quantiles, bank_statistics, real_reference,
                                           real_statistics, write_report)
 from pgt_blender.core.errors import InputError

@@ -1,27 +1,16 @@
-"""Export a bank: entries in chunks, on any executor, resumable, then one assembly.
-
-Output folder::
-
-    OUT/manifest.json                           config, objects, versions, counts, sha256 per file
-    OUT/<format>/<dataset>_dbinfos_pgt.pkl      the info pickle (formats.py)
-    OUT/<format>/pgt_gt_database/<object>_<class>_<index>.bin
-    OUT/.work/identity.json                     what this bank is made of (checked on --resume)
-    OUT/.work/chunks/<chunk>.json               one chunk's infos, file checksums and statistics (records.py)
+"""Export a bank: a job (objects, config, output folder), its entries in chunks run on
+an executor (executors.py), each chunk scanned and written (``write_chunk``), then one
+assembly of the info pickles and the manifest (folder layout and life cycle: folder.py).
 
 A chunk is ``chunk_size`` consecutive entries (objects in name order, each in grid
-order). Each chunk's .bin files are written first, its record last, each file
-atomically, so a chunk is done exactly when its record exists: a killed run resumes
-with the chunks that have none, and since every entry is a function of the config and
-its own seed, the bank ends byte-identical whatever the workers, shards or restarts.
-The pickles and the manifest are written last, from the records, in chunk order.
+order). Since every entry is a function of the config and its own seed, the bank ends
+byte-identical whatever the workers, shards or restarts. The pickles and the manifest
+are written last, from the chunk records, in chunk order.
 """
 
-import hashlib
 import json
 import os
 import pickle
-import shutil
-import sys
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -32,20 +21,15 @@ from ..errors import InputError
 from ..files import atomic_output
 from ..scan.sensors import INTENSITY_MAX, sensor_from_name
 from ..scan.sweeps import motion_class
+from . import executors
 from .config import BankConfig
 from .entries import TargetCache, scan_entry
 from .formats import DATABASE_CLASSES, DATABASE_FOLDER, class_name_for, database_record, entry_points
 from .grid import object_entries, sweeps_of
 from .inputs import BankObject, safe_name
-from .records import read_record, write_record
-
-WORK = ".work"
-MANIFEST = "manifest.json"
-INTENSITY_BINS = 32  # the report's per-class intensity histograms, over the dataset's range
-
-STATS_DTYPE = np.dtype([("object", "i4"), ("index", "i4"), ("x", "f4"), ("y", "f4"), ("heading", "f4"),
-                        ("points", "i4"), ("kept", "?")])
-
+from .folder import (INTENSITY_BINS, MANIFEST, STATS_DTYPE, chunk_record, chunk_record_path, pending_chunks,
+                     prepare_folder, read_identity, write_file)
+from .records import write_record
 
 @dataclass
 class BankJob:
@@ -106,90 +90,6 @@ def identity(job: BankJob, chunk_count: int) -> dict:
             "class_names": job.class_names, "chunks": chunk_count}
 
 
-def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared: bool = False) -> None:
-    """Make ``out`` ready: new or empty; with ``overwrite`` an earlier bank there is
-    removed; with ``resume`` (or ``shared``, for shards) an unfinished bank of the same
-    identity is continued. Anything else is refused with InputError."""
-    marker = out / WORK / "identity.json"
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "is a file, not an output folder")
-    if _cut_short(out):
-        shutil.rmtree(out / WORK)
-    if out.is_dir() and any(out.iterdir()):
-        is_bank = marker.is_file() or (out / MANIFEST).is_file()
-        if overwrite:
-            if not is_bank:
-                raise InputError(out, "is not empty and holds no bank: refusing to delete it; choose another --out")
-            for child in out.iterdir():
-                shutil.rmtree(child) if child.is_dir() else child.unlink()
-        elif resume or shared:
-            if not marker.is_file():
-                raise InputError(out, "holds no unfinished bank to resume (no .work/identity.json)")
-            if read_identity(out) != ident:
-                raise InputError(out, "holds a bank of other objects or settings; use --overwrite or another --out")
-            return
-        else:
-            raise InputError(out, "is not empty: pass --resume to continue the bank there or --overwrite to replace it")
-    (out / WORK / "chunks").mkdir(parents=True, exist_ok=True)
-    with atomic_output(marker) as stream:
-        stream.write(json.dumps(ident, indent=1).encode())
-
-
-def _cut_short(out: Path) -> bool:
-    """True for a folder holding only the empty .work/chunks an export makes before its
-    identity: a start cut short (a full disk), with nothing in it to keep."""
-    def names(folder: Path) -> list:
-        return sorted(child.name for child in folder.iterdir()) if folder.is_dir() else []
-
-    return names(out) == [WORK] and names(out / WORK) == ["chunks"] and not names(out / WORK / "chunks")
-
-
-def read_identity(out: Path) -> dict:
-    """OUT/.work/identity.json; InputError naming the file when it is missing or damaged."""
-    path = out / WORK / "identity.json"
-    if not path.is_file():
-        raise InputError(out, f"is not a bank folder: no {WORK}/identity.json")
-    try:
-        ident = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise InputError(path, f"damaged ({type(error).__name__}: {error}); --overwrite starts the bank "
-                               f"anew") from None
-    if not (isinstance(ident, dict) and {"config", "objects", "class_names", "chunks"} <= ident.keys()):
-        raise InputError(path, "not a bank identity (config, objects, class_names, chunks); --overwrite starts "
-                               "the bank anew")
-    return ident
-
-
-def chunk_record_path(out: Path, chunk_id: int) -> Path:
-    return out / WORK / "chunks" / f"{chunk_id:06d}.json"
-
-
-def chunk_record(out: Path, chunk_id: int, path: Path | None = None) -> dict | None:
-    """The record of chunk ``chunk_id`` (read from ``path``, default its place in OUT),
-    or None when it is missing or damaged: such a chunk is not done and is redone.
-    Checked field by field."""
-    path = chunk_record_path(out, chunk_id) if path is None else path
-    if not path.is_file():
-        return None
-    try:
-        record = read_record(path)
-    except (OSError, ValueError, TypeError, KeyError):  # what damaged JSON or array fields raise
-        return None
-    fields = {"chunk": int, "infos": dict, "files": dict, "stats": np.ndarray, "intensity": dict}
-    whole = isinstance(record, dict) and all(isinstance(record.get(key), kind) for key, kind in fields.items()) \
-        and record["chunk"] == chunk_id and record["stats"].dtype == STATS_DTYPE \
-        and all(isinstance(infos, list) and all(isinstance(info, dict) for info in infos)
-                for infos in record["infos"].values()) \
-        and all(isinstance(name, str) and isinstance(digest, str) for name, digest in record["files"].items())
-    return record if whole else None
-
-
-def pending_chunks(out: Path, chunk_count: int, shard=(0, 1)) -> list:
-    """The chunk ids of this shard (id % count == index) without a whole record."""
-    index, count = shard
-    return [i for i in range(index, chunk_count, count) if chunk_record(out, i) is None]
-
-
 @dataclass
 class Plan:
     """A bank ready to run: its job, every chunk of entries, the chunk ids left to do."""
@@ -220,8 +120,8 @@ def plan_bank(objects: list, config: BankConfig, out, resume: bool = False, over
 def run_plan(plan: Plan, workers: int = 1, executor: str = "local", address: str | None = None):
     """Export the pending chunks; yields each one's entry count as it finishes."""
     if executor == "ray":
-        return run_ray(plan.job, plan.chunks, plan.pending, address)
-    return run_local(plan.job, plan.chunks, plan.pending, workers)
+        return executors.run_ray(plan.job, plan.chunks, plan.pending, address, write_chunk)
+    return executors.run_local(plan.job, plan.chunks, plan.pending, workers, write_chunk)
 
 
 def export_bank(objects: list, config: BankConfig, out, workers: int = 1, overwrite: bool = False,
@@ -232,26 +132,6 @@ def export_bank(objects: list, config: BankConfig, out, workers: int = 1, overwr
     for _ in run_plan(plan, workers):
         pass
     return assemble(plan.job.out, data_root)
-
-
-# One job per worker process, set by the pool's initializer (or before a fork).
-_job: BankJob | None = None
-_cache: TargetCache | None = None
-
-
-def start_worker(job: BankJob) -> None:
-    global _job, _cache
-    if "bpy" not in sys.modules:
-        # A spawned worker inherits the parent's sys.path, to which the bpy module added
-        # its scripts folders; their "bpy" package would shadow the module itself.
-        sys.path[:] = [path for path in sys.path if Path(path).parent.name != "scripts"]
-    _job, _cache = job, TargetCache(job.objects, job.config)
-
-
-def run_chunk(chunk_id: int, entries: np.ndarray) -> int:
-    """Export one chunk in this worker (``start_worker`` first); returns its entry count."""
-    write_chunk(_job, _cache, chunk_id, entries)
-    return len(entries)
 
 
 def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.ndarray) -> None:
@@ -281,25 +161,17 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
         for fmt in config.formats:
             data, info = database_record(fmt, config.dataset, points, scan.box, shared)
             relative = f"{fmt}/{info['path']}"
-            files[relative] = _write_bytes(job.out / relative, data.tobytes())
+            files[relative] = write_file(job.out / relative, data.tobytes())
             infos[fmt].append(info)
         histogram = histograms.setdefault(class_name, np.zeros(INTENSITY_BINS, np.int64))
         histogram += np.histogram(rows["intensity"], INTENSITY_BINS, (0.0, INTENSITY_MAX[config.dataset]))[0]
     record = {"chunk": chunk_id, "infos": infos, "files": files, "stats": stats, "intensity": histograms}
-    _write_bytes(chunk_record_path(job.out, chunk_id), write_record(record))
+    write_file(chunk_record_path(job.out, chunk_id), write_record(record))
 
 
 def _group_id(entry) -> int:
     """Unique over the bank: objects' grids never exceed 2**24 entries."""
     return int(entry["object"]) * 2**24 + int(entry["index"])
-
-
-def _write_bytes(path: Path, data: bytes) -> str:
-    """Write ``data`` atomically (parents made) and return its sha256."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_output(path) as stream:
-        stream.write(data)
-    return hashlib.sha256(data).hexdigest()
 
 
 _estimators: dict = {}
@@ -371,7 +243,7 @@ def assemble(out: Path, data_root=None) -> dict:
     pickle_name = f"{config['dataset']}_dbinfos_pgt.pkl"
     for fmt, by_class in infos.items():
         relative = f"{fmt}/{pickle_name}"
-        files[relative] = _write_bytes(out / relative, pickle.dumps(by_class, protocol=4))
+        files[relative] = write_file(out / relative, pickle.dumps(by_class, protocol=4))
     manifest = {
         "pgt_blender": _version(), "config": config, "seed": config["seed"], "objects": ident["objects"],
         "versions": _library_versions(), "frames": FRAMES,
@@ -385,17 +257,6 @@ def assemble(out: Path, data_root=None) -> dict:
     with atomic_output(out / MANIFEST) as stream:
         stream.write(json.dumps(manifest, indent=1).encode())
     return manifest
-
-
-def info_path_root(info_pickle: Path) -> Path:
-    """The folder a bank pickle's info paths are relative to: the data root its
-    manifest records (OUT/manifest.json beside OUT/<format>/), else the pickle's folder."""
-    manifest = Path(info_pickle).parent.parent / MANIFEST
-    try:
-        data_root = json.loads(manifest.read_text()).get("data_root")
-    except (OSError, ValueError, AttributeError):
-        data_root = None
-    return Path(info_pickle).parent if data_root is None else manifest.parent / data_root
 
 
 def _path_prefix(format_folder: Path, data_root) -> str:
@@ -436,81 +297,3 @@ def _library_versions() -> dict:
     return versions
 
 
-def copy_shard(source: Path, out: Path) -> int:
-    """Copy a shard folder's whole chunk records and their database files into ``out``
-    (same identity required); returns the records copied. Damaged records are left:
-    their chunks stay to do."""
-    if read_identity(source) != read_identity(out):
-        raise InputError(source, "is not a shard of this bank (its .work/identity.json differs)")
-    copied = 0
-    for record_path in sorted((source / WORK / "chunks").glob("*.json")):
-        record = chunk_record(source, int(record_path.stem), record_path) if record_path.stem.isdigit() else None
-        if record is None:
-            continue  # damaged: the chunk stays to do
-        for relative in record["files"]:
-            target = out / relative
-            target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(source / relative, target)
-        shutil.copyfile(record_path, out / WORK / "chunks" / record_path.name)  # last: the chunk counts once here
-        copied += 1
-    return copied
-
-
-def run_local(job: BankJob, chunks: list, pending: list, workers: int):
-    """Yield each pending chunk's entry count as it finishes, on ``workers`` processes
-    (1: in this process). Linux forks (the BVH library is already loaded), except for a
-    learned intensity: PyTorch's thread pool does not survive a fork, so those workers,
-    like every worker elsewhere, are spawned with the job."""
-    if workers <= 1 or len(pending) <= 1:
-        cache = TargetCache(job.objects, job.config)
-        for chunk_id in pending:
-            write_chunk(job, cache, chunk_id, chunks[chunk_id])
-            yield len(chunks[chunk_id])
-        return
-    import multiprocessing
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-
-    forks = sys.platform == "linux" and not job.config.intensity_checkpoint
-    context = multiprocessing.get_context("fork" if forks else "spawn")
-    with ProcessPoolExecutor(workers, context, initializer=start_worker, initargs=(job,)) as pool:
-        queue = list(pending)
-        running = set()
-        while queue or running:
-            # A bounded queue: at most two chunks per worker wait, so memory stays flat.
-            while queue and len(running) < 2 * workers:
-                chunk_id = queue.pop(0)
-                running.add(pool.submit(run_chunk, chunk_id, chunks[chunk_id]))
-            done, running = wait(running, return_when=FIRST_COMPLETED)
-            for future in done:
-                yield future.result()
-
-
-def run_ray(job: BankJob, chunks: list, pending: list, address: str | None):
-    """The same chunks as tasks on a Ray cluster (``address`` None: a local one). Every
-    node must see ``job.out`` (a shared file system) and have pgt_blender's Python."""
-    import ray
-
-    ray.init(address=address, ignore_reinit_error=True, log_to_driver=False,
-             runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in _python_path() if p)}})
-    try:
-        job_ref = ray.put(job)
-        remote = ray.remote(_ray_chunk)
-        running = [remote.remote(job_ref, chunk_id, chunks[chunk_id]) for chunk_id in pending]
-        while running:
-            done, running = ray.wait(running, num_returns=1)
-            yield ray.get(done[0])
-    finally:
-        ray.shutdown()
-
-
-def _python_path() -> list:
-    """This process's import path for pgt_blender, so Ray workers find the same code."""
-    package_parent = str(Path(__file__).resolve().parents[3])
-    return [package_parent, os.environ.get("PYTHONPATH", "")]
-
-
-def _ray_chunk(job: BankJob, chunk_id: int, entries: np.ndarray) -> int:
-    """One chunk as a Ray task: a worker process starts the job on its first task."""
-    if _job is None or _job.out != job.out:
-        start_worker(job)
-    return run_chunk(chunk_id, entries)

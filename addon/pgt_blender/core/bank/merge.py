@@ -13,7 +13,7 @@ config names the classes it samples, and those come from the real data.
 
 Paths: the framework joins an info's ``path`` to the dataset root (OpenPCDet
 ``root_path / path``, mmdet3d ``os.path.join(data_root, path)``). Real infos are kept
-as they are. Bank paths are relative to the bank's data root (export.info_path_root:
+as they are. Bank paths are relative to the bank's data root (folder.info_path_root:
 the pickle's folder unless the bank was assembled with one); in the output they
 are relative to ``root`` (default: the real pickle's folder) when the file lies under
 it, else absolute (joining an absolute path yields it, in both frameworks).
@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import InputError
 from ..files import atomic_output
 from ..gt_database import load_infos
-from .export import info_path_root
+from .folder import info_path_root
 
 BOX_LAYOUTS = {7: "KITTI layout", 9: "nuScenes layout"}
 

@@ -8,7 +8,7 @@ Statistics per class (the dataset's class names; bank and real database matched 
 - points per entry: median, p10 and p90 of the kept entries (numpy's linear quantiles);
 - points by distance: the median points per entry in rings of DISTANCE_RING m of
   box-centre distance from the sensor, hypot(x, y);
-- intensity: histogram of every kept point's intensity, export.INTENSITY_BINS equal
+- intensity: histogram of every kept point's intensity, folder.INTENSITY_BINS equal
   bins over the dataset's range [0, INTENSITY_MAX] (KITTI 0..1, nuScenes/Lyft 0..255);
 - coverage: 2-D histogram of kept box centres (x, y) in cells of the grid step,
   centred on the grid's nodes (sensor frame, metres); centres beyond them are not counted.
@@ -28,7 +28,7 @@ from ..errors import InputError
 from ..files import atomic_output, read_float32_rows
 from ..scan.sensors import BIN_COLUMNS, INTENSITY_MAX
 from .config import DATASET_GRIDS, grid_values
-from .export import INTENSITY_BINS, WORK, chunk_record, chunk_record_path, read_identity
+from .folder import INTENSITY_BINS, WORK, chunk_record, chunk_record_path, read_identity
 from ..gt_database import load_infos
 
 DISTANCE_RING = 10.0  # m: width of the distance bins

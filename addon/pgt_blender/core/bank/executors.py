@@ -1,0 +1,92 @@
+"""Where a bank's chunks run: this process, a local process pool, or a Ray cluster.
+Each runs ``write(job, cache, chunk_id, entries)`` (export.write_chunk) for the pending
+chunks and yields each one's entry count as it finishes; a worker holds one job and one
+TargetCache (one BVH per object variant, reused across its chunks)."""
+
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .entries import TargetCache
+
+# One job per worker process, set by the pool's initializer (or before a fork).
+_job = None
+_write = None
+_cache: TargetCache | None = None
+
+
+def start_worker(job, write) -> None:
+    global _job, _write, _cache
+    if "bpy" not in sys.modules:
+        # A spawned worker inherits the parent's sys.path, to which the bpy module added
+        # its scripts folders; their "bpy" package would shadow the module itself.
+        sys.path[:] = [path for path in sys.path if Path(path).parent.name != "scripts"]
+    _job, _write, _cache = job, write, TargetCache(job.objects, job.config)
+
+
+def run_chunk(chunk_id: int, entries: np.ndarray) -> int:
+    """Export one chunk in this worker (``start_worker`` first); returns its entry count."""
+    _write(_job, _cache, chunk_id, entries)
+    return len(entries)
+
+
+def run_local(job, chunks: list, pending: list, workers: int, write):
+    """Yield each pending chunk's entry count as it finishes, on ``workers`` processes
+    (1: in this process). Linux forks (the BVH library is already loaded), except for a
+    learned intensity: PyTorch's thread pool does not survive a fork, so those workers,
+    like every worker elsewhere, are spawned with the job."""
+    if workers <= 1 or len(pending) <= 1:
+        cache = TargetCache(job.objects, job.config)
+        for chunk_id in pending:
+            write(job, cache, chunk_id, chunks[chunk_id])
+            yield len(chunks[chunk_id])
+        return
+    import multiprocessing
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    forks = sys.platform == "linux" and not job.config.intensity_checkpoint
+    context = multiprocessing.get_context("fork" if forks else "spawn")
+    with ProcessPoolExecutor(workers, context, initializer=start_worker, initargs=(job, write)) as pool:
+        queue = list(pending)
+        running = set()
+        while queue or running:
+            # A bounded queue: at most two chunks per worker wait, so memory stays flat.
+            while queue and len(running) < 2 * workers:
+                chunk_id = queue.pop(0)
+                running.add(pool.submit(run_chunk, chunk_id, chunks[chunk_id]))
+            done, running = wait(running, return_when=FIRST_COMPLETED)
+            for future in done:
+                yield future.result()
+
+
+def run_ray(job, chunks: list, pending: list, address: str | None, write):
+    """The same chunks as tasks on a Ray cluster (``address`` None: a local one). Every
+    node must see ``job.out`` (a shared file system) and have pgt_blender's Python."""
+    import ray
+
+    ray.init(address=address, ignore_reinit_error=True, log_to_driver=False,
+             runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join(p for p in _python_path() if p)}})
+    try:
+        job_ref = ray.put(job)
+        remote = ray.remote(_ray_chunk)
+        running = [remote.remote(job_ref, write, chunk_id, chunks[chunk_id]) for chunk_id in pending]
+        while running:
+            done, running = ray.wait(running, num_returns=1)
+            yield ray.get(done[0])
+    finally:
+        ray.shutdown()
+
+
+def _python_path() -> list:
+    """This process's import path for pgt_blender, so Ray workers find the same code."""
+    package_parent = str(Path(__file__).resolve().parents[3])
+    return [package_parent, os.environ.get("PYTHONPATH", "")]
+
+
+def _ray_chunk(job, write, chunk_id: int, entries: np.ndarray) -> int:
+    """One chunk as a Ray task: a worker process starts the job on its first task."""
+    if _job is None or _job.out != job.out:
+        start_worker(job, write)
+    return run_chunk(chunk_id, entries)

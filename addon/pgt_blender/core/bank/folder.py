@@ -1,0 +1,153 @@
+"""The bank folder's life cycle (export.py fills it)::
+
+    OUT/manifest.json                           config, objects, versions, counts, sha256 per file
+    OUT/<format>/<dataset>_dbinfos_pgt.pkl      the info pickle (formats.py)
+    OUT/<format>/pgt_gt_database/<object>_<class>_<index>.bin
+    OUT/.work/identity.json                     what this bank is made of (checked on --resume)
+    OUT/.work/chunks/<chunk>.json               one chunk's infos, file checksums and statistics (records.py)
+
+A chunk is done exactly when its record exists (its files are written first, each
+atomically): a folder is made ready once (``prepare_folder``), its pending chunks are
+those without a whole record, shards' records are copied in, and every reader of
+``.work`` goes through here with one error policy (InputError naming the file).
+"""
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..files import atomic_output
+from .records import read_record
+
+WORK = ".work"
+MANIFEST = "manifest.json"
+INTENSITY_BINS = 32  # the report's per-class intensity histograms, over the dataset's range
+STATS_DTYPE = np.dtype([("object", "i4"), ("index", "i4"), ("x", "f4"), ("y", "f4"), ("heading", "f4"),
+                        ("points", "i4"), ("kept", "?")])
+
+
+def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared: bool = False) -> None:
+    """Make ``out`` ready: new or empty; with ``overwrite`` an earlier bank there is
+    removed; with ``resume`` (or ``shared``, for shards) an unfinished bank of the same
+    identity is continued. Anything else is refused with InputError."""
+    marker = out / WORK / "identity.json"
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file, not an output folder")
+    if _cut_short(out):
+        shutil.rmtree(out / WORK)
+    if out.is_dir() and any(out.iterdir()):
+        is_bank = marker.is_file() or (out / MANIFEST).is_file()
+        if overwrite:
+            if not is_bank:
+                raise InputError(out, "is not empty and holds no bank: refusing to delete it; choose another --out")
+            for child in out.iterdir():
+                shutil.rmtree(child) if child.is_dir() else child.unlink()
+        elif resume or shared:
+            if not marker.is_file():
+                raise InputError(out, "holds no unfinished bank to resume (no .work/identity.json)")
+            if read_identity(out) != ident:
+                raise InputError(out, "holds a bank of other objects or settings; use --overwrite or another --out")
+            return
+        else:
+            raise InputError(out, "is not empty: pass --resume to continue the bank there or --overwrite to replace it")
+    (out / WORK / "chunks").mkdir(parents=True, exist_ok=True)
+    with atomic_output(marker) as stream:
+        stream.write(json.dumps(ident, indent=1).encode())
+
+
+def _cut_short(out: Path) -> bool:
+    """True for a folder holding only the empty .work/chunks an export makes before its
+    identity: a start cut short (a full disk), with nothing in it to keep."""
+    def names(folder: Path) -> list:
+        return sorted(child.name for child in folder.iterdir()) if folder.is_dir() else []
+
+    return names(out) == [WORK] and names(out / WORK) == ["chunks"] and not names(out / WORK / "chunks")
+
+
+def read_identity(out: Path) -> dict:
+    """OUT/.work/identity.json; InputError naming the file when it is missing or damaged."""
+    path = out / WORK / "identity.json"
+    if not path.is_file():
+        raise InputError(out, f"is not a bank folder: no {WORK}/identity.json")
+    try:
+        ident = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise InputError(path, f"damaged ({type(error).__name__}: {error}); --overwrite starts the bank "
+                               f"anew") from None
+    if not (isinstance(ident, dict) and {"config", "objects", "class_names", "chunks"} <= ident.keys()):
+        raise InputError(path, "not a bank identity (config, objects, class_names, chunks); --overwrite starts "
+                               "the bank anew")
+    return ident
+
+
+def chunk_record_path(out: Path, chunk_id: int) -> Path:
+    return out / WORK / "chunks" / f"{chunk_id:06d}.json"
+
+
+def chunk_record(out: Path, chunk_id: int, path: Path | None = None) -> dict | None:
+    """The record of chunk ``chunk_id`` (read from ``path``, default its place in OUT),
+    or None when it is missing or damaged: such a chunk is not done and is redone.
+    Checked field by field."""
+    path = chunk_record_path(out, chunk_id) if path is None else path
+    if not path.is_file():
+        return None
+    try:
+        record = read_record(path)
+    except (OSError, ValueError, TypeError, KeyError):  # what damaged JSON or array fields raise
+        return None
+    fields = {"chunk": int, "infos": dict, "files": dict, "stats": np.ndarray, "intensity": dict}
+    whole = isinstance(record, dict) and all(isinstance(record.get(key), kind) for key, kind in fields.items()) \
+        and record["chunk"] == chunk_id and record["stats"].dtype == STATS_DTYPE \
+        and all(isinstance(infos, list) and all(isinstance(info, dict) for info in infos)
+                for infos in record["infos"].values()) \
+        and all(isinstance(name, str) and isinstance(digest, str) for name, digest in record["files"].items())
+    return record if whole else None
+
+
+def pending_chunks(out: Path, chunk_count: int, shard=(0, 1)) -> list:
+    """The chunk ids of this shard (id % count == index) without a whole record."""
+    index, count = shard
+    return [i for i in range(index, chunk_count, count) if chunk_record(out, i) is None]
+
+
+def copy_shard(source: Path, out: Path) -> int:
+    """Copy a shard folder's whole chunk records and their database files into ``out``
+    (same identity required); returns the records copied. Damaged records are left:
+    their chunks stay to do."""
+    if read_identity(source) != read_identity(out):
+        raise InputError(source, "is not a shard of this bank (its .work/identity.json differs)")
+    copied = 0
+    for record_path in sorted((source / WORK / "chunks").glob("*.json")):
+        record = chunk_record(source, int(record_path.stem), record_path) if record_path.stem.isdigit() else None
+        if record is None:
+            continue  # damaged: the chunk stays to do
+        for relative in record["files"]:
+            target = out / relative
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(source / relative, target)
+        shutil.copyfile(record_path, out / WORK / "chunks" / record_path.name)  # last: the chunk counts once here
+        copied += 1
+    return copied
+
+
+def info_path_root(info_pickle: Path) -> Path:
+    """The folder a bank pickle's info paths are relative to: the data root its
+    manifest records (OUT/manifest.json beside OUT/<format>/), else the pickle's folder."""
+    manifest = Path(info_pickle).parent.parent / MANIFEST
+    try:
+        data_root = json.loads(manifest.read_text()).get("data_root")
+    except (OSError, ValueError, AttributeError):
+        data_root = None
+    return Path(info_pickle).parent if data_root is None else manifest.parent / data_root
+
+
+def write_file(path: Path, data: bytes) -> str:
+    """Write ``data`` atomically (parents made) and return its sha256."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_output(path) as stream:
+        stream.write(data)
+    return hashlib.sha256(data).hexdigest()
