@@ -499,55 +499,50 @@ def mb(value) -> str:
 
 
 def throughput_table(rows: list) -> str:
-    lines = ["| object | grid | workers | poses | kept | s (median of n) | poses/s | kept/s | CPU ms/pose "
-             "| BVH builds s | steady poses/s | full-grid poses/s (projected) | parent max RSS MB "
-             "| worker max RSS MB | disk kB/entry |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
+    def cells(r):
         steady = f"{r['steady_poses_per_s']:.0f}" if "steady_poses_per_s" in r else "-"
         projected = f"{r['projected_full_grid_poses_per_s']:.0f}" if "projected_full_grid_poses_per_s" in r else "-"
-        lines.append(f"| {r['object']} | {r['grid']} | {r['workers']} | {r['poses']:,} | {r['kept']:,} "
-                     f"| {r['export_s_median']:.2f} ({r['runs']}) | {r['poses_per_s']:.0f} | {r['kept_per_s']:.0f} "
-                     f"| {r['cpu_ms_per_pose']:.1f} | {r.get('build_s', float('nan')):.2f} | {steady} | {projected} "
-                     f"| {mb(r['parent_max_rss'])} | {mb(r['workers_vmhwm_polled'])} "
-                     f"| {r['disk_allocated_per_entry'] / 1e3:,.1f} |")
-    return "\n".join(lines)
+        return [r["object"], r["grid"], r["workers"], f"{r['poses']:,}", f"{r['kept']:,}",
+                f"{r['export_s_median']:.2f} ({r['runs']})", f"{r['poses_per_s']:.0f}", f"{r['kept_per_s']:.0f}",
+                f"{r['cpu_ms_per_pose']:.1f}", f"{r.get('build_s', float('nan')):.2f}", steady, projected,
+                mb(r["parent_max_rss"]), mb(r["workers_vmhwm_polled"]), f"{r['disk_allocated_per_entry'] / 1e3:,.1f}"]
+    return dev.markdown_table(["object", "grid", "workers", "poses", "kept", "s (median of n)", "poses/s", "kept/s",
+                               "CPU ms/pose", "BVH builds s", "steady poses/s", "full-grid poses/s (projected)",
+                               "parent max RSS MB", "worker max RSS MB", "disk kB/entry"],
+                              [cells(r) for r in rows], "ll" + "r" * 13)
 
 
 def memory_table(rows: list) -> str:
-    lines = ["| objects | grid | poses | kept | s | kept/s | parent max RSS MB | worker max RSS MB (polled VmHWM) "
-             "| worker max RSS MB (getrusage) | RSS before assembly MB | assembly peak growth MB | info pickles MB "
-             "| bank on disk MB |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r['objects']} | {r['grid']} | {r['poses']:,} | {r['kept']:,} | {r['export_s']:.1f} "
-                     f"| {r['kept'] / r['export_s']:.0f} | {mb(r['parent_max_rss'])} | {mb(r['workers_vmhwm_polled'])} "
-                     f"| {mb(r['workers_max_rss'])} | {mb(r['rss_before_assembly'])} "
-                     f"| {r['assembly_growth'] / MIB:,.1f} "
-                     f"| {r['disk'].get('info pickles', {}).get('bytes', 0) / MIB:,.1f} "
-                     f"| {sum(p['allocated'] for p in r['disk'].values()) / MIB:,.1f} |")
-    return "\n".join(lines)
+    return dev.markdown_table(
+        ["objects", "grid", "poses", "kept", "s", "kept/s", "parent max RSS MB", "worker max RSS MB (polled VmHWM)",
+         "worker max RSS MB (getrusage)", "RSS before assembly MB", "assembly peak growth MB", "info pickles MB",
+         "bank on disk MB"],
+        [[r["objects"], r["grid"], f"{r['poses']:,}", f"{r['kept']:,}", f"{r['export_s']:.1f}",
+          f"{r['kept'] / r['export_s']:.0f}", mb(r["parent_max_rss"]), mb(r["workers_vmhwm_polled"]),
+          mb(r["workers_max_rss"]), mb(r["rss_before_assembly"]), f"{r['assembly_growth'] / MIB:,.1f}",
+          f"{r['disk'].get('info pickles', {}).get('bytes', 0) / MIB:,.1f}",
+          f"{sum(p['allocated'] for p in r['disk'].values()) / MIB:,.1f}"] for r in rows],
+        "rl" + "r" * 11)
 
 
 def projection_table(rows: list) -> str:
-    lines = ["| entries like | basis | workers | kept/s | hours for 151,579 | CPU-bound kept/s | hours, CPU-bound "
-             "| points/entry | disk GB (without .work) |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r['object']} | {r['basis']} | {r['workers']} | {r['kept_per_s']:.0f} | {r['hours']:.2f} "
-                     f"| {r['cpu_bound_kept_per_s']:.0f} | {r['hours_cpu_bound']:.2f} | {r['points_per_entry']:,.0f} "
-                     f"| {r['disk_gb']:.1f} ({r['disk_gb_without_work']:.1f}) |")
-    return "\n".join(lines)
+    return dev.markdown_table(
+        ["entries like", "basis", "workers", "kept/s", "hours for 151,579", "CPU-bound kept/s", "hours, CPU-bound",
+         "points/entry", "disk GB (without .work)"],
+        [[r["object"], r["basis"], r["workers"], f"{r['kept_per_s']:.0f}", f"{r['hours']:.2f}",
+          f"{r['cpu_bound_kept_per_s']:.0f}", f"{r['hours_cpu_bound']:.2f}", f"{r['points_per_entry']:,.0f}",
+          f"{r['disk_gb']:.1f} ({r['disk_gb_without_work']:.1f})"] for r in rows], "ll" + "r" * 7)
 
 
 def profile_table(profile: dict) -> str:
     total = profile["seconds_profiled"]
-    lines = [f"export under cProfile: {total:.1f} s (profiling inflates Python-level calls)", "",
-             "| stage (cumulative; indented = inside the one above) | s | % of export |", "|---|---:|---:|"]
-    lines += [f"| {stage.replace('  ', '&nbsp;&nbsp;')} | {s:.2f} | {100 * s / total:.0f} |"
-              for stage, s in profile["stages_cumulative_s"].items()]
-    lines += ["", "| function (top own time) | calls | own s | cumulative s |", "|---|---:|---:|---:|"]
-    lines += [f"| {f['function']} | {f['calls']:,} | {f['own_s']:.2f} | {f['cumulative_s']:.2f} |"
-              for f in profile["top_own_time"]]
-    return "\n".join(lines)
+    stages = dev.markdown_table(["stage (cumulative; indented = inside the one above)", "s", "% of export"],
+                                [[stage.replace("  ", "&nbsp;&nbsp;"), f"{s:.2f}", f"{100 * s / total:.0f}"]
+                                 for stage, s in profile["stages_cumulative_s"].items()])
+    functions = dev.markdown_table(["function (top own time)", "calls", "own s", "cumulative s"],
+                                   [[f["function"], f"{f['calls']:,}", f"{f['own_s']:.2f}", f"{f['cumulative_s']:.2f}"]
+                                    for f in profile["top_own_time"]])
+    return f"export under cProfile: {total:.1f} s (profiling inflates Python-level calls)\n\n{stages}\n\n{functions}"
 
 
 def target_summary(throughput: list) -> dict | None:

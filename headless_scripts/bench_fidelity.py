@@ -115,17 +115,15 @@ def number(value, digits=2) -> str:
 
 
 def table(rows: list) -> str:
-    lines = ["| class | mesh | distance m | points real / sim | ratio | ring Jaccard | columns/ring real / sim "
-             "| top 40 % real / sim | intensity real / sim | W1 sim | W1 constant |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for row in rows:
-        lines.append(
-            f"| {row['class']} | {row['mesh']} | {row['distance_m']:.1f} | {row['real_points']} / {row['sim_points']} "
-            f"| {number(row['ratio'])} | {number(row['ring_jaccard'])} | {row['real_columns_per_ring']:.1f} / "
-            f"{row['sim_columns_per_ring']:.1f} | {row['real_top_share']:.2f} / {row['sim_top_share']:.2f} | "
-            f"{number(row['real_intensity_mean'], 3)} / {number(row['sim_intensity_mean'], 3)} | "
-            f"{number(row['w1_sim'], 3)} | {number(row['w1_constant'], 3)} |")
-    return "\n".join(lines)
+    return dev.markdown_table(
+        ["class", "mesh", "distance m", "points real / sim", "ratio", "ring Jaccard", "columns/ring real / sim",
+         "top 40 % real / sim", "intensity real / sim", "W1 sim", "W1 constant"],
+        [[r["class"], r["mesh"], f"{r['distance_m']:.1f}", f"{r['real_points']} / {r['sim_points']}",
+          number(r["ratio"]), number(r["ring_jaccard"]),
+          f"{r['real_columns_per_ring']:.1f} / {r['sim_columns_per_ring']:.1f}",
+          f"{r['real_top_share']:.2f} / {r['sim_top_share']:.2f}",
+          f"{number(r['real_intensity_mean'], 3)} / {number(r['sim_intensity_mean'], 3)}", number(r["w1_sim"], 3),
+          number(r["w1_constant"], 3)] for r in rows], "ll" + "r" * 9)
 
 
 def draw(rows: list):

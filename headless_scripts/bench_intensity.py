@@ -115,21 +115,18 @@ def evaluate(held_out: list, rgb: list, train_real: list, estimator, merged: boo
 
 
 def table(rows: list) -> str:
-    lines = ["| held out | class | method | W1 points | W1 patch means | mean | real mean | real objects / points "
-             "| rgb objects |", "|---|---|---|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r['fold']} | {r['class']} | {r['method']} | {r['w1_points']:.4f} | {r['w1_patch_means']:.4f} "
-                     f"| {r['mean']:.3f} | {r['real_mean']:.3f} | {r['real_objects']} / {r['real_points']} "
-                     f"| {r['rgb_objects']} |")
-    return "\n".join(lines)
+    return dev.markdown_table(
+        ["held out", "class", "method", "W1 points", "W1 patch means", "mean", "real mean", "real objects / points",
+         "rgb objects"],
+        [[r["fold"], r["class"], r["method"], f"{r['w1_points']:.4f}", f"{r['w1_patch_means']:.4f}",
+          f"{r['mean']:.3f}", f"{r['real_mean']:.3f}", f"{r['real_objects']} / {r['real_points']}", r["rgb_objects"]]
+         for r in rows], "lll" + "r" * 6)
 
 
 def summary_table(averaged: list) -> str:
-    lines = ["| class | method | W1 points, mean over folds | / constant class mean | folds |",
-             "|---|---|---:|---:|---|"]
-    lines += [f"| {r['class']} | {r['method']} | {r['w1_points']:.4f} | {r['vs_constant']:.2f} | "
-              f"{', '.join(r['folds'])} |" for r in averaged]
-    return "\n".join(lines)
+    return dev.markdown_table(["class", "method", "W1 points, mean over folds", "/ constant class mean", "folds"],
+                              [[r["class"], r["method"], f"{r['w1_points']:.4f}", f"{r['vs_constant']:.2f}",
+                                ", ".join(r["folds"])] for r in averaged], "llrrl")
 
 
 def draw(averaged: list):

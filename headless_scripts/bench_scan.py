@@ -484,44 +484,38 @@ def fmt(value, digits=2):
 
 
 def table(rows: list) -> str:
-    lines = ["| method | object | sensor | m | ms / scan (median) | rays | hits | abs err median m | abs err p99 m "
-             "| abs err max m | false % | missed % |", "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r['method']} | {r['object']} | {r['sensor']} | {r['distance_m']:g} | {r['ms_median']:.3f} "
-                     f"| {r['rays_median']:,.0f} | {r['hits_median']:,.0f} | {fmt(r['error_median_m'])} "
-                     f"| {fmt(r['error_p99_m'])} | {fmt(r['error_max_m'])} | {r['false_pct']:.2f} "
-                     f"| {r['missed_pct']:.2f} |")
-    return "\n".join(lines)
+    return dev.markdown_table(
+        ["method", "object", "sensor", "m", "ms / scan (median)", "rays", "hits", "abs err median m", "abs err p99 m",
+         "abs err max m", "false %", "missed %"],
+        [[r["method"], r["object"], r["sensor"], f"{r['distance_m']:g}", f"{r['ms_median']:.3f}",
+          f"{r['rays_median']:,.0f}", f"{r['hits_median']:,.0f}", fmt(r["error_median_m"]), fmt(r["error_p99_m"]),
+          fmt(r["error_max_m"]), f"{r['false_pct']:.2f}", f"{r['missed_pct']:.2f}"] for r in rows], "lll" + "r" * 9)
 
 
 def method_table(rows: list) -> str:
     """Per method and sensor: medians over its rows (objects x distances)."""
-    lines = ["| method | sensor | rows | ms / scan (median of rows) | build s | abs err p99 m (median of rows) "
-             "| false % (median) | missed % (median) |", "|---|---|---:|---:|---:|---:|---:|---:|"]
     keys = sorted({(r["method"], r["sensor"]) for r in rows},
                   key=lambda k: (method_order(k[0]), k[1] != "nuscenes"))
+    cells = []
     for method, sensor in keys:
         mine = [r for r in rows if (r["method"], r["sensor"]) == (method, sensor)]
         p99 = [r["error_p99_m"] for r in mine if r["error_p99_m"] is not None]
         builds = [r["build_s"] for r in mine if "build_s" in r]
         median = {key: float(np.median([r[key] for r in mine])) for key in ("ms_median", "false_pct", "missed_pct")}
-        lines.append(f"| {method} | {sensor} | {len(mine)} | {median['ms_median']:.3f} | "
-                     f"{fmt(float(np.median(builds))) if builds else '-'} | "
-                     f"{fmt(float(np.median(p99)) if p99 else None)} | {median['false_pct']:.2f} | "
-                     f"{median['missed_pct']:.2f} |")
-    return "\n".join(lines)
+        cells.append([method, sensor, len(mine), f"{median['ms_median']:.3f}",
+                      fmt(float(np.median(builds))) if builds else "-", fmt(float(np.median(p99)) if p99 else None),
+                      f"{median['false_pct']:.2f}", f"{median['missed_pct']:.2f}"])
+    return dev.markdown_table(["method", "sensor", "rows", "ms / scan (median of rows)", "build s",
+                               "abs err p99 m (median of rows)", "false % (median)", "missed % (median)"],
+                              cells, "ll" + "r" * 6)
 
 
 def sphere_table(rows: list) -> str:
-    lines = ["| method | sensor | m | abs err median m vs ideal | p99 vs ideal | false % vs ideal | missed % vs ideal |",
-             "|---|---|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        if "ideal_sphere_paired" in r:
-            lines.append(f"| {r['method']} | {r['sensor']} | {r['distance_m']:g} "
-                         f"| {fmt(r['ideal_sphere_error_median_m'])} "
-                         f"| {fmt(r['ideal_sphere_error_p99_m'])} | {r['ideal_sphere_false_pct']:.2f} "
-                         f"| {r['ideal_sphere_missed_pct']:.2f} |")
-    return "\n".join(lines)
+    return dev.markdown_table(
+        ["method", "sensor", "m", "abs err median m vs ideal", "p99 vs ideal", "false % vs ideal", "missed % vs ideal"],
+        [[r["method"], r["sensor"], f"{r['distance_m']:g}", fmt(r["ideal_sphere_error_median_m"]),
+          fmt(r["ideal_sphere_error_p99_m"]), f"{r['ideal_sphere_false_pct']:.2f}",
+          f"{r['ideal_sphere_missed_pct']:.2f}"] for r in rows if "ideal_sphere_paired" in r], "ll" + "r" * 5)
 
 
 def markdown_header(machine: dict, inputs: dict, settings: dict) -> str:

@@ -46,3 +46,13 @@ def write_results(out: Path, results: dict, draw) -> None:
     figure.tight_layout()
     figure.savefig(out.with_suffix(".png"), dpi=100)
     print(f"\nwrote {out.with_suffix('.json')} and {out.with_suffix('.png')}")
+
+
+def markdown_table(header: list, rows: list, align: str = "") -> str:
+    """A Markdown table of ``header`` (C,) column titles and ``rows`` of C cells each
+    (written with str()); ``align`` one letter per column, "l" left or "r" right
+    (default: the first column left, the others right)."""
+    align = align or "l" + "r" * (len(header) - 1)
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" if a == "l" else "---:" for a in align) + "|"]
+    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
+    return "\n".join(lines)
