@@ -31,7 +31,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 
-from pgt_blender.cli import script_argv  # noqa: E402
+from pgt_blender.cli import run_main, script_argv  # noqa: E402
 from pgt_blender.core.bank import export, folder  # noqa: E402
 from pgt_blender.core.bank.config import BankConfig, load_config  # noqa: E402
 from pgt_blender.core.bank.inputs import checked_objects, prepared_objects  # noqa: E402
@@ -180,15 +180,8 @@ def main(argv: list) -> int:
         parser.error("--resume and --overwrite exclude each other")
     if args.workers < 1:
         parser.error("--workers must be at least 1")
-    try:
-        return export_bank(args)
-    except InputError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 1
-    except OSError as error:  # disk full, permission: the file and the system's reason
-        print(f"error: {error.filename or args.out}: {error.strerror or error}", file=sys.stderr)
-        return 1
+    return export_bank(args)
 
 
 if __name__ == "__main__":
-    sys.exit(main(script_argv()))
+    sys.exit(run_main(main, script_argv()))
