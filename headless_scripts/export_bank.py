@@ -31,7 +31,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 
-from pgt_blender.cli import script_argv  # noqa: E402
+from pgt_blender.cli import exit, script_argv  # noqa: E402
 from pgt_blender.core.bank import export  # noqa: E402
 from pgt_blender.core.bank.config import BankConfig, load_config  # noqa: E402
 from pgt_blender.core.bank.inputs import checked_objects, prepared_objects  # noqa: E402
@@ -191,4 +191,4 @@ def main(argv: list) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(script_argv()))
+    exit(main(script_argv()))
