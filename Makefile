@@ -7,7 +7,7 @@ MMDET3D_VENV := .venv-mmdet3d
 MMDET3D_PIP := $(MMDET3D_VENV)/bin/python -m pip install --disable-pip-version-check -q \
 	-c tests/detectors/mmdet3d-constraints.txt
 
-.PHONY: demo test test-core extension bench clean
+.PHONY: demo test test-core test-blender-other extension bench clean
 
 $(VENV)/bin/python:
 	$(PYTHON) -m venv $(VENV)
@@ -32,7 +32,26 @@ $(MMDET3D_VENV)/.installed: tests/detectors/mmdet3d-constraints.txt tests/detect
 	cp tests/detectors/mmcv_ext.py "$$($(MMDET3D_VENV)/bin/python -c 'import mmcv, os; print(os.path.dirname(mmcv.__file__))')/_ext.py"
 	touch $@
 
-test: $(VENV)/.dev-installed $(MMDET3D_VENV)/.installed
+# The other Blender versions the README claims, each in its own virtualenv with the
+# project's other pins: the Blender tests and the extension install test (a few minutes each).
+BPY_42 := 4.2.23
+BPY_50 := 5.0.1
+OTHER_BPY_VENVS := .venv-bpy42 .venv-bpy50
+
+.venv-bpy%/.dev-installed: pyproject.toml constraints.txt
+	rm -rf $(@D)
+	$(PYTHON) -m venv $(@D)
+	grep -v '^bpy==' constraints.txt > $(@D)/constraints.txt
+	echo "bpy==$(BPY_$*)" >> $(@D)/constraints.txt
+	$(@D)/bin/python -m pip install --disable-pip-version-check -q -c $(@D)/constraints.txt \
+		-e '.[blender,scripts,dev,learn]'
+	touch $@
+
+test-blender-other: $(OTHER_BPY_VENVS:%=%/.dev-installed)
+	for venv in $(OTHER_BPY_VENVS); do \
+		$$venv/bin/python -m pytest -q tests/test_blender_*.py tests/test_extension.py || exit 1; done
+
+test: $(VENV)/.dev-installed $(MMDET3D_VENV)/.installed test-blender-other
 	$(VENV)/bin/python -m pytest
 
 test-core: $(VENV)/.dev-installed
@@ -51,4 +70,4 @@ bench: $(VENV)/.dev-installed
 	$(VENV)/bin/python headless_scripts/bench_fidelity.py
 
 clean:
-	rm -rf $(VENV) $(MMDET3D_VENV) dist demo_output
+	rm -rf $(VENV) $(MMDET3D_VENV) $(OTHER_BPY_VENVS) dist demo_output

@@ -102,4 +102,4 @@ def plot(plt, rows: list):
 
 
 if __name__ == "__main__":
-    sys.exit(cli.run_main(main, cli.script_argv()))
+    cli.exit(cli.run_main(main, cli.script_argv()))

@@ -25,6 +25,7 @@ import bpy  # noqa: E402
 import numpy as np  # noqa: E402
 
 from pgt_blender.blender import authoring, headless, objects  # noqa: E402
+from pgt_blender import cli  # noqa: E402
 from pgt_blender.core.authoring.heading import best_available_method  # noqa: E402
 from pgt_blender.core.authoring.prepare import align_step  # noqa: E402
 from pgt_blender.core.bank import export  # noqa: E402
@@ -117,4 +118,4 @@ def export_demo_bank(out: Path) -> tuple:
 
 
 if __name__ == "__main__":
-    sys.exit(main(headless.script_argv()))
+    cli.exit(cli.run_main(main, cli.script_argv()))

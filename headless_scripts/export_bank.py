@@ -31,7 +31,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 
-from pgt_blender.cli import run_main, script_argv  # noqa: E402
+from pgt_blender import cli  # noqa: E402
 from pgt_blender.core.bank import export, folder  # noqa: E402
 from pgt_blender.core.bank.config import BankConfig, load_config  # noqa: E402
 from pgt_blender.core.bank.inputs import checked_objects, prepared_objects  # noqa: E402
@@ -184,4 +184,4 @@ def main(argv: list) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(run_main(main, script_argv()))
+    cli.exit(cli.run_main(main, cli.script_argv()))

@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
 import bpy  # noqa: E402
 
 from pgt_blender.blender import headless, objects  # noqa: E402
-from pgt_blender.cli import run_main  # noqa: E402
+from pgt_blender import cli  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
 from pgt_blender.core.importing import load_reconstruction  # noqa: E402
 
@@ -53,4 +53,4 @@ def main(argv: list) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(run_main(main, headless.script_argv()))
+    cli.exit(cli.run_main(main, cli.script_argv()))

@@ -24,9 +24,7 @@ sys.path.insert(0, str(ROOT / "addon"))
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from pgt_blender import dev  # noqa: E402
-from pgt_blender.blender import headless  # noqa: E402
-from pgt_blender.cli import run_main  # noqa: E402
+from pgt_blender import cli, dev  # noqa: E402
 from pgt_blender.core.authoring import heading_classifier as hc  # noqa: E402
 from pgt_blender.core.errors import InputError  # noqa: E402
 
@@ -108,4 +106,4 @@ def main(argv: list) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(run_main(main, headless.script_argv()))
+    sys.exit(cli.run_main(main, cli.script_argv()))

@@ -58,6 +58,21 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.slow)
 
 
+def pytest_sessionfinish(session, exitstatus):
+    session.config.pgt_exitstatus = int(exitstatus)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config):
+    """On Blender 4.2 the process would crash at exit after the add-on registered and
+    lose pytest's status: end it with that status (cli.exit) once pytest is done."""
+    bpy = sys.modules.get("bpy")
+    if bpy is not None and bpy.app.version < (4, 5, 0):
+        from pgt_blender.cli import exit
+
+        exit(getattr(config, "pgt_exitstatus", 1))
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """../shared/data (real third-party data); tests using it skip when it is absent."""

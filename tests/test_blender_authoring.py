@@ -176,6 +176,29 @@ def test_flat_object_cannot_take_a_class_size(scene):
     obj = objects.add_reconstruction(scene, Reconstruction(flat, "point_ply", Path("flat.ply"), ""))
     bpy.context.view_layer.objects.active = obj
     bpy.ops.object.pgt_align()
+    scene.pgt_authoring.class_name = "car"
     with pytest.raises(RuntimeError, match="cannot scale a box"):
         bpy.ops.object.pgt_set_size()
     assert authoring.status(obj)["size"] == ""
+
+
+def test_class_is_kept_by_name_and_cleared_when_the_dataset_lacks_it(scene, truck_file):
+    """A dataset switch keeps a class the new dataset has and clears one it lacks, with
+    the reason; Set Size then refuses instead of sizing to another class."""
+    settings = scene.pgt_authoring
+    settings.dataset, settings.class_name = "nuscenes", "truck"
+    settings.dataset = "kitti"
+    assert settings.class_name == "truck"  # KITTI has trucks: the same class, not the same position
+    settings.dataset, settings.class_name = "nuscenes", "bus"
+    settings.dataset = "kitti"
+    assert settings.class_name == "" and settings.class_note.startswith("Cleared: 'bus' is not a KITTI class")
+    settings.class_name = "lorry"  # typed, not picked from the search list
+    assert settings.class_name == "" and "'lorry' is not a KITTI class" in settings.class_note
+    obj = imported(scene, truck_file)
+    bpy.ops.object.pgt_align()
+    with pytest.raises(RuntimeError, match=f"{obj.name}: no class chosen: choose a KITTI class"):
+        bpy.ops.object.pgt_set_size()
+    assert authoring.status(obj)["size"] == "" and obj.pgt.class_name == ""
+    settings.class_name = "van"
+    assert bpy.ops.object.pgt_set_size() == {"FINISHED"}
+    assert (obj.pgt.dataset, obj.pgt.class_name) == ("kitti", "van")

@@ -216,3 +216,43 @@ def test_register_unregister_twice(registered):
         assert not hasattr(bpy.types.Object, "pgt") and not hasattr(bpy.types, "VIEW3D_PT_pgt_import")
         pgt_blender.register()
         assert hasattr(bpy.types.Object, "pgt") and hasattr(bpy.types, "VIEW3D_PT_pgt_import")
+
+
+def test_importers_without_a_file_say_so(scene):
+    """Run with nothing picked (a script, or Redo), each importer names what is missing."""
+    before = datablock_counts(bpy)
+    for name, missing in (("pgt_colmap", "model folder"), ("pgt_gaussian_splat", "file"),
+                          ("pgt_point_cloud", "file"), ("pgt_mesh", "file")):
+        with pytest.raises(RuntimeError, match=f"Import .*: no {missing} chosen$"):
+            getattr(bpy.ops.import_scene, name)()
+    assert datablock_counts(bpy) == before
+
+
+def test_every_property_has_a_tooltip(registered):
+    """Each visible property of the add-on's settings, preferences and operators has a
+    description, Blender's tooltip (HIDDEN ones are never shown)."""
+    from pgt_blender.blender import operators, properties
+
+    def own(struct, base):  # the add-on's properties, not Blender's inherited ones
+        return [prop for prop in struct.properties if prop.identifier not in base.properties.keys()]
+
+    props = {f"{cls.__name__}.{prop.identifier}": prop for cls in properties.classes
+             for prop in own(cls.bl_rna, cls.bl_rna.base)}
+    for cls in operators.classes:
+        category, name = cls.bl_idname.split(".")
+        rna = getattr(getattr(bpy.ops, category), name).get_rna_type()
+        props.update({f"{cls.bl_idname}.{prop.identifier}": prop for prop in rna.properties
+                      if prop.identifier != "rna_type"})
+    assert len(props) > 30
+    missing = [name for name, prop in props.items() if not prop.is_hidden and not prop.description]
+    assert missing == []
+
+
+def test_blend_relative_paths_are_accepted(scene):
+    """"//" paths (relative to the .blend) are set without a warning on every version."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scene.pgt_scan.sensor_file = "//sensors/custom.toml"
+        scene.pgt_authoring.checkpoint = "//heading.pt"

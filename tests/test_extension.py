@@ -93,7 +93,9 @@ INSTALL_SCRIPT = textwrap.dedent("""
     index = next(i for i, repo in enumerate(repos) if repo.module == "user_default")
     assert bpy.ops.extensions.package_uninstall(repo_index=index, pkg_id="pgt_blender") == {"FINISHED"}
     assert not os.path.exists(os.path.join(repos[index].directory, "pgt_blender"))
-    print("EXTENSION-OK")
+    print("EXTENSION-OK", flush=True)
+    if bpy.app.version < (4, 5, 0):  # 4.2 crashes at exit after an add-on's callbacks (see cli.exit),
+        os._exit(0)                  # which this process cannot import: the venv copy is hidden
 """)
 
 

@@ -2,12 +2,29 @@
 ``blender -b [file.blend] -P script.py -- ARGS`` and as ``python script.py ARGS``,
 and reports bad input as one line and exit code 1 (benchmark helpers: dev.py)."""
 
+import atexit
+import os
 import sys
 
 
 def script_argv() -> list:
     """The script's own arguments: those after ``--`` (Blender's convention), else argv[1:]."""
     return sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+
+
+def exit(code: int) -> None:
+    """End a script with ``code``. Blender 4.2's bpy module ends a process that
+    registered a Python callback property (update, search, dynamic enum items) with
+    SIGSEGV, losing the code: C++ static destructors free its UI types through Python
+    after Python has shut down. There, Python's exit handlers run here and the process
+    ends before those destructors."""
+    bpy = sys.modules.get("bpy")  # never imported here: core-only scripts stay bpy-free
+    if bpy is not None and bpy.app.version < (4, 5, 0):
+        atexit._run_exitfuncs()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
 
 
 def run_main(main, argv: list) -> int:

@@ -1,11 +1,9 @@
-"""Plumbing shared by headless_scripts/: the same script runs as
-``blender -b [file.blend] -P script.py -- ARGS`` and as ``python script.py ARGS``."""
+"""What headless_scripts/ that use Blender need: the add-on registered in a bpy module
+process as Blender would register it (arguments and exit codes: ../cli.py)."""
 
 import atexit
 
 import bpy
-
-from ..cli import script_argv  # noqa: F401  (the scripts' one import for both)
 
 
 def ensure_registered() -> None:

@@ -26,12 +26,16 @@ class _ImportReconstruction:
 
     bl_options = {"REGISTER", "UNDO"}
     source_kind = "auto"
+    input_noun = "file"
     with_cameras = False
 
     def input_path(self) -> str:
         return self.filepath
 
     def execute(self, context):
+        if not self.input_path():  # run without the file browser (a script, Redo with nothing picked)
+            self.report({"ERROR"}, f"{self.bl_label}: no {self.input_noun} chosen")
+            return {"CANCELLED"}
         try:
             recon = load_reconstruction(self.input_path(), kind=self.source_kind,
                                         with_cameras=self.with_cameras)
@@ -52,8 +56,9 @@ class IMPORT_SCENE_OT_pgt_colmap(_ImportReconstruction, bpy.types.Operator):
     bl_idname = "import_scene.pgt_colmap"
     bl_label = "Import COLMAP Model"
     source_kind = "colmap"
+    input_noun = "model folder"
 
-    directory: StringProperty(name="Model folder", subtype="DIR_PATH",
+    directory: StringProperty(name="Model folder", subtype="DIR_PATH", options=properties.PATH_OPTIONS,
                               description="Folder with cameras, images and points3D (.bin or .txt)")
     filter_folder: BoolProperty(default=True, options={"HIDDEN"})
     with_cameras: BoolProperty(name="Cameras", default=True,
@@ -103,9 +108,12 @@ class OBJECT_OT_pgt_add_sample(bpy.types.Operator):
     bl_label = "Add Sample Reconstruction"
     bl_options = {"REGISTER", "UNDO"}
 
-    class_name: EnumProperty(name="Class", items=[(c, c.replace("_", " ").title(), "") for c in MINORITY_CLASSES])
-    seed: IntProperty(name="Seed", default=0, min=0)
-    points: IntProperty(name="Points", default=20000, min=100, max=5_000_000)
+    class_name: EnumProperty(name="Class", description="Vehicle the sample is a reconstruction of",
+                             items=[(c, c.replace("_", " ").title(), f"A parametric nuScenes {c.replace('_', ' ')}")
+                                    for c in MINORITY_CLASSES])
+    seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the sample's noise, pose and scale")
+    points: IntProperty(name="Points", default=20000, min=100, max=5_000_000,
+                        description="Number of points the sample reconstruction has")
 
     def execute(self, context):
         from ..core.samples import synthetic_reconstruction
@@ -205,6 +213,9 @@ class OBJECT_OT_pgt_set_size(_AuthoringStep, bpy.types.Operator):
     bl_label = "Set Size"
 
     def step(self, context, obj, settings):
+        problem = properties.class_problem(settings) if settings.size_mode == "class" else ""
+        if problem:
+            raise InputError(obj.name, problem)
         return prepare.size_step(authoring.current_dims(obj), settings.size_mode, settings.dataset, settings.class_name,
                                  settings.seed, settings.uniform, tuple(settings.exact_dims))
 

@@ -21,25 +21,48 @@ _UP_LABELS = {"auto": ("Auto", "Cameras' mean up when the object has cameras, el
               "cameras": ("Cameras", "Mean up vector of the reconstruction's cameras"),
               "pca": ("PCA", "Minor principal axis: right for objects lower than they are wide")}
 _SENSOR_LABELS = {"nuscenes": "nuScenes", "kitti": "KITTI", "lyft": "Lyft", "vlp16": "VLP-16"}
-# Enum items must outlive the callback that returns them (Blender keeps raw pointers).
-_CLASS_ITEMS = {dataset: [(name, name.replace("_", " ").title(), f"{dataset} {name}: mean size "
-                           + " x ".join(f"{v:.2f}" for v in dims) + " m") for name, dims in sizes.items()]
-                for dataset, sizes in CLASS_SIZES.items()}
+_DATASET_LABELS = {"nuscenes": "nuScenes", "kitti": "KITTI", "lyft": "Lyft"}
+# "//" (relative to the .blend) is a supported file-path form; 4.5 warns about it
+# unless the property says so, and 4.2 does not know the option.
+PATH_OPTIONS = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (4, 5, 0) else set()
 
 
-def _class_items(settings, context):
-    return _CLASS_ITEMS[settings.dataset]
+def _class_search(settings, context, text):
+    """The chosen dataset's classes for the Class field's search list."""
+    return [name for name in CLASS_SIZES[settings.dataset] if text.lower() in name]
+
+
+def class_problem(settings) -> str:
+    """Why ``settings.class_name`` cannot be used with ``settings.dataset``, or ""."""
+    label = _DATASET_LABELS[settings.dataset]
+    if not settings.class_name:
+        return f"no class chosen: choose a {label} class"
+    if settings.class_name not in CLASS_SIZES[settings.dataset]:
+        return (f"'{settings.class_name}' is not a {label} class "
+                f"(have: {', '.join(CLASS_SIZES[settings.dataset])})")
+    return ""
+
+
+def _check_class(settings, context):
+    """Clear a class the chosen dataset does not have, keeping why for the Size panel:
+    the class is stored by name, so a dataset switch never turns it into another class."""
+    problem = class_problem(settings)
+    if settings.class_name and problem:
+        settings.class_note = f"Cleared: {problem}"
+        settings.class_name = ""
+    elif settings.class_name:
+        settings.class_note = ""
 
 
 class PGT_PG_object(bpy.types.PropertyGroup):
     """Where an object came from and what the authoring steps did to it (``Object.pgt``)."""
 
-    source_path: StringProperty(name="Source", subtype="FILE_PATH",
+    source_path: StringProperty(name="Source", subtype="FILE_PATH", options=PATH_OPTIONS,
                                 description="File or COLMAP folder the object was imported from")
     source_kind: EnumProperty(
-        name="Kind",
+        name="Kind", description="What the object was imported from",
         items=[("none", "None", "Not imported by pgt_blender")]
-        + [(kind, _KIND_LABELS[kind], "") for kind in SOURCE_KINDS],
+        + [(kind, _KIND_LABELS[kind], f"Imported from a {_KIND_LABELS[kind].lower()}") for kind in SOURCE_KINDS],
         default="none",
     )
     source_sha256: StringProperty(name="Checksum", description="sha256 of the source file(s) content")
@@ -48,7 +71,9 @@ class PGT_PG_object(bpy.types.PropertyGroup):
     # The authoring record: the 4x4 from the source file's frame to the object frame
     # (the mesh data holds object-frame coordinates), the box and what is done.
     object_from_source: FloatVectorProperty(name="Object from source", size=(4, 4),
-                                            subtype="MATRIX", default=_IDENTITY)
+                                            subtype="MATRIX", default=_IDENTITY,
+                                            description="4x4 from the source file's frame to the object "
+                                                        "frame: the product of the authoring steps")
     dims: FloatVectorProperty(name="Box", size=3, subtype="XYZ", unit="LENGTH",
                               description="Box length, width, height in the object frame")
     steps_json: StringProperty(name="Steps", description="JSON list of the authoring steps applied; "
@@ -58,43 +83,53 @@ class PGT_PG_object(bpy.types.PropertyGroup):
 class PGT_PG_authoring(bpy.types.PropertyGroup):
     """Settings of the Align, Heading and Size sections (``Scene.pgt_authoring``)."""
 
-    up: EnumProperty(name="Up", default="auto", items=[
+    up: EnumProperty(name="Up", default="auto", description="Which direction Align Axes takes as up", items=[
         (choice, *_UP_LABELS.get(choice, (f"Source {choice.upper()}", f"The source frame's {choice} axis")))
         for choice in UP_CHOICES])
-    heading_method: EnumProperty(name="Method", default="classifier", items=[
+    heading_method: EnumProperty(name="Method", default="classifier",
+                                 description="How Detect Front decides which end is the front", items=[
         ("classifier", "Classifier", "PointNet front/back classifier (needs torch)"),
         ("baseline", "Baseline", "Geometric rule: the lower end is the front")])
-    checkpoint: StringProperty(name="Checkpoint", subtype="FILE_PATH",
+    checkpoint: StringProperty(name="Checkpoint", subtype="FILE_PATH", options=PATH_OPTIONS,
                                description="Heading classifier checkpoint; empty: the one shipped with pgt_blender")
-    dataset: EnumProperty(name="Dataset", default="nuscenes",
-                          items=[(d, {"nuscenes": "nuScenes", "kitti": "KITTI", "lyft": "Lyft"}[d], "")
+    dataset: EnumProperty(name="Dataset", default="nuscenes", update=_check_class,
+                          description="Dataset whose class mean sizes Set Size uses",
+                          items=[(d, _DATASET_LABELS[d], f"{_DATASET_LABELS[d]} classes and mean sizes")
                                  for d in CLASS_SIZES])
-    class_name: EnumProperty(name="Class", items=_class_items)
-    size_mode: EnumProperty(name="Size", default="class", items=[
+    # A string searched in the dataset's classes, not an enum: an enum stores a position
+    # in its list (a dataset switch turned truck into pedestrian), and an enum whose items
+    # come from a callback crashes Blender 4.2 at exit.
+    class_name: StringProperty(name="Class", search=_class_search, update=_check_class,
+                               description="Class of the chosen dataset whose mean size Set Size samples")
+    class_note: StringProperty(name="Class note",
+                               description="Why the class was cleared (shown in the Size panel until one is chosen)")
+    size_mode: EnumProperty(name="Size", default="class", description="How Set Size scales the object", items=[
         ("class", "Class", "Class mean with Gaussian noise (sigma 10 %, clipped at 1 sigma)"),
         ("exact", "Exact", "The size given below"),
         ("keep", "Keep", "The source is already metric")])
     uniform: BoolProperty(name="Uniform", description="One scale factor for all axes (keeps the proportions)")
     seed: IntProperty(name="Seed", min=0, description="Seed of the size noise")
     exact_dims: FloatVectorProperty(name="Exact size", size=3, default=(4.0, 2.0, 1.5), min=0.001,
-                                    subtype="XYZ", unit="LENGTH")
+                                    subtype="XYZ", unit="LENGTH",
+                                    description="Length, width, height the Exact mode scales the box to")
 
 
 class PGT_PG_scan(bpy.types.PropertyGroup):
     """Settings of the Scan section (``Scene.pgt_scan``) and the last scan's statistics.
     Azimuth and heading are stored in radians (shown in degrees, as Blender angles are)."""
 
-    sensor: EnumProperty(name="Sensor", default="nuscenes", items=[
+    sensor: EnumProperty(name="Sensor", default="nuscenes", description="LiDAR the Scan simulates", items=[
         (name, _SENSOR_LABELS.get(name, name), sensor.note) for name, sensor in PRESETS.items()]
         + [("CUSTOM", "Custom", "A sensor TOML file: Sensor fields, or base = a preset and what differs")])
-    sensor_file: StringProperty(name="Sensor file", subtype="FILE_PATH", description="Custom sensor .toml")
+    sensor_file: StringProperty(name="Sensor file", subtype="FILE_PATH", options=PATH_OPTIONS,
+                                description="Custom sensor .toml")
     distance: FloatProperty(name="Distance", default=15.0, min=0.0, soft_max=100.0, unit="LENGTH",
                             description="Ground distance from the sensor to the object's origin")
     azimuth: FloatProperty(name="Azimuth", default=0.0, subtype="ANGLE",
                            description="Direction of the object seen from the sensor, from +x counter-clockwise")
     heading: FloatProperty(name="Heading", default=math.radians(90.0), subtype="ANGLE",
                            description="Direction the object's front (+x) faces in the sensor frame")
-    colour_by: EnumProperty(name="Colour", default="INTENSITY", items=[
+    colour_by: EnumProperty(name="Colour", default="INTENSITY", description="What the scan preview's colours show", items=[
         ("INTENSITY", "Intensity", "Colour the returns by intensity"),
         ("RING", "Ring", "Colour the returns by beam")])
     surfel_scale: FloatProperty(name="Surfel scale", default=1.0, min=0.01, soft_max=5.0,
@@ -112,7 +147,7 @@ class PGTPreferences(bpy.types.AddonPreferences):
     bl_idname = ADDON
 
     intensity_checkpoint: StringProperty(
-        name="Intensity checkpoint", subtype="FILE_PATH",
+        name="Intensity checkpoint", subtype="FILE_PATH", options=PATH_OPTIONS,
         description="intensity.pt written by headless_scripts/train_intensity.py, used by Apply Intensity Model")
 
     def draw(self, context):

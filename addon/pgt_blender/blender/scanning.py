@@ -192,23 +192,17 @@ def _material_reflectivity(obj: bpy.types.Object) -> np.ndarray:
     return reflectivity
 
 
-def _principled(material: bpy.types.Material):
-    """The material's first Principled BSDF node, or None (no node tree)."""
-    if material.use_nodes and material.node_tree:
-        return next((node for node in material.node_tree.nodes if node.type == "BSDF_PRINCIPLED"), None)
-    return None
-
-
 def base_color(material: bpy.types.Material) -> tuple:
-    """Linear RGB: the first Principled BSDF's Base Color, else the viewport colour."""
-    node = _principled(material)
-    return tuple(node.inputs["Base Color"].default_value if node else material.diffuse_color)[:3]
+    """Linear RGB: the material's viewport colour (Material > Viewport Display > Color).
+    One rule on every Blender version: the node tree is not read, because Blender 5.0
+    gives every new material a Principled BSDF (Base Color 0.8) and deprecates
+    ``use_nodes``, the switch that told 4.x which colour the user meant."""
+    return tuple(material.diffuse_color)[:3]
 
 
 def material_alpha(material: bpy.types.Material) -> float:
-    """The first Principled BSDF's Alpha, else the viewport colour's alpha."""
-    node = _principled(material)
-    return float(node.inputs["Alpha"].default_value if node else material.diffuse_color[3])
+    """The viewport colour's alpha (the same rule as ``base_color``)."""
+    return float(material.diffuse_color[3])
 
 
 def ramp(values: np.ndarray) -> np.ndarray:

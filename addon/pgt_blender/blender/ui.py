@@ -2,7 +2,7 @@
 
 import bpy
 
-from . import authoring
+from . import authoring, properties
 from .operators import IMPORTERS
 
 
@@ -39,9 +39,12 @@ class VIEW3D_PT_pgt_import(_PGTPanel, bpy.types.Panel):
         if obj.type == "MESH":
             box.label(text=f"{len(obj.data.vertices):,} points, {len(obj.data.polygons):,} faces, "
                            f"{sum(c.type == 'CAMERA' for c in obj.children)} cameras")
-        box.prop(settings, "source_path", text="")
+        # Read-only: the source is what was imported, and the class is set by Set Size
+        # (with the size the bank relies on), never typed here.
+        box.label(text=settings.source_path, icon="FILE")
         box.label(text=f"sha256 {settings.source_sha256[:16]}")
-        box.prop(settings, "class_name")
+        box.label(text=f"Class: {settings.class_name} ({settings.dataset})" if settings.class_name
+                  else "Class: set in the Size panel")
 
 
 def reconstruction(context):
@@ -105,7 +108,11 @@ class VIEW3D_PT_pgt_size(_AuthoringPanel, bpy.types.Panel):
         layout.prop(settings, "size_mode", expand=True)
         if settings.size_mode == "class":
             layout.prop(settings, "dataset")
-            layout.prop(settings, "class_name")
+            layout.prop(settings, "class_name", icon="VIEWZOOM")
+            problem = properties.class_problem(settings)
+            if problem:
+                layout.label(text=settings.class_note if settings.class_note and not settings.class_name
+                             else problem.capitalize(), icon="ERROR")
             layout.prop(settings, "seed")
         elif settings.size_mode == "exact":
             layout.prop(settings, "exact_dims")
