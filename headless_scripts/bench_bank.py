@@ -587,14 +587,14 @@ def plot(throughput: list, series: list, series_object: str):
         axes[0].set_title("bank export throughput, nuScenes settings (10 sweeps, noise, 2 formats)", fontsize=10)
         axes[0].legend(fontsize=8)
         copied = [r for r in series if r is not series[-1]]
-        for key, label, marker, colour in (("parent_max_rss", "parent max RSS", "o", "tab:blue"),
+        for key, label, marker, color in (("parent_max_rss", "parent max RSS", "o", "tab:blue"),
                                            ("workers_vmhwm_polled", "worker max RSS (polled VmHWM)", "s", "tab:orange"),
                                            ("workers_max_rss", "worker max RSS (getrusage)", "D", "tab:gray"),
                                            ("assembly_growth", "assembly peak growth", "^", "tab:green")):
-            axes[1].plot([r["kept"] for r in copied], [r[key] / MIB for r in copied], marker + "-", color=colour,
+            axes[1].plot([r["kept"] for r in copied], [r[key] / MIB for r in copied], marker + "-", color=color,
                          label=f"{label}, 1, 2, ... objects")
             axes[1].scatter([series[-1]["kept"]], [series[-1][key] / MIB], marker=marker, s=70, facecolors="none",
-                            edgecolors=colour, linewidths=1.5)
+                            edgecolors=color, linewidths=1.5)
         axes[1].scatter([], [], marker="o", facecolors="none", edgecolors="k",
                         label=f"hollow: 1 object, {series[-1]['grid']} grid")
         axes[1].set_xlabel(f"bank size, kept entries ({series_object})")

@@ -12,7 +12,7 @@ scan in turn (or those named by --holdout) is held out: the physical law
 fit_returns.py does), the CycleGAN is trained on them (unless --checkpoint), and every
 method is judged on the held-out scan's objects. RGB objects: scans (KITTI sensor with
 the fold's law and its noise, the 12 poses of objects.RGB_POSES) of the Chrono meshes
-with their material colours (sedan, SUV, van as car; truck, MAN as truck; city bus as
+with their material colors (sedan, SUV, van as car; truck, MAN as truck; city bus as
 bus) and of the built-in samples. With --merge-classes (the default: the shared data
 has one or two real objects per class) every class trains as one, "object";
 predictions still go per original class. nuScenes is not measured: the shared nuScenes

@@ -551,13 +551,13 @@ def target_line(target: dict | None) -> str:
 
 
 def style_of(plt, method: str, methods: list) -> dict:
-    """Marker and colour: one per method; surfels shade by density and mark by radius."""
+    """Marker and color: one per method; surfels shade by density and mark by radius."""
     kind = family(method)
     fixed = {"bvh windowed": ("o", "tab:blue"), "bvh full revolution": ("s", "tab:gray"),
              "embree": ("*", "tab:red"), "open3d": ("*", "tab:red")}
     if kind in fixed:
-        marker, colour = fixed[kind]
-        return {"marker": marker, "color": colour, "s": 110 if marker == "*" else 40}
+        marker, color = fixed[kind]
+        return {"marker": marker, "color": color, "s": 110 if marker == "*" else 40}
     variants = [m for m in methods if family(m) == kind]
     if kind == "surfels":
         counts = sorted({m.split()[1] for m in variants}, key=lambda c: int(c[:-1]))

@@ -17,7 +17,7 @@ nuScenes/Lyft x y z intensity time_lag), .ply every column, .npy the structured 
 class's motion model draws (seeded; class from --class or the sidecar <object>.json),
 or at --speed/--acceleration. Intensity: the sensor's physical law, or with
 --intensity-checkpoint the learned estimator (train_intensity.py) on each return's
-colour (the file's vertex or point colours) for the object's class. Bad input: a
+color (the file's vertex or point colors) for the object's class. Bad input: a
 one-line error and exit code 1.
 """
 

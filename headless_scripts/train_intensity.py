@@ -9,8 +9,8 @@ and write its checkpoints, loss log and config.
 --real (repeatable): a ground-truth database .pkl (points about the box centre for
 --gt-convention openpcdet, the bottom centre for mmdet3d) or a KITTI folder (velodyne,
 label_2, calib); default ../shared/data/kitti_scans when present. --rgb (repeatable): a
-folder of prepared coloured objects (prepare_objects.py's output) or CLASS=MESH for a
-mesh with material colours (e.g. car=sedan.obj); default the built-in sample vehicles.
+folder of prepared colored objects (prepare_objects.py's output) or CLASS=MESH for a
+mesh with material colors (e.g. car=sedan.obj); default the built-in sample vehicles.
 Objects under --min-points points are dropped; only classes both domains have are
 trained. The paper drops objects under 256 points; the default here is 64, because the
 three shared KITTI scans hold one object of a class the samples have, a 71-point truck.
@@ -67,7 +67,7 @@ def parse(argv: list):
     parser.add_argument("--real", type=Path, action="append",
                         help=f"GT database .pkl or KITTI folder, repeatable (default {DEFAULT_REAL} when present)")
     parser.add_argument("--rgb", action="append", default=[],
-                        help="folder of prepared coloured objects or CLASS=MESH, repeatable (default: the built-in samples)")
+                        help="folder of prepared colored objects or CLASS=MESH, repeatable (default: the built-in samples)")
     parser.add_argument("--gt-convention", choices=("openpcdet", "mmdet3d"), default="openpcdet",
                         help="a .pkl's points are about the box centre (openpcdet) or bottom centre (mmdet3d)")
     parser.add_argument("--dataset", default="kitti", choices=("kitti", "nuscenes", "lyft"),

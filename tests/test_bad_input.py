@@ -182,7 +182,7 @@ CASES = {
     "PLY body shorter than its header": import_ply("element vertex 2\n" + XYZ, "1 2 3\n", "declares 2 data rows"),
     "PLY property declared twice": import_ply("element vertex 1\n" + XYZ + "property float x\n", "1 2 3 4\n",
                                               "property 'x' appears twice in element 'vertex'"),
-    "PLY uchar colour of 300": import_ply(
+    "PLY uchar color of 300": import_ply(
         "element vertex 1\n" + XYZ + "property uchar red\nproperty uchar green\nproperty uchar blue\n",
         "0 0 0 300 0 0\n", "holds 300 in row 1: not a uint8 value"),
     "PLY property named like Blender's position": import_ply(

@@ -175,7 +175,7 @@ def test_every_panel_draws_with_valid_references(scene, samples, state):
     _state(scene, samples, state)
     calls = draw_everything(bpy.context)
     drawn = {arguments.get("property") for name, arguments in calls if name == "prop"}
-    assert {"sensor", "distance", "colour_by", "intensity_checkpoint"} <= drawn
+    assert {"sensor", "distance", "color_by", "intensity_checkpoint"} <= drawn
     if state not in ("empty", "deleted source"):
         assert {"up", "heading_method", "size_mode"} <= drawn  # the authoring panels polled in
     if bpy.context.mode == "EDIT_MESH":

@@ -45,12 +45,12 @@ def preferences(registered):
     bpy.context.preferences.addons.remove(addon)
 
 
-def coloured_box(scene):
+def colored_box(scene):
     vertices, faces = box_geometry()
     obj = mesh_object(scene, "Box", vertices, faces)
-    colours = obj.data.color_attributes.new("Col", "FLOAT_COLOR", "POINT")
+    colors = obj.data.color_attributes.new("Col", "FLOAT_COLOR", "POINT")
     shade = np.column_stack([(np.asarray(vertices)[:, 0] > 0) * 0.9, np.full(8, 0.2), np.full(8, 0.4), np.ones(8)])
-    colours.data.foreach_set("color", shade.astype(np.float32).ravel())
+    colors.data.foreach_set("color", shade.astype(np.float32).ravel())
     return obj, shade
 
 
@@ -61,7 +61,7 @@ def intensities(preview):
 
 
 def test_apply_intensity_model_matches_the_core(scene, preferences, checkpoint):
-    obj, shade = coloured_box(scene)
+    obj, shade = colored_box(scene)
     bpy.ops.object.pgt_scan()
     preview = bpy.data.objects["Box Scan"]
     before = intensities(preview)
@@ -69,14 +69,14 @@ def test_apply_intensity_model_matches_the_core(scene, preferences, checkpoint):
     bpy.context.view_layer.objects.active = preview
     assert bpy.ops.object.pgt_apply_intensity() == {"FINISHED"}
     after = intensities(preview)
-    # the core on the same returns: box frame points, the colour of the polygon hit
+    # the core on the same returns: box frame points, the color of the polygon hit
     settings = scene.pgt_scan
     target = scanning.scan_target(obj)
     result = core_scan(target, settings)
     x, y = settings.distance * np.cos(settings.azimuth), settings.distance * np.sin(settings.azimuth)
     matrix = placement(target.bounds, scanning.PRESETS[settings.sensor], x, y, settings.heading)
     local = (result.xyz - matrix[:3, 3]) @ matrix[:3, :3] - target.bounds.mean(axis=0)
-    corner_srgb = srgb_from_linear(shade[:, :3])  # Blender stores float colours linear
+    corner_srgb = srgb_from_linear(shade[:, :3])  # Blender stores float colors linear
     rgb = np.array([corner_srgb[list(p.vertices)].mean(axis=0) for p in obj.data.polygons])[result.returns["face"]]
     expected = dataset_intensity(IntensityEstimator.load(checkpoint).predict(local, target.size, rgb, "object"),
                                  "nuscenes")
@@ -86,7 +86,7 @@ def test_apply_intensity_model_matches_the_core(scene, preferences, checkpoint):
 
 
 def test_without_a_checkpoint_the_scan_keeps_its_physical_intensities(scene, preferences):
-    coloured_box(scene)
+    colored_box(scene)
     bpy.ops.object.pgt_scan()
     preview = bpy.data.objects["Box Scan"]
     before = intensities(preview)
@@ -100,7 +100,7 @@ def test_without_a_checkpoint_the_scan_keeps_its_physical_intensities(scene, pre
 
 
 def test_another_dataset_or_class_is_refused(scene, preferences, checkpoint):
-    obj, _ = coloured_box(scene)
+    obj, _ = colored_box(scene)
     preferences.intensity_checkpoint = str(checkpoint)
     scene.pgt_scan.sensor = "kitti"
     bpy.ops.object.pgt_scan()

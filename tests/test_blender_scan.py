@@ -83,7 +83,7 @@ def assert_same_rows(obj, returns):
         np.testing.assert_array_equal(stored[name], expected, err_msg=name)
 
 
-def colour_values(attribute, field="color_srgb"):
+def color_values(attribute, field="color_srgb"):
     values = np.empty(len(attribute.data) * 4, np.float32)
     attribute.data.foreach_get(field, values)
     return values.reshape(-1, 4)
@@ -170,7 +170,7 @@ def test_results_stand_where_the_object_stands(scene):
     assert len(results["PGT Ground"].data.polygons) == 1
 
 
-def test_scan_object_attributes_and_colours(scene):
+def test_scan_object_attributes_and_colors(scene):
     mesh_object(scene, "Box", *box_geometry())
     settings = scene.pgt_scan
     bpy.ops.object.pgt_scan()
@@ -185,13 +185,13 @@ def test_scan_object_attributes_and_colours(scene):
     assert scan.modifiers[objects.POINTS_GROUP].node_group.name == objects.POINTS_GROUP
     columns = scan_columns(scan)
     sensor = PRESETS[settings.sensor]
-    by_intensity = colour_values(colors, "color")
+    by_intensity = color_values(colors, "color")
     np.testing.assert_array_equal(by_intensity, scanning.ramp(columns["intensity"] / sensor.intensity_max))
 
-    settings.colour_by = "RING"
+    settings.color_by = "RING"
     bpy.ops.object.pgt_scan()
     colors = bpy.data.objects["Box Scan"].data.color_attributes.active_color
-    by_ring = colour_values(colors, "color")
+    by_ring = color_values(colors, "color")
     np.testing.assert_array_equal(by_ring, scanning.ramp(columns["ring"] / (sensor.beams - 1)))
     assert not np.allclose(by_ring, by_intensity)
 
@@ -226,7 +226,7 @@ def test_point_cloud_scans_as_surfels(scene):
     settings = scene.pgt_scan
     settings.surfel_scale = 0.8
     assert bpy.ops.object.pgt_scan() == {"FINISHED"}
-    stored_colors = colour_values(cloud.data.color_attributes.active_color)
+    stored_colors = color_values(cloud.data.color_attributes.active_color)
     target = surfel_target(positions(cloud), cloud.name, stored_colors, settings.surfel_scale)
     expected = core_scan(target, settings)
     assert expected.hits > 100
@@ -235,8 +235,8 @@ def test_point_cloud_scans_as_surfels(scene):
 
 
 @pytest.mark.parametrize("node_tree", [False, True])
-def test_material_colour_gives_the_reflectivity(scene, node_tree):
-    """No colour attribute: a face's reflectivity is its material's viewport colour, on
+def test_material_color_gives_the_reflectivity(scene, node_tree):
+    """No color attribute: a face's reflectivity is its material's viewport color, on
     every Blender version, whatever its node tree says (5.0 gives every new material a
     Principled BSDF at 0.8), read without deprecated API; relative to the object's mean
     (targets.relative_reflectivity): a white and a dark material keep their contrast."""
@@ -275,7 +275,7 @@ def test_material_colour_gives_the_reflectivity(scene, node_tree):
 
 @pytest.mark.parametrize("glass", ["named", "transparent"])
 def test_glass_materials_are_seen_through(scene, glass):
-    """Faces whose material is named like glass, or whose viewport colour has an alpha
+    """Faces whose material is named like glass, or whose viewport color has an alpha
     below 1, return
     nothing; the rays go on to the far side of the box, as the core scans it."""
     vertices, faces = box_geometry()
@@ -445,6 +445,6 @@ def test_panel_draws_the_settings_button_and_stats(scene, sensor):
     drawn = []
     VIEW3D_PT_pgt_scan.draw(SimpleNamespace(layout=_Layout(drawn)), bpy.context)
     assert drawn[:1] == ["sensor"] and "object.pgt_scan" in drawn
-    assert {"distance", "azimuth", "heading", "colour_by"} <= set(drawn)
+    assert {"distance", "azimuth", "heading", "color_by"} <= set(drawn)
     assert ("sensor_file" in drawn) == (sensor == "CUSTOM")
     assert (scene.pgt_scan.stats in drawn) == bool(scene.pgt_scan.stats)

@@ -83,13 +83,13 @@ def test_gaussian_splat_donut(donut):
     np.testing.assert_allclose(recon.colors[:, 0], np.clip(0.5 + SH_C0 * raw["f_dc_0"], 0, 1), atol=1e-6)
 
 
-def test_point_ply_with_colours_matches_splat_centres(donut):
+def test_point_ply_with_colors_matches_splat_centres(donut):
     points = load_reconstruction(donut.with_name("color.ply"))
     assert points.kind == "point_ply" and points.colors is not None
     np.testing.assert_array_equal(points.positions, load_reconstruction(donut).positions)
 
 
-def test_point_ply_normals_and_float_colours(tmp_path):
+def test_point_ply_normals_and_float_colors(tmp_path):
     rng = np.random.default_rng(3)
     xyz, normals, rgb = rng.normal(size=(3, 50, 3)).astype(np.float32)
     path = tmp_path / "n.ply"
@@ -98,7 +98,7 @@ def test_point_ply_normals_and_float_colours(tmp_path):
                      "confidence": np.arange(50, dtype=np.int32)}, binary=False)
     recon = load_reconstruction(path)
     np.testing.assert_allclose(recon.attributes["normal"], normals, rtol=1e-6)
-    np.testing.assert_allclose(recon.colors[:, :3], rgb, rtol=1e-6)  # float colours kept as they are
+    np.testing.assert_allclose(recon.colors[:, :3], rgb, rtol=1e-6)  # float colors kept as they are
     assert recon.attributes["confidence"].dtype == np.int32
 
 
@@ -183,8 +183,8 @@ def test_splats_with_nan_or_inf_fields_are_refused(donut, tmp_path, field, value
         load_reconstruction(tmp_path / "splat.ply")
 
 
-def test_ascii_colours_out_of_their_type_are_refused(tmp_path):
-    path = tmp_path / "colours.ply"
+def test_ascii_colors_out_of_their_type_are_refused(tmp_path):
+    path = tmp_path / "colors.ply"
     path.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
                     "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
                     "0 0 0 300 0 0\n1 1 1 0 0 0\n")
@@ -244,7 +244,7 @@ def test_colmap_folder_without_model(statue, tmp_path):
         load_reconstruction(tmp_path)
 
 
-def test_material_meshes_carry_colours_and_glass(shared_data, tmp_path):
+def test_material_meshes_carry_colors_and_glass(shared_data, tmp_path):
     from pgt_blender.core.importing.mesh import read_material_mesh
 
     sedan = read_material_mesh(shared_data / "chrono_vehicles/data/vehicle/sedan/sedan_chassis_vis.obj")

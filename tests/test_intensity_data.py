@@ -1,5 +1,5 @@
 """The intensity estimator's data: real objects from KITTI scans and GT databases, RGB
-objects from scans of coloured vehicles, farthest point sampling, class pairing."""
+objects from scans of colored vehicles, farthest point sampling, class pairing."""
 
 import pickle
 
@@ -72,7 +72,7 @@ def test_object_sets_are_normalised_boxes_of_fixed_size():
     assert result.xyz.tobytes() == object_set(objects, ("car",), "kitti", points=256, seed=1).xyz.tobytes()
 
 
-def test_rgb_objects_take_their_face_colours():
+def test_rgb_objects_take_their_face_colors():
     objects = builtin_rgb_objects(PRESETS["nuscenes"], classes=["truck"])
     assert len(objects) == 12 and all(obj.class_name == "truck" for obj in objects)
     near = objects[0]
@@ -81,8 +81,8 @@ def test_rgb_objects_take_their_face_colours():
     assert np.all(np.abs(near.points) <= near.dims / 2 + noise)
     from pgt_blender.core.samples import vehicle_parts
 
-    part_colours = np.array([part.color for part in vehicle_parts("truck")], np.float32)
-    assert np.isin(near.values.view([("", np.float32)] * 3), part_colours.view([("", np.float32)] * 3)).all()
+    part_colors = np.array([part.color for part in vehicle_parts("truck")], np.float32)
+    assert np.isin(near.values.view([("", np.float32)] * 3), part_colors.view([("", np.float32)] * 3)).all()
 
 
 def test_too_few_objects_name_the_class_the_count_and_the_thresholds():
@@ -133,7 +133,7 @@ def test_training_sets_from_the_shared_data(kitti, gt_database):
         paired_classes([], [], 256)  # the message used to end in a dangling ":"
 
 
-def test_material_colours_of_a_real_mesh(chrono_meshes):
+def test_material_colors_of_a_real_mesh(chrono_meshes):
     from pgt_blender.core.intensity.objects import material_mesh_rgb_objects
 
     sedan = next(p for p in chrono_meshes if p.name == "sedan_chassis_vis.obj")

@@ -32,7 +32,7 @@ def box_surface(count: int, rng) -> np.ndarray:
 
 
 def synthetic_set(count: int, channels: int, seed: int, points: int = 128) -> ObjectSet:
-    """Objects on box surfaces: intensity bright above the middle, colour from position."""
+    """Objects on box surfaces: intensity bright above the middle, color from position."""
     rng = np.random.default_rng(seed)
     xyz = np.stack([box_surface(points, rng) for _ in range(count)])
     values = (0.2 + 0.6 * (xyz[..., 2:] > 0)) if channels == 1 else 0.5 + 0.4 * xyz
@@ -329,15 +329,15 @@ def test_bad_checkpoints_classes_datasets_and_arrays(trained, tmp_path):
             scan_intensity(a_scan(20, dataset="nuscenes")[0], bounds, face_rgb, "car", checkpoint)
     estimator = IntensityEstimator.load(path)
     bad_arrays = {
-        r"colours have shape \(20, 4\), expected \(20, 3\)": (xyz, dims, np.ones((20, 4))),
+        r"colors have shape \(20, 4\), expected \(20, 3\)": (xyz, dims, np.ones((20, 4))),
         r"points have shape \(20, 2\)": (xyz[:, :2], dims, rgb),
-        "points or colours are NaN or infinite": (np.where(np.arange(20)[:, None] == 3, np.nan, xyz), dims, rgb),
-        r"colours span 0\.\.255": (xyz, dims, np.full((20, 3), 255.0) * (np.arange(20) > 0)[:, None]),
+        "points or colors are NaN or infinite": (np.where(np.arange(20)[:, None] == 3, np.nan, xyz), dims, rgb),
+        r"colors span 0\.\.255": (xyz, dims, np.full((20, 3), 255.0) * (np.arange(20) > 0)[:, None]),
         "box dims must be three positive": (xyz, (4.0, 0.0, 1.0), rgb),
     }
-    for message, (points, box, colours) in bad_arrays.items():
+    for message, (points, box, colors) in bad_arrays.items():
         with pytest.raises(InputError, match=f"^truck7: {message}"):
-            estimator.predict(points, box, colours, "car", name="truck7")
+            estimator.predict(points, box, colors, "car", name="truck7")
 
 
 # --- the script --------------------------------------------------------------------------

@@ -130,9 +130,9 @@ def test_fit_returns_reproduces_the_presets(tmp_path, shared_data):
     assert np.allclose(load_sensor_toml(out).intensity_law, PRESETS["nuscenes"].intensity_law, atol=1e-3)
 
 
-def test_colours_set_contrast_and_the_law_the_level():
+def test_colors_set_contrast_and_the_law_the_level():
     # A wall whose left half is 4x as bright as its right: reflectivity keeps the 4:1
-    # contrast with an area-weighted mean of 0.5, whatever the colours' absolute level.
+    # contrast with an area-weighted mean of 0.5, whatever the colors' absolute level.
     corners = np.array([[20, -3, -2], [20, 0, -2], [20, 0, 3], [20, -3, 3], [20, 3, -2], [20, 3, 3]], float)
     faces = [[0, 1, 2], [0, 2, 3], [4, 2, 1], [4, 5, 2]]
     for level in (0.05, 0.2):

@@ -41,7 +41,7 @@ def test_front_differs_from_back(class_name):
 
 
 @pytest.mark.parametrize("class_name", MINORITY_CLASSES)
-def test_every_surface_point_gets_its_part_colour(class_name):
+def test_every_surface_point_gets_its_part_color(class_name):
     vehicle = sample_vehicle(class_name)
     points, _ = trimesh.sample.sample_surface(vehicle.trimesh(), 3000, seed=1)
     local = (points - vehicle.offset) / vehicle.scale

@@ -339,7 +339,7 @@ def test_physical_intensity_on_a_wall_facing_the_sensor():
         scan = cast_rays(target, sensor, pose(distance, 0, 0), ScanOptions())
         directions = ray_directions(sensor, scan)
         scale, exponent, _ = sensor.intensity_law  # the fitted law; its spread needs range_noise
-        expected = np.clip(scale * 0.5 * np.abs(directions[:, 0])  # one colour: the mean reflectivity 0.5
+        expected = np.clip(scale * 0.5 * np.abs(directions[:, 0])  # one color: the mean reflectivity 0.5
                            * np.minimum(1, REFERENCE_RANGE / scan.returns["range"]) ** exponent, 0, 1)
         if dataset == "nuscenes":
             assert np.array_equal(scan.returns["intensity"], np.round(expected * 255))

@@ -1,8 +1,8 @@
 """Gather a scene's authored objects as the bank's inputs (core/bank/inputs.py), in bulk.
 
 An object's mesh data is its object frame (authoring wrote it so); its box is the last
-authoring step's dims. Meshes give their triangles, point objects their points; colours
-come from the per-point colour attribute (sRGB), as the prepared-object route reads them
+authoring step's dims. Meshes give their triangles, point objects their points; colors
+come from the per-point color attribute (sRGB), as the prepared-object route reads them
 from the PLY, so the same objects by either route make the same bank.
 """
 

@@ -3,7 +3,7 @@
 The preview ("<name> Scan") holds the returns in the sensor frame, its ``face`` column
 naming the source's polygon (meshes) or vertex (point clouds) each return hit. The
 estimator wants each return in the source's *box frame* (box centre at the origin,
-+x forward, m) with the sRGB colour of what it hit: points go sensor -> object frame by
++x forward, m) with the sRGB color of what it hit: points go sensor -> object frame by
 ``inverse(source.matrix_world) @ preview.matrix_world`` (the preview is placed by
 ``source.matrix_world @ inverse(sensor_from_object)``), then minus the box centre.
 """
@@ -28,8 +28,8 @@ def source_of(preview: bpy.types.Object):
 
 
 def element_rgb(source: bpy.types.Object) -> np.ndarray:
-    """(E, 3) float32 sRGB per polygon (meshes) or per vertex (point clouds): the colour
-    attribute (averaged over a polygon's corners), else the material's base colour,
+    """(E, 3) float32 sRGB per polygon (meshes) or per vertex (point clouds): the color
+    attribute (averaged over a polygon's corners), else the material's base color,
     else grey."""
     mesh = source.data
     attribute = scanning.color_attribute(mesh)
@@ -68,7 +68,7 @@ def preview_scan(preview: bpy.types.Object, source: bpy.types.Object) -> Scan:
 
 
 def apply_estimator(preview: bpy.types.Object, checkpoint, class_name: str, settings) -> float:
-    """Overwrite the preview's ``intensity`` attribute (and its colours when the scan
+    """Overwrite the preview's ``intensity`` attribute (and its colors when the scan
     ``settings``, ``Scene.pgt_scan``, show intensity) with the estimator at
     ``checkpoint`` (intensity/estimator.scan_intensity); ``class_name`` "" takes the
     checkpoint's only class. Returns points per second; InputError as the core's."""
@@ -80,7 +80,7 @@ def apply_estimator(preview: bpy.types.Object, checkpoint, class_name: str, sett
     values, _ = scan_intensity(scan, bounds, element_rgb(source), class_name, estimator, name=source.name)
     mesh = preview.data
     mesh.attributes["intensity"].data.foreach_set("value", values)
-    if settings.colour_by == "INTENSITY":
+    if settings.color_by == "INTENSITY":
         mesh.color_attributes["color"].data.foreach_set("color", scanning.ramp(values / INTENSITY_MAX[scan.dataset]).ravel())
     mesh.update()
     return estimator.last_rate

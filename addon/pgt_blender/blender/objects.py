@@ -69,7 +69,7 @@ POINTS_GROUP = "PGT Points"
 
 def show_as_points(obj: bpy.types.Object, radius: float, made: list) -> None:
     """Blender does not draw loose vertices in Object Mode: a Mesh to Points geometry
-    nodes modifier shows the cloud (viewport and render, colour attributes carried
+    nodes modifier shows the cloud (viewport and render, color attributes carried
     over) while the mesh keeps the imported data untouched."""
     group = bpy.data.node_groups.get(POINTS_GROUP)
     if group is None:

@@ -51,7 +51,7 @@ class _ImportReconstruction:
 
 
 class IMPORT_SCENE_OT_pgt_colmap(_ImportReconstruction, bpy.types.Operator):
-    """Import a COLMAP sparse model folder (points with colour, track length and error)"""
+    """Import a COLMAP sparse model folder (points with color, track length and error)"""
 
     bl_idname = "import_scene.pgt_colmap"
     bl_label = "Import COLMAP Model"
@@ -83,7 +83,7 @@ class IMPORT_SCENE_OT_pgt_gaussian_splat(ImportHelper, _ImportReconstruction, bp
 
 
 class IMPORT_SCENE_OT_pgt_point_cloud(ImportHelper, _ImportReconstruction, bpy.types.Operator):
-    """Import a point-cloud PLY (binary or ASCII, optional colours and normals)"""
+    """Import a point-cloud PLY (binary or ASCII, optional colors and normals)"""
 
     bl_idname = "import_scene.pgt_point_cloud"
     bl_label = "Import Point Cloud"

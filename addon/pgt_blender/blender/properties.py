@@ -129,9 +129,9 @@ class PGT_PG_scan(bpy.types.PropertyGroup):
                            description="Direction of the object seen from the sensor, from +x counter-clockwise")
     heading: FloatProperty(name="Heading", default=math.radians(90.0), subtype="ANGLE",
                            description="Direction the object's front (+x) faces in the sensor frame")
-    colour_by: EnumProperty(name="Colour", default="INTENSITY", description="What the scan preview's colours show", items=[
-        ("INTENSITY", "Intensity", "Colour the returns by intensity"),
-        ("RING", "Ring", "Colour the returns by beam")])
+    color_by: EnumProperty(name="Color", default="INTENSITY", description="What the scan preview's colors show", items=[
+        ("INTENSITY", "Intensity", "Color the returns by intensity"),
+        ("RING", "Ring", "Color the returns by beam")])
     surfel_scale: FloatProperty(name="Surfel scale", default=1.0, min=0.01, soft_max=5.0,
                                 description="Point clouds: surfel radius in units of the point spacing")
     stats: StringProperty(name="Statistics", description="Points, rays and time of the last scan")

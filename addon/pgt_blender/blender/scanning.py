@@ -9,7 +9,7 @@ object stands: ``matrix_world = object.matrix_world @ inverse(sensor_from_object
 Geometry is read and results are written in bulk (``foreach_get`` / ``foreach_set``).
 Each object's ScanTarget (its BVH) is built once and cached under the object's name
 with a fingerprint of everything that went into it, so scans from other poses reuse
-it and an edited mesh, colour or material rebuilds it.
+it and an edited mesh, color or material rebuilds it.
 """
 
 import hashlib
@@ -135,7 +135,7 @@ def mesh_triangles(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
 
 
 def srgb(attribute) -> np.ndarray:
-    """(N, 4) float32 sRGB 0..1 of a colour attribute (byte or float, any domain)."""
+    """(N, 4) float32 sRGB 0..1 of a color attribute (byte or float, any domain)."""
     return read(attribute.data, "color_srgb", len(attribute.data) * 4, np.float32).reshape(-1, 4)
 
 
@@ -145,7 +145,7 @@ def color_attribute(mesh: bpy.types.Mesh):
 
 
 def point_colors(mesh: bpy.types.Mesh):
-    """(N, 4) sRGB per vertex from the colour attribute when it is per point, else None."""
+    """(N, 4) sRGB per vertex from the color attribute when it is per point, else None."""
     attribute = color_attribute(mesh)
     return srgb(attribute) if attribute is not None and attribute.domain == "POINT" else None
 
@@ -159,8 +159,8 @@ def _triangle_slots(obj: bpy.types.Object, triangles: int):
 
 
 def _face_reflectivity(obj: bpy.types.Object, triangles: np.ndarray, slots):
-    """(T,) reflectivity per triangle: the mean over its corners of the colour
-    attribute, else its material's base colour (``slots``: _triangle_slots), else None
+    """(T,) reflectivity per triangle: the mean over its corners of the color
+    attribute, else its material's base color (``slots``: _triangle_slots), else None
     (the core's default)."""
     mesh = obj.data
     attribute = color_attribute(mesh)
@@ -193,15 +193,15 @@ def _material_reflectivity(obj: bpy.types.Object) -> np.ndarray:
 
 
 def base_color(material: bpy.types.Material) -> tuple:
-    """Linear RGB: the material's viewport colour (Material > Viewport Display > Color).
+    """Linear RGB: the material's viewport color (Material > Viewport Display > Color).
     One rule on every Blender version: the node tree is not read, because Blender 5.0
     gives every new material a Principled BSDF (Base Color 0.8) and deprecates
-    ``use_nodes``, the switch that told 4.x which colour the user meant."""
+    ``use_nodes``, the switch that told 4.x which color the user meant."""
     return tuple(material.diffuse_color)[:3]
 
 
 def material_alpha(material: bpy.types.Material) -> float:
-    """The viewport colour's alpha (the same rule as ``base_color``)."""
+    """The viewport color's alpha (the same rule as ``base_color``)."""
     return float(material.diffuse_color[3])
 
 
@@ -212,10 +212,10 @@ def ramp(values: np.ndarray) -> np.ndarray:
     return np.column_stack([*rgb, np.ones(len(values))]).astype(np.float32)
 
 
-def return_colors(returns: np.ndarray, sensor: Sensor, colour_by: str) -> np.ndarray:
+def return_colors(returns: np.ndarray, sensor: Sensor, color_by: str) -> np.ndarray:
     """(N, 4) linear RGBA per return: intensity over the dataset's maximum, or ring over
     the beam count, through the colormap."""
-    if colour_by == "RING":
+    if color_by == "RING":
         values = returns["ring"] / max(sensor.beams - 1, 1)
     else:
         values = returns["intensity"] / sensor.intensity_max
@@ -239,7 +239,7 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
     made = []
     try:
         points = _points_object(f"{source.name} Scan", result.returns,
-                                return_colors(result.returns, sensor, settings.colour_by), made)
+                                return_colors(result.returns, sensor, settings.color_by), made)
         origin = bpy.data.objects.new("PGT Sensor", None)
         made.append(origin)
         origin.empty_display_type = "PLAIN_AXES"
@@ -273,7 +273,7 @@ def _collection(scene: bpy.types.Scene) -> bpy.types.Collection:
 def _points_object(name: str, returns: np.ndarray, rgba: np.ndarray, made: list) -> bpy.types.Object:
     """A vertex-only mesh object: positions = the returns' x, y, z (sensor frame, stored
     float32), every other column a point attribute (float32 or int32), and the (N, 4)
-    linear ``rgba`` as the active colour attribute "color"."""
+    linear ``rgba`` as the active color attribute "color"."""
     mesh = bpy.data.meshes.new(name)
     made.append(mesh)
     mesh.vertices.add(len(returns))

@@ -133,7 +133,7 @@ class VIEW3D_PT_pgt_scan(_PGTPanel, bpy.types.Panel):
         column = layout.column(align=True)
         for name in ("distance", "azimuth", "heading"):
             column.prop(settings, name)
-        layout.prop(settings, "colour_by", expand=True)
+        layout.prop(settings, "color_by", expand=True)
         obj = context.active_object
         if obj is not None and obj.type == "MESH" and not obj.data.polygons:
             layout.prop(settings, "surfel_scale")

@@ -134,7 +134,7 @@ def _inside_part(points: np.ndarray, part: Part, tolerance: float) -> np.ndarray
 
 @dataclass
 class SampleVehicle:
-    """A closed vehicle mesh in the object frame and the colours of its parts.
+    """A closed vehicle mesh in the object frame and the colors of its parts.
 
     vertices: (V, 3) float64 metres; faces: (F, 3) int64; dims: (length, width, height).
     """
@@ -154,7 +154,7 @@ class SampleVehicle:
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
 
     def colors_at(self, points: np.ndarray) -> np.ndarray:
-        """(N, 3) sRGB colour of the part each surface point (object frame) belongs to."""
+        """(N, 3) sRGB color of the part each surface point (object frame) belongs to."""
         local = (points - self.offset) / self.scale
         colors = np.zeros((len(points), 3))
         unassigned = np.ones(len(points), bool)
@@ -181,7 +181,7 @@ def sample_vehicle(class_name: str) -> SampleVehicle:
 
 @dataclass
 class SyntheticReconstruction:
-    """Coloured surface points of a sample vehicle as a reconstruction would deliver them.
+    """Colored surface points of a sample vehicle as a reconstruction would deliver them.
 
     positions: (N, 3) float32 in the *source frame*; colors: (N, 3) float32 sRGB [0, 1].
     source_from_object: (4, 4) float64 similarity (rotation, uniform scale, translation)
@@ -197,7 +197,7 @@ class SyntheticReconstruction:
     vehicle: SampleVehicle = field(repr=False)
 
     def to_reconstruction(self) -> Reconstruction:
-        """As an imported coloured point cloud; its checksum covers positions and colours."""
+        """As an imported colored point cloud; its checksum covers positions and colors."""
         rgba = np.column_stack([self.colors, np.ones(len(self.colors), np.float32)])
         digest = hashlib.sha256(self.positions.tobytes() + self.colors.tobytes()).hexdigest()
         return Reconstruction(positions=self.positions, kind="point_ply", colors=rgba, sha256=digest,
@@ -217,8 +217,8 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
 def synthetic_reconstruction(class_name: str, seed: int = 0, points: int = 20000,
                              noise: float = 0.005, outlier_share: float = 0.03,
                              scale_range: tuple = (0.05, 5.0)) -> SyntheticReconstruction:
-    """Sample ``points`` surface points of the class's vehicle with their part colours,
-    add Gaussian noise (sigma = ``noise`` x box diagonal) and colour noise, replace an
+    """Sample ``points`` surface points of the class's vehicle with their part colors,
+    add Gaussian noise (sigma = ``noise`` x box diagonal) and color noise, replace an
     ``outlier_share`` of them by floaters in a box 1.5x the object's, then apply a random
     rotation, log-uniform scale in ``scale_range`` and translation. Same seed, same bytes."""
     import trimesh
@@ -245,7 +245,7 @@ def synthetic_reconstruction(class_name: str, seed: int = 0, points: int = 20000
 
 
 def write_sample(directory, class_name: str, seed: int = 0, points: int = 20000) -> dict:
-    """Write ``<class>_reconstruction.ply`` (binary point PLY, uchar colours, source
+    """Write ``<class>_reconstruction.ply`` (binary point PLY, uchar colors, source
     frame), ``<class>_mesh.ply`` (the closed vehicle, object frame) and
     ``<class>_truth.json`` (class, dims [l, w, h] m, row-major 4x4 ``source_from_object``,
     seed) into ``directory``; returns their paths by role."""

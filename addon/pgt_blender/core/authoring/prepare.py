@@ -168,7 +168,7 @@ def prepare(recon: Reconstruction, class_name: str, dataset: str = "nuscenes", u
 
 
 def write_prepared(authored: AuthoredObject, class_name: str, dataset: str, directory) -> dict:
-    """Write ``<name>.ply`` (object-frame points, colours and per-point scalars, or the
+    """Write ``<name>.ply`` (object-frame points, colors and per-point scalars, or the
     mesh) and ``<name>.json`` (:meth:`AuthoredObject.sidecar`) into ``directory``; each
     file appears complete or not at all. Returns their paths by suffix."""
     from ..importing.ply import write_ply
@@ -216,7 +216,7 @@ def read_sidecar(path) -> dict:
 
 
 def _point_columns(authored: AuthoredObject) -> dict:
-    """PLY columns: x, y, z, uchar colours and the frame-independent scalars (opacity,
+    """PLY columns: x, y, z, uchar colors and the frame-independent scalars (opacity,
     track length, ...). Splat scales and rotations are frame-dependent and left out."""
     columns = {axis: authored.positions[:, i] for i, axis in enumerate("xyz")}
     recon = authored.source

@@ -36,7 +36,7 @@ class BankObject:
 
     def summary(self) -> dict:
         """What the bank depends on; ``sha256`` is of the geometry itself (positions,
-        faces, colours), so either input route gives the same summary."""
+        faces, colors), so either input route gives the same summary."""
         geometry = self.geometry
         digest = hashlib.sha256()
         for array in (geometry.positions, geometry.faces, geometry.colors):

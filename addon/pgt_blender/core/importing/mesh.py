@@ -15,7 +15,7 @@ MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl")
 
 def load_mesh(path: Path) -> Reconstruction:
     """Triangles in the file's frame and units. A multi-part scene (GLB, OBJ groups) is
-    flattened with its node transforms applied; per-vertex colours are kept when the
+    flattened with its node transforms applied; per-vertex colors are kept when the
     file has them. Vertices are not merged or reordered (``process=False``)."""
     import trimesh
 
@@ -57,8 +57,8 @@ class MaterialMesh:
     """A mesh with its per-face appearance, in the file's frame and units.
 
     vertices (V, 3) float64; faces (F, 3) int64; face_srgb (F, 3) float32 sRGB in [0, 1]
-    (the material's diffuse colour ``Kd``, else the mean of the face's vertex colours;
-    NaN where the file gives no colour); see_through (F,) bool (glass: the material's
+    (the material's diffuse color ``Kd``, else the mean of the face's vertex colors;
+    NaN where the file gives no color); see_through (F,) bool (glass: the material's
     name, or an .mtl dissolve ``d`` < 1, which trimesh does not keep; see
     scan/targets.see_through_materials)."""
 
@@ -84,23 +84,23 @@ def read_material_mesh(path) -> MaterialMesh:
     if not parts:
         raise InputError(path, "mesh has no faces")
     alphas = _mtl_dissolves(path) if path.suffix.lower() == ".obj" else {}
-    vertices, faces, colours, names, offset = [], [], [], [], 0
+    vertices, faces, colors, names, offset = [], [], [], [], 0
     for part in parts:
         material = getattr(part.visual, "material", None)
         if material is not None:
-            colour = np.tile(np.asarray(material.main_color[:3], np.float32) / 255, (len(part.faces), 1))
+            color = np.tile(np.asarray(material.main_color[:3], np.float32) / 255, (len(part.faces), 1))
         elif part.visual.kind is not None:
-            colour = np.asarray(part.visual.face_colors[:, :3], np.float32) / 255
+            color = np.asarray(part.visual.face_colors[:, :3], np.float32) / 255
         else:
-            colour = np.full((len(part.faces), 3), np.nan, np.float32)
+            color = np.full((len(part.faces), 3), np.nan, np.float32)
         vertices.append(np.asarray(part.vertices, np.float64))
         faces.append(np.asarray(part.faces, np.int64) + offset)
-        colours.append(colour)
+        colors.append(color)
         names.append(getattr(material, "name", "") or "")
         offset += len(part.vertices)
     flags = see_through_materials(names, [alphas.get(name, 1.0) for name in names])
     return MaterialMesh(checked_positions(path, np.concatenate(vertices), "vertices"), np.concatenate(faces),
-                        np.concatenate(colours), np.repeat(flags, [len(part.faces) for part in parts]))
+                        np.concatenate(colors), np.repeat(flags, [len(part.faces) for part in parts]))
 
 
 def _mtl_dissolves(path: Path) -> dict:

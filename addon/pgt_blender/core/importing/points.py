@@ -30,7 +30,7 @@ def is_gaussian_splat(path: Path, header: PlyHeader) -> bool:
 
 
 def load_point_ply(path: Path, header: PlyHeader) -> Reconstruction:
-    """Points with optional colours (red/green/blue[/alpha], uchar 0..255 or float 0..1)
+    """Points with optional colors (red/green/blue[/alpha], uchar 0..255 or float 0..1)
     and normals (nx, ny, nz -> ``normal``); every other scalar property is kept as an
     attribute under its own name."""
     data = read_vertices(path, header)
@@ -58,7 +58,7 @@ def load_point_ply(path: Path, header: PlyHeader) -> Reconstruction:
 def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
     """A 3D Gaussian Splatting PLY with 3DGS's activations applied:
 
-    - colour = clip(0.5 + SH_C0 * f_dc, 0, 1) (the view-independent DC term);
+    - color = clip(0.5 + SH_C0 * f_dc, 0, 1) (the view-independent DC term);
     - ``opacity`` = sigmoid(stored logit), in (0, 1);
     - ``scale`` (N, 3) = exp(stored log-scale), in source units;
     - ``rotation`` (N, 4) = stored quaternion (w, x, y, z) normalised to unit length;

@@ -1,4 +1,4 @@
-"""LiDAR intensity for coloured points: the trained rgb -> int generator; a scan keeps
+"""LiDAR intensity for colored points: the trained rgb -> int generator; a scan keeps
 its physical intensity when PyTorch or a checkpoint is missing (``scan_intensity``).
 
 Input per object: xyz (N, 3) in its box frame (origin at the box centre, +x the heading,
@@ -113,18 +113,18 @@ class IntensityEstimator:
 
 def checked_object(xyz, dims, rgb, name: str) -> tuple:
     """(xyz (N, 3), dims (3,), rgb (N, 3)) float64; InputError naming ``name`` for
-    mismatched shapes, NaN or colours outside 0..1."""
+    mismatched shapes, NaN or colors outside 0..1."""
     xyz, dims, rgb = (np.asarray(a, np.float64) for a in (xyz, dims, rgb))
     if xyz.ndim != 2 or xyz.shape[1] != 3 or len(xyz) == 0:
         raise InputError(name, f"points have shape {xyz.shape}, expected (N, 3) with N > 0")
     if rgb.shape != xyz.shape:
-        raise InputError(name, f"colours have shape {rgb.shape}, expected {xyz.shape} (one sRGB row per point)")
+        raise InputError(name, f"colors have shape {rgb.shape}, expected {xyz.shape} (one sRGB row per point)")
     if dims.shape != (3,) or not (dims > 0).all():
         raise InputError(name, f"box dims must be three positive lengths, not {dims.tolist()}")
     if not (np.isfinite(xyz).all() and np.isfinite(rgb).all()):
-        raise InputError(name, "points or colours are NaN or infinite")
+        raise InputError(name, "points or colors are NaN or infinite")
     if rgb.min() < 0 or rgb.max() > 1:
-        raise InputError(name, f"colours span {rgb.min():g}..{rgb.max():g}, expected sRGB in 0..1")
+        raise InputError(name, f"colors span {rgb.min():g}..{rgb.max():g}, expected sRGB in 0..1")
     return xyz, dims, rgb
 
 
@@ -167,7 +167,7 @@ def scan_intensity(scan, bounds: np.ndarray, element_rgb: np.ndarray, class_name
     file is unchanged) or None. With one and PyTorch: one prediction over all the rows,
     every sweep at once (the object as a ground-truth database stores it), each return
     in the box frame of the pose its sweep saw (``bounds`` (2, 3) object frame, m) with
-    the sRGB colour ``element_rgb`` (E, 3) of the face or point it hit. Without a
+    the sRGB color ``element_rgb`` (E, 3) of the face or point it hit. Without a
     checkpoint, or without PyTorch, the scan's own physical intensities. InputError for
     a missing or damaged checkpoint, one without ``class_name`` or of another dataset,
     and bad arrays."""

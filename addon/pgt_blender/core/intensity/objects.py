@@ -2,7 +2,7 @@
 
 - Real LiDAR objects (intensity domain): an OpenPCDet / mmdetection3d ground-truth
   database, or raw KITTI scans with their label_2 boxes (the points inside each box).
-- RGB objects: this project's scans of coloured objects (each return takes the colour
+- RGB objects: this project's scans of colored objects (each return takes the color
   of the face it hit), so both domains share the LiDAR's sampling pattern.
 
 Every object is in its *box frame*: origin at the box centre, +x along its heading,
@@ -212,7 +212,7 @@ def scanned_rgb_objects(target, element_rgb: np.ndarray, class_name: str, name: 
                         poses=RGB_POSES) -> list:
     """One RGB object per pose: ``target`` (a core.scan ScanTarget, object frame) scanned
     by ``sensor`` with its noise (range noise, intensity spread; seeded by the pose's
-    index) at (distance, azimuth, heading) poses; each return takes the sRGB colour
+    index) at (distance, azimuth, heading) poses; each return takes the sRGB color
     ``element_rgb`` (E, 3) of the face or point it hit (the scan's ``face``)."""
     from ..scan.raycast import ScanOptions, scan_object
 
@@ -228,7 +228,7 @@ def scanned_rgb_objects(target, element_rgb: np.ndarray, class_name: str, name: 
 
 
 def builtin_rgb_objects(sensor, classes=None, poses=RGB_POSES) -> list:
-    """Scans of the built-in sample vehicles, each face coloured by its part."""
+    """Scans of the built-in sample vehicles, each face colored by its part."""
     from ..classes import MINORITY_CLASSES
     from ..samples import sample_vehicle
     from ..scan.targets import mesh_target, reflectivity_from_srgb
@@ -244,7 +244,7 @@ def builtin_rgb_objects(sensor, classes=None, poses=RGB_POSES) -> list:
 
 
 def prepared_rgb_objects(folder, sensor, poses=RGB_POSES) -> list:
-    """Scans of the coloured prepared objects in ``folder``: <name>.ply in the object
+    """Scans of the colored prepared objects in ``folder``: <name>.ply in the object
     frame with a <name>.json sidecar naming its class (prepare_objects.py's output)."""
     from ..authoring.prepare import read_sidecar
     from ..importing import load_reconstruction
@@ -261,7 +261,7 @@ def prepared_rgb_objects(folder, sensor, poses=RGB_POSES) -> list:
             raise InputError(sidecar, "sidecar has no class")
         recon = load_reconstruction(model, with_cameras=False)
         if recon.colors is None:
-            raise InputError(model, "has no colours, so it cannot be an RGB-domain object")
+            raise InputError(model, "has no colors, so it cannot be an RGB-domain object")
         objects += scanned_rgb_objects(target_from_reconstruction(recon), element_colors(recon), class_name,
                                        model.stem, sensor, poses)
     if not objects:
@@ -270,8 +270,8 @@ def prepared_rgb_objects(folder, sensor, poses=RGB_POSES) -> list:
 
 
 def material_mesh_rgb_objects(path, class_name: str, sensor, poses=RGB_POSES) -> list:
-    """Scans of a mesh whose parts carry material colours (e.g. OBJ + MTL ``Kd``), in the
-    object frame (+x forward, +z up, m); each face takes its material's main colour
+    """Scans of a mesh whose parts carry material colors (e.g. OBJ + MTL ``Kd``), in the
+    object frame (+x forward, +z up, m); each face takes its material's main color
     (importing.mesh.read_material_mesh; grey where the file has none)."""
     from ..importing.mesh import read_material_mesh
     from ..scan.targets import mesh_target, reflectivity_from_srgb
@@ -296,7 +296,7 @@ def training_sets(real_sources: list, rgb_sources: list, dataset: str, min_point
                   points: int = DEFAULT_POINTS, seed: int = 0, classes=None, convention: str = "openpcdet"):
     """(real ObjectSet, rgb ObjectSet) over the classes both domains have (paired_classes).
     ``rgb_sources``: folders of prepared objects, or "class=mesh path" for a mesh with
-    material colours (e.g. "car=sedan.obj"); none = the built-in samples. Objects
+    material colors (e.g. "car=sedan.obj"); none = the built-in samples. Objects
     with fewer than ``min_points`` points are dropped; those below ``points`` (when
     ``min_points`` < ``points``) are topped up by repeating points, seeded."""
     from ..scan.sensors import PRESETS

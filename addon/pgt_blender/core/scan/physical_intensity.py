@@ -8,7 +8,7 @@ constants fitted to real scans (a model, not a measurement)::
 Lambertian return of a surface of ``reflectivity`` in [0, 1]. The received power falls
 as 1/range^2, but Velodyne and Hesai units calibrate most of that away on board, so only
 a residual falloff beyond REFERENCE_RANGE is kept. ``z`` is a standard normal draw per
-return (seeded with the scan's noise): real surfaces are not one colour (paint, dirt,
+return (seeded with the scan's noise): real surfaces are not one color (paint, dirt,
 plates, lights), and without the spread every point of a face would share one value.
 The log-normal factor has mean 1, so ``scale`` sets the mean. nuScenes and Lyft store
 whole numbers 0..255, KITTI floats 0..1 (sensors.INTENSITY_MAX).
@@ -66,7 +66,7 @@ def fit_intensity_law(real_values: np.ndarray, real_ranges: np.ndarray, real_obj
       clipped to [0, MAX_RANGE_EXPONENT]: reflectivity and incidence do not change with
       range, so the real falloff is the law's;
     - spread: the log-variance real points have about their object's mean beyond what
-      the simulated powers have about theirs (object colour differences are the
+      the simulated powers have about theirs (object color differences are the
       reflectivity's, not the spread's);
     - scale: the real mean (falloff removed) over the simulated power's mean, so the
       law's mean intensity is the real one.

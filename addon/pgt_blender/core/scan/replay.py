@@ -34,7 +34,7 @@ def class_meshes(choice: str, chrono_folder: Path | None = None) -> dict:
     """KITTI class (lower case) -> (vertices (V, 3), faces (F, 3), name, see-through (F,)
     bool) in the mesh's own frame. ``choice``: "chrono" (CHRONO_MESHES under
     ``chrono_folder``), "samples" (SAMPLE_MESHES) or a folder of ``<class>.obj|.ply``.
-    Colours are not kept: replayed objects have the default reflectivity, the reference
+    Colors are not kept: replayed objects have the default reflectivity, the reference
     the fitted sensor models are relative to (ray_drop.py, physical_intensity.py)."""
     from ..importing.mesh import read_material_mesh
 

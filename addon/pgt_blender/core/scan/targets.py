@@ -88,20 +88,20 @@ class ScanTarget:
 
 def reflectivity_from_linear(rgb: np.ndarray) -> np.ndarray:
     """(N,) float32 reflectivity in [0, 1]: the relative luminance of (N, 3 or 4)
-    linear RGB (Blender's material colours). Visible albedo stands in for the
+    linear RGB (Blender's material colors). Visible albedo stands in for the
     near-infrared reflectance a LiDAR sees; the learned intensity estimator corrects it."""
     linear = np.clip(np.asarray(rgb, np.float64)[:, :3], 0.0, 1.0)
     return (linear @ np.array([0.2126, 0.7152, 0.0722])).astype(np.float32)
 
 
 def srgb_from_linear(rgb: np.ndarray) -> np.ndarray:
-    """(N, 3) sRGB in [0, 1] of linear RGB (Blender's material colours)."""
+    """(N, 3) sRGB in [0, 1] of linear RGB (Blender's material colors)."""
     linear = np.clip(np.asarray(rgb, np.float64), 0.0, 1.0)
     return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055).astype(np.float32)
 
 
 def reflectivity_from_srgb(colors: np.ndarray) -> np.ndarray:
-    """As reflectivity_from_linear, for (N, 3 or 4) sRGB colours in [0, 1] (files, colour attributes)."""
+    """As reflectivity_from_linear, for (N, 3 or 4) sRGB colors in [0, 1] (files, color attributes)."""
     srgb = np.clip(np.asarray(colors, np.float64)[:, :3], 0.0, 1.0)
     return reflectivity_from_linear(np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4))
 
@@ -114,9 +114,9 @@ def _planes(normals: np.ndarray, points: np.ndarray) -> np.ndarray:
 def relative_reflectivity(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(N,) float32: ``values`` (N,) scaled so that their ``weights``-weighted (areas)
     mean is DEFAULT_REFLECTIVITY, then clipped to [0, 1]; DEFAULT_REFLECTIVITY everywhere
-    for an all-black object. Colours set the contrast within an object and the sensor's
+    for an all-black object. Colors set the contrast within an object and the sensor's
     intensity law (fitted at DEFAULT_REFLECTIVITY) the level: a photo's exposure and
-    white balance, or a material file's colour convention, say little about a surface's
+    white balance, or a material file's color convention, say little about a surface's
     near-infrared reflectivity."""
     values = np.clip(np.asarray(values, np.float64), 0, 1)
     mean = np.average(values, weights=weights) if np.sum(weights) > 0 else values.mean()
@@ -259,7 +259,7 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
 
 def element_colors(reconstruction) -> np.ndarray:
     """(E, 3) float32 sRGB of what a scan's ``face`` column indexes: per face (the mean of
-    its vertices' colours) for a mesh, per point otherwise; grey (0.5) without colours."""
+    its vertices' colors) for a mesh, per point otherwise; grey (0.5) without colors."""
     if reconstruction.colors is None:
         return np.full((len(reconstruction.faces) or len(reconstruction.positions), 3), 0.5, np.float32)
     colors = reconstruction.colors[:, :3]
