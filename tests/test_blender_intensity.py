@@ -85,6 +85,24 @@ def test_apply_intensity_model_matches_the_core(scene, preferences, checkpoint):
     assert not np.array_equal(after, before)
 
 
+def test_with_a_checkpoint_every_scan_is_learned(scene, preferences, checkpoint):
+    """A checkpoint in the preferences makes the learned intensity the Scan's default, the
+    same values Apply Intensity Model gives."""
+    colored_box(scene)
+    preferences.intensity_checkpoint = str(checkpoint)
+    bpy.ops.object.pgt_scan()
+    learned = intensities(bpy.data.objects["Box Scan"])
+    preferences.intensity_checkpoint = ""
+    bpy.context.view_layer.objects.active = bpy.data.objects["Box"]
+    bpy.ops.object.pgt_scan()
+    physical = intensities(bpy.data.objects["Box Scan"])
+    preferences.intensity_checkpoint = str(checkpoint)
+    bpy.context.view_layer.objects.active = bpy.data.objects["Box Scan"]
+    assert bpy.ops.object.pgt_apply_intensity() == {"FINISHED"}
+    assert np.array_equal(learned, intensities(bpy.data.objects["Box Scan"]))
+    assert not np.array_equal(learned, physical)
+
+
 def test_without_a_checkpoint_the_scan_keeps_its_physical_intensities(scene, preferences):
     colored_box(scene)
     bpy.ops.object.pgt_scan()

@@ -252,10 +252,25 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
             self.report({"WARNING"}, f"{obj.name}: no returns at this pose, out of the {sensor.name} sensor's "
                                      f"range or view; no scan preview made")
             return {"CANCELLED"}
-        scanning.show_scan(context.scene, obj, result, sensor, sensor_from_object, settings)
+        preview = scanning.show_scan(context.scene, obj, result, sensor, sensor_from_object, settings)
         settings.stats = scanning.stats_text(result)
-        self.report({"INFO"}, f"{obj.name}: {settings.stats}")
+        self.report({"INFO"}, f"{obj.name}: {settings.stats}{self.learned_intensity(context, obj, preview, settings)}")
         return {"FINISHED"}
+
+    def learned_intensity(self, context, source, preview, settings) -> str:
+        """With a checkpoint in the preferences the scan takes the learned intensities, as
+        the bank and scan_object.py do; a checkpoint that cannot serve this scan (no torch,
+        another dataset, no such class) is reported and the physical law kept."""
+        preferences = properties.preferences(context)
+        checkpoint = bpy.path.abspath(preferences.intensity_checkpoint) if preferences else ""
+        if not checkpoint:
+            return ""
+        try:
+            rate = intensity.apply_estimator(preview, checkpoint, source.pgt.class_name, settings)
+        except InputError as error:
+            self.report({"WARNING"}, f"{error} (the scan keeps its physical intensities)")
+            return ""
+        return f" · learned intensity ({rate:,.0f} points/s)"
 
 
 class OBJECT_OT_pgt_apply_intensity(bpy.types.Operator):

@@ -148,7 +148,8 @@ class PGTPreferences(bpy.types.AddonPreferences):
 
     intensity_checkpoint: StringProperty(
         name="Intensity checkpoint", subtype="FILE_PATH", options=PATH_OPTIONS,
-        description="intensity.pt written by headless_scripts/train_intensity.py, used by Apply Intensity Model")
+        description="intensity.pt written by headless_scripts/train_intensity.py: every Scan takes its "
+                    "learned intensities (Apply Intensity Model redoes a preview)")
 
     def draw(self, context):
         self.layout.prop(self, "intensity_checkpoint")
