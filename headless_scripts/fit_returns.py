@@ -134,22 +134,18 @@ def main(argv: list) -> int:
     if args.json:
         print(json.dumps(result))
         return 0
-    print("| frame | class | distance m | kept | dropped | elsewhere (not judged) |\n|---|---|---:|---:|---:|---:|")
-    for row in objects:
-        print(f"| {row['frame']} | {row['class']} | {row['distance_m']:.1f} | {row['kept']} | {row['dropped']} | "
-              f"{row['elsewhere']} |")
+    print(dev.markdown_table(["frame", "class", "distance m", "kept", "dropped", "elsewhere (not judged)"],
+                             [[row["frame"], row["class"], f"{row['distance_m']:.1f}", row["kept"], row["dropped"],
+                               row["elsewhere"]] for row in objects], "llrrrr"))
     print(f"\nray drop ({sensor.name}): logit p = {model[0]:.4f} - {model[1]:.4f} ln(power)")
     print(f"intensity law ({law_sensor.name}): scale {law[0]:.4f}, range exponent {law[1]:.4f}, spread {law[2]:.4f}")
     if scored:
-        print("\nheld out (fitted on the other frames):\n| frame | class | real drop / predicted | intensity W1 law "
-              "| W1 constant mean |\n|---|---|---:|---:|---:|")
-        for row in scored:
-            if "real_drop" in row:
-                print(f"| {row['frame']} | all hits ({row['hits']}) | {row['real_drop']:.3f} / "
-                      f"{row['predicted_drop']:.3f} | | |")
-            else:
-                print(f"| {row['frame']} | {row['class']} ({row['real_points']} pts) | | {row['w1_law']:.3f} | "
-                      f"{row['w1_constant']:.3f} |")
+        print("\nheld out (fitted on the other frames):\n" + dev.markdown_table(
+            ["frame", "class", "real drop / predicted", "intensity W1 law", "W1 constant mean"],
+            [[row["frame"], f"all hits ({row['hits']})", f"{row['real_drop']:.3f} / {row['predicted_drop']:.3f}", "", ""]
+             if "real_drop" in row else
+             [row["frame"], f"{row['class']} ({row['real_points']} pts)", "", f"{row['w1_law']:.3f}",
+              f"{row['w1_constant']:.3f}"] for row in scored], "llrrr"))
     if args.out:
         print(f"wrote {args.out}")
     return 0

@@ -31,11 +31,15 @@ def relative_intensity(reflectivity: np.ndarray, cos_incidence: np.ndarray, rang
     """(N,) float64 in [0, 1] for per-return reflectivity, cosine of incidence and range (m)
     under ``law``; ``normal`` (N,) standard normal draws for the spread (None: no spread)."""
     scale, range_exponent, spread = law or DEFAULT_LAW
-    falloff = np.minimum(1.0, REFERENCE_RANGE / np.maximum(ranges, 1e-9)) ** range_exponent
-    value = scale * reflectivity * np.abs(cos_incidence) * falloff
+    value = scale * reflectivity * np.abs(cos_incidence) * _falloff(ranges, range_exponent)
     if normal is not None and spread > 0:
         value = value * np.exp(spread * normal - spread**2 / 2)
     return np.clip(value, 0.0, 1.0)
+
+
+def _falloff(ranges: np.ndarray, exponent: float) -> np.ndarray:
+    """The law's range factor: min(1, REFERENCE_RANGE / range) ** exponent."""
+    return np.minimum(1.0, REFERENCE_RANGE / np.maximum(ranges, 1e-9)) ** exponent
 
 
 def dataset_intensity(relative: np.ndarray, dataset: str) -> np.ndarray:
@@ -83,7 +87,7 @@ def fit_intensity_law(real_values: np.ndarray, real_ranges: np.ndarray, real_obj
     if far.sum() >= MIN_FAR_OBJECTS and np.ptp(np.log(object_range[far])) > 0.1:
         slope = np.polyfit(np.log(object_range[far] / REFERENCE_RANGE), object_log[far], 1)[0]
         exponent = float(np.clip(-slope, 0.0, MAX_RANGE_EXPONENT))
-    falloff = np.minimum(1.0, REFERENCE_RANGE / np.maximum(real_ranges, 1e-9)) ** exponent
+    falloff = _falloff(real_ranges, exponent)
     sim_logs = np.log(np.maximum(sim_power, floor))
     excess = _within_variance(logs - np.log(falloff), real_objects) - _within_variance(sim_logs, sim_objects)
     scale = float(np.mean(real_values / falloff) / np.mean(sim_power))

@@ -356,9 +356,7 @@ def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflect
     if options.min_intensity:
         keep &= relative >= options.min_intensity
     cells, noisy = cells[keep], noisy[keep]
-    points = sensor.directions[cells] * noisy[:, None]
-    if sensor.cell_origins is not None:
-        points += sensor.cell_origins[cells]
+    points = sensor.return_points(cells, noisy)
     rings, columns = np.divmod(cells, sensor.columns)
     rows = np.zeros(len(cells), RETURN_DTYPE)
     rows["x"], rows["y"], rows["z"] = points.T

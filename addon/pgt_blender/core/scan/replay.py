@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..boxes import box_frame
+from ..boxes import inside_box
 from ..samples import sample_vehicle
 from . import sensor_fit
 from .physical_intensity import fit_intensity_law
@@ -107,15 +107,13 @@ def hit_outcomes(rows: np.ndarray, labels: list, sensor: Sensor, meshes: dict) -
     target, owner_of_face, _ = labelled_scene(labels, meshes)
     trace = trace_rays(target, sensor, np.eye(4), window=False)
     owner = owner_of_face[target.source_index[trace.polygons]]
-    points = sensor.directions[trace.cells] * trace.ranges[:, None]
-    if sensor.cell_origins is not None:
-        points += sensor.cell_origins[trace.cells]
+    points = sensor.return_points(trace.cells, trace.ranges)
     sim_cells = trace.cells // sensor.columns * sensor.columns + azimuth_columns(points, sensor)
     real_cells = real_rings(rows) * sensor.columns + azimuth_columns(rows, sensor)
     outcome = np.full(len(owner), -1, np.int8)
     real_label = np.full(len(rows), -1, np.int64)
     for index, (_, centre, dims, heading) in enumerate(labels):
-        inside = np.all(np.abs(box_frame(rows[:, :3], centre, heading)) <= dims / 2, axis=1)
+        inside = inside_box(rows[:, :3], np.concatenate([centre, dims, [heading]]))
         real_label[inside] = index
         mine = owner == index
         outcome[mine] = cell_outcomes(sim_cells[mine], real_cells, inside, sensor.columns)

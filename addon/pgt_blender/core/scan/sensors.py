@@ -169,6 +169,14 @@ class Sensor:
         """The x, y, z columns of ``directions`` as three contiguous (cells,) arrays."""
         return tuple(np.ascontiguousarray(self.directions[:, axis]) for axis in range(3))
 
+    def return_points(self, cells: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+        """(M, 3) float64 sensor frame: the returns at ``ranges`` (M,) m along the rays of
+        ``cells`` (M,), each from its laser's origin."""
+        points = self.directions[cells] * np.asarray(ranges, np.float64)[:, None]
+        if self.cell_origins is not None:
+            points += self.cell_origins[cells]
+        return points
+
     def cell_times(self, rings: np.ndarray, columns: np.ndarray) -> np.ndarray:
         """Seconds after the sweep's start at which cells (rings, columns) fire."""
         column_seconds = self.sweep_seconds / self.columns
@@ -267,7 +275,7 @@ KITTI_VERTICAL_OFFSETS_M = (
     0.2000, 0.2004, 0.2008, 0.2013, 0.2016, 0.2021, 0.2025, 0.2030, 0.2034, 0.2038, 0.2043, 0.2047, 0.2051, 0.2056,
     0.2060, 0.2064, 0.2068, 0.2073, 0.2077, 0.2082, 0.2086, 0.2090)
 KITTI_COLUMNS = 2000  # fitted: the scans step 0.180 deg in azimuth
-# Ray drop (a, k) fitted on the labelled objects of the same frames (fit_sensor.py --drop,
+# Ray drop (a, k) fitted on the labelled objects of the same frames (fit_returns.py,
 # ray_drop.py): a surface of reflectivity 0.5 met head-on loses 2 % of its returns at 10 m,
 # 12 % at 35 m, 25 % at 60 m.
 KITTI_RAY_DROP = (-4.541, 0.800)
