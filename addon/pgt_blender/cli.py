@@ -1,6 +1,8 @@
-"""Plumbing of headless_scripts/ that needs no bpy: the same script runs as
-``blender -b [file.blend] -P script.py -- ARGS`` and as ``python script.py ARGS``,
-and reports bad input as one line and exit code 1 (benchmark helpers: dev.py)."""
+"""Argument handling, errors and exit codes of the command-line package (``commands/``):
+the same command runs as a console script (``pgt-export-bank ARGS``), as
+``python headless_scripts/export_bank.py ARGS`` and as
+``blender -b [file.blend] -P headless_scripts/export_bank.py -- ARGS``, and reports bad
+input as one line and exit code 1. Benchmark helpers live in dev.py, which does not ship."""
 
 import atexit
 import os
@@ -40,3 +42,12 @@ def run_main(main, argv: list) -> int:
     except OSError as error:
         print(f"error: {error.filename or '-'}: {error.strerror or error}", file=sys.stderr)
     return 1
+
+
+def command(main):
+    """The entry point of ``main(argv) -> int``: the arguments after ``--`` when Blender
+    runs it, else ``argv[1:]``; bad input as one line; the code through :func:`exit`.
+    Console scripts (pyproject.toml) and headless_scripts/ shims call what this returns."""
+    def run() -> None:
+        exit(run_main(main, script_argv()))
+    return run
