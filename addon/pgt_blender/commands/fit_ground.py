@@ -35,12 +35,12 @@ def main(argv: list) -> int:
     if args.json:
         print(json.dumps(fit))
         return 0
-    print("| frame | type | distance m | ground returns | ground offset m | grade deg | pitch deg | roll deg "
-          "| box bottom - ground m |\n|---|---|---:|---:|---:|---:|---:|---:|---:|")
-    for box in fit["boxes"]:
-        print(f"| {box['frame']} | {box['type']} | {box['distance']:.1f} | {box['points']} | "
-              f"{_number(box['offset'])} | {_number(box['grade'])} | {_number(box['pitch'])} | "
-              f"{_number(box['roll'])} | {_number(box['bottom_gap'])} |")
+    print(cli.markdown_table(
+        ["frame", "type", "distance m", "ground returns", "ground offset m", "grade deg", "pitch deg", "roll deg",
+         "box bottom - ground m"],
+        [[box["frame"], box["type"], f"{box['distance']:.1f}", box["points"],
+          *(_number(box[key]) for key in ("offset", "grade", "pitch", "roll", "bottom_gap"))] for box in fit["boxes"]],
+        "ll" + "r" * 7))
     print(f"\nfrom the {fit['used']} boxes with >= {MIN_GROUND_POINTS} ground returns: "
           f"grade_deg = {_number(fit['grade_deg'])}, slope_deg = {_number(fit['slope_deg'])}")
     return 0

@@ -101,11 +101,10 @@ def main(argv: list) -> int:
     if args.json:
         print(json.dumps(result))
         return 0
-    print("| laser (scan order) | elevation deg | vertical offset m | z residual mm | points |\n"
-          "|---:|---:|---:|---:|---:|")
-    for row in result["lasers"]:
-        print(f"| {row['laser']} | {row['elevation_deg']:.4f} | {row['vertical_offset_m']:.4f} | "
-              f"{row['residual_m'] * 1e3:.2f} | {row['points']} |")
+    print(cli.markdown_table(
+        ["laser (scan order)", "elevation deg", "vertical offset m", "z residual mm", "points"],
+        [[row["laser"], f"{row['elevation_deg']:.4f}", f"{row['vertical_offset_m']:.4f}",
+          f"{row['residual_m'] * 1e3:.2f}", row["points"]] for row in result["lasers"]], "rrrrr"))
     print(f"\ncolumns per revolution: {fit.columns} (the {args.base} preset: {base.columns})")
     for path, row in zip(files, held_out):
         base_rms = "-" if row["base_rms_deg"] is None else f"{row['base_rms_deg']:.3f}"
