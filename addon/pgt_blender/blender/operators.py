@@ -1,6 +1,7 @@
 """Operators: each reads with the core, then builds Blender data with ``objects``."""
 
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 import bpy
@@ -14,6 +15,22 @@ from ..core.errors import InputError
 from ..core.files import atomic_output
 from ..core.importing import SUPPORTED, find_reconstructions, load_reconstruction
 from . import authoring, bank, intensity, objects, properties, scanning
+
+
+@contextmanager
+def progress(context, total: int):
+    """Blender's progress indicator over ``total`` items: yields ``advance(item) -> item``."""
+    manager, done = context.window_manager, [0]
+    manager.progress_begin(0, max(total, 1))
+
+    def advance(item):
+        done[0] += 1
+        manager.progress_update(done[0])
+        return item
+    try:
+        yield advance
+    finally:
+        manager.progress_end()
 
 
 def _select_only(context, obj):
@@ -128,7 +145,8 @@ class IMPORT_SCENE_OT_pgt_folder(bpy.types.Operator):
             found = find_reconstructions(folder)
             if not found:
                 raise InputError(folder, f"no reconstructions found (supported: {SUPPORTED})")
-            recons = [load_reconstruction(path) for path in found]
+            with progress(context, len(found)) as advance:
+                recons = [advance(load_reconstruction(path)) for path in found]
         except InputError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
@@ -384,18 +402,20 @@ class OBJECT_OT_pgt_author_selected(bpy.types.Operator):
             self.report({"ERROR"}, f"Author Selected: {problem}")
             return {"CANCELLED"}
         steps = 0
-        for index, obj in enumerate(chosen):  # each step applies whole: an error stops between steps
-            for done, make in (("aligned", align), ("heading", detect_front), ("size", None)):
-                if authoring.status(obj)[done]:
-                    continue
-                try:
-                    step = (make(context, obj, settings) if make else
-                            set_size(context, obj, settings, seed=settings.seed + index))
-                except InputError as error:
-                    self.report({"ERROR"}, f"{error} (Author Selected stopped there: {steps} steps applied)")
-                    return {"CANCELLED"} if not steps else {"FINISHED"}
-                authoring.apply_step(obj, step)
-                steps += 1
+        with progress(context, len(chosen)) as advance:
+            for index, obj in enumerate(chosen):  # each step applies whole: an error stops between steps
+                for done, make in (("aligned", align), ("heading", detect_front), ("size", None)):
+                    if authoring.status(obj)[done]:
+                        continue
+                    try:
+                        step = (make(context, obj, settings) if make else
+                                set_size(context, obj, settings, seed=settings.seed + index))
+                    except InputError as error:
+                        self.report({"ERROR"}, f"{error} (Author Selected stopped there: {steps} steps applied)")
+                        return {"CANCELLED"} if not steps else {"FINISHED"}
+                    authoring.apply_step(obj, step)
+                    steps += 1
+                advance(obj)
         self.report({"INFO"}, f"Authored {len(chosen)} objects: {steps} steps applied "
                               f"(size seeds {settings.seed} to {settings.seed + len(chosen) - 1} by name)")
         return {"FINISHED"}
