@@ -4,7 +4,7 @@ and all cores, where a worker's time goes (the export's own stage clock,
 export.ChunkDone), peak memory against the bank size, bytes per entry, and what the
 paper's nuScenes bank would take on this machine.
 
-    .venv/bin/python headless_scripts/bench_bank.py [--quick] [--repeats 3] [--engine bvh|embree]
+    .venv/bin/python headless_scripts/bench_bank.py [--quick] [--repeats 3] [--engine auto|bvh|embree]
         [--chrono TRUCK.obj] [--out bench/bank]
 
 Objects, prepared with core.authoring.prepare (as prepare_objects does): the Chrono truck
@@ -55,6 +55,7 @@ import numpy as np  # noqa: E402
 
 from pgt_blender import cli, dev  # noqa: E402
 from pgt_blender.core.bank import export  # noqa: E402
+from pgt_blender.core.scan.raycast import ENGINES, resolve_engine  # noqa: E402
 
 CHRONO_TRUCK = dev.CHRONO_VEHICLES / "truck" / "truck_chassis.obj"
 TARGET_ENTRIES_PER_S = 1000.0
@@ -316,15 +317,16 @@ def main(argv: list) -> int:
                         "1 run each, 1 and 2 copies, no full grid")
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per object and worker count")
     parser.add_argument("--chrono", type=Path, default=CHRONO_TRUCK, help="the Chrono truck chassis .obj")
-    parser.add_argument("--engine", choices=("bvh", "embree"), default="bvh", help="the bank's ray engine")
-    parser.add_argument("--out", type=Path, help="default: bench/bank (bvh) or bench/bank_embree")
+    parser.add_argument("--engine", choices=ENGINES, default="auto", help="the bank's ray engine (config scan.engine)")
+    parser.add_argument("--out", type=Path, help="default: bench/bank_<engine used>")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
         spec = json.loads(args.child)
         Path(spec["result"]).write_text(json.dumps(child(spec)))
         return 0
-    args.out = args.out or ROOT / "bench" / ("bank" if args.engine == "bvh" else f"bank_{args.engine}")
+    args.engine = resolve_engine(args.engine)
+    args.out = args.out or ROOT / "bench" / f"bank_{args.engine}"
     repeats = 1 if args.quick else args.repeats
     grid = "quick" if args.quick else "thinned"
     subset = (QUICK_SUBSET if args.quick else SUBSET) | {"engine": args.engine}

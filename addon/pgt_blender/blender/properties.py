@@ -167,6 +167,7 @@ class PGT_PG_bank(bpy.types.PropertyGroup):
     mmdet3d: BoolProperty(name="mmdetection3d", default=True,
                           description="Write the mmdetection3d ground-truth database")
     engine: EnumProperty(name="Engine", default=_BANK_DEFAULTS.engine, description="Ray engine of the scans", items=[
+        ("auto", "Auto", "Embree where it runs (the extension ships it), else BVH"),
         ("bvh", "BVH", "Blender's BVHTree: exact, everywhere"),
         ("embree", "Embree", "embreex: several times faster, when installed")])
     seed: IntProperty(name="Seed", default=0, min=0, description="Seed of every draw of the bank")

@@ -31,7 +31,7 @@
     drop_rate = 0.0             # extra random drop on top of ray_drop
     ray_drop = true             # the sensor's fitted ray-drop model (ray_drop.py; kitti has one)
     max_incidence_deg = 90.0
-    engine = "bvh"              # bvh (Blender's BVHTree) or embree (embreex: about 2x the entries/s)
+    engine = "auto"             # auto: embree where embreex imports, else bvh (Blender's BVHTree)
     ego_motion = true           # multi-sweep entries seen from a moving ego vehicle (sweeps.EGO_MOTION)
 
     [ground]                    # the ground under each pose (ground.py); 0 and 0: flat at -mounting height
@@ -95,7 +95,7 @@ class BankConfig:
     drop_rate: float = 0.0
     ray_drop: bool = True
     max_incidence_deg: float = 90.0
-    engine: str = "bvh"
+    engine: str = "auto"
     ego_motion: bool = True
     grade_deg: float = 0.69
     slope_deg: float = 1.32

@@ -12,7 +12,7 @@ import json
 import os
 import pickle
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import atomic_output
+from ..scan.raycast import resolve_engine
 from ..scan.sensors import INTENSITY_MAX, sensor_from_name
 from ..scan.sweeps import motion_class
 from . import executors
@@ -59,6 +60,7 @@ class BankJob:
 def new_job(objects: list, config: BankConfig, out) -> BankJob:
     """A job for ``objects`` (checked BankObjects); InputError for a class without a
     dataset name, an unusable sensor or intensity checkpoint."""
+    config = replace(config, engine=resolve_engine(config.engine))  # the bank records the engine it used
     names = [class_name_for(config.dataset, obj.class_name, config.classes) for obj in objects]
     unnamed = sorted({obj.class_name for obj, name in zip(objects, names) if name is None})
     if unnamed:
