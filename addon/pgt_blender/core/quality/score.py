@@ -59,8 +59,11 @@ def score_bank(bank, real, convention: str = "openpcdet", real_root=None, encode
     bank_sets = database_sets(info_pickle, bank_convention, dataset, bank_root, seed=seed, progress=step)
     if bar is not None:
         bar.close()
+    matched = sorted(set(bank_sets) & set(real_sets))
     model = None
-    if encoder is not None:
+    if not matched:
+        pass  # nothing to compare: no encoder to load or train
+    elif encoder is not None:
         from .encoder import QualityEncoder
         model = QualityEncoder.load(encoder)
     elif learned:
@@ -71,7 +74,6 @@ def score_bank(bank, real, convention: str = "openpcdet", real_root=None, encode
                                progress=bar.update if bar is not None else None)
         if bar is not None:
             bar.close()
-    matched = sorted(set(bank_sets) & set(real_sets))
     classes = {name: class_scores(bank_sets[name], real_sets[name], model, seed) for name in matched}
     return {"dataset": dataset, "classes": classes, "unmatched": sorted(set(bank_sets) ^ set(real_sets)),
             "encoder": None if model is None else str(encoder or Path(bank) / WORK / ENCODER_CACHE)}
