@@ -24,7 +24,7 @@ from pgt_blender.core.quality.score import score_bank
 from pgt_blender.core.quality.sets import SET_POINTS, bank_database, database_sets, dense_reference
 from pgt_blender.dev import ranking_objects
 
-from .conftest import run_script
+from .conftest import CodeOnLoad, run_script
 
 # 2 headings x 2 x 2 positions per object: the smallest grid whose banks still separate.
 BASE = {"bank": {"dataset": "kitti", "formats": ["openpcdet"], "min_points": 5, "chunk_size": 64},
@@ -202,19 +202,25 @@ def test_score_bank_command_writes_json_and_caches_its_encoder(banks, real, tmp_
     assert (tmp_path / "again.json").read_bytes() == out.read_bytes()  # same inputs and seed, same bytes
 
 
-@pytest.mark.parametrize("case", ["no bank", "missing real", "bad encoder"])
+@pytest.mark.parametrize("case", ["no bank", "missing real", "crafted real", "bad encoder"])
 def test_bad_input_is_one_line_and_exit_1(banks, real, tmp_path, case):
     bank, real_pickle, extra = banks[MATCHED], real, []
     if case == "no bank":
         bank = tmp_path
     elif case == "missing real":
         real_pickle = tmp_path / "absent.pkl"
+    elif case == "crafted real":  # a payload that would run a shell command
+        infos = pickle.loads(real.read_bytes())
+        infos["Car"][0]["score"] = CodeOnLoad(tmp_path / "code_ran")
+        real_pickle = tmp_path / "crafted.pkl"
+        real_pickle.write_bytes(pickle.dumps(infos))
     else:
         (tmp_path / "encoder.pt").write_bytes(b"not a checkpoint")
         extra = ["--encoder", tmp_path / "encoder.pt"]
     result = run_script("score_bank.py", "--bank", bank, "--real", real_pickle, "--json", tmp_path / "s.json",
                         "--no-progress", *extra)
     assert result.returncode == 1 and result.stderr.strip().count("\n") == 0
-    culprit = {"no bank": tmp_path / "manifest.json", "missing real": real_pickle,
+    culprit = {"no bank": tmp_path / "manifest.json", "missing real": real_pickle, "crafted real": real_pickle,
                "bad encoder": tmp_path / "encoder.pt"}[case]
     assert result.stderr.startswith(f"error: {culprit}: ") and not (tmp_path / "s.json").exists()
+    assert not (tmp_path / "code_ran").exists()
