@@ -17,12 +17,12 @@ format, min_points 5, one size variant, grid headings every 45 deg, x 10..60 m a
 y -20..20 m every 10 m (--quick: every 90 deg, x 30..60 every 15, y -10..10 every 10).
 Each metric is averaged over the classes both sides have; a defect "ranks worse" on a
 metric when its average is worse than the matched bank's (lower is better except
-coverage; 1-NN accuracy by its distance from 0.5). Timings are wall-clock on a shared
-machine (upper bounds).
+coverage; 1-NN accuracy by its distance from 0.5), "clearly worse" when at least 1.3x
+it (COV at most 1/1.3x; 1-NNA at least 0.6). Writes <out>.md (tables), <out>.json (every
+class's scores) and <out>.png. Timings are wall-clock on a shared machine (upper bounds).
 """
 
 import argparse
-import os
 import sys
 import tempfile
 import time
@@ -43,6 +43,7 @@ from pgt_blender.core.quality.sets import bank_database  # noqa: E402
 METRICS = ("frechet", "mmd", "coverage", "one_nn_accuracy", "w1_points", "w1_intensity")
 HEADINGS = {"frechet": "Fréchet", "mmd": "MMD-CD", "coverage": "COV", "one_nn_accuracy": "1-NNA",
             "w1_points": "W1 points", "w1_intensity": "W1 intensity"}
+CLEAR = 1.3  # "clearly worse": at least this many times the matched bank's value
 
 
 def base_table(quick: bool) -> dict:
@@ -59,6 +60,31 @@ def badness(metric: str, value: float) -> float:
     if metric == "one_nn_accuracy":
         return abs(value - 0.5)
     return value
+
+
+def clearly_worse(metric: str, value: float, matched: float) -> bool:
+    """At least CLEAR times the matched value (COV: at most 1 / CLEAR times; 1-NNA: at least 0.6)."""
+    if metric == "coverage":
+        return value <= matched / CLEAR
+    if metric == "one_nn_accuracy":
+        return value >= 0.6
+    return value >= CLEAR * matched
+
+
+def ranking_table(found: dict) -> str:
+    """One reference's table: a row per bank, a column per metric (class averages)."""
+    matched = found[MATCHED]["average"]
+    rows = []
+    for name in (MATCHED, *DEFECTS):
+        cells = []
+        for metric in METRICS:
+            value = found[name]["average"][metric]
+            cell = f"{value:.3g}"
+            if name != MATCHED and badness(metric, value) > badness(metric, matched[metric]):
+                cell = f"**{cell} ✓**" if clearly_worse(metric, value, matched[metric]) else f"{cell} ✓"
+            cells.append(cell)
+        rows.append([name, *cells])
+    return cli.markdown_table(["bank"] + [HEADINGS[m] for m in METRICS], rows)
 
 
 def averages(scores: dict) -> dict:
@@ -78,7 +104,7 @@ def main(argv: list) -> int:
         work = Path(work)
         objects = dev.ranking_objects(work / "objects")
         table = base_table(args.quick)
-        started = time.perf_counter()
+        load_before, started = dev.load_average(), time.perf_counter()
         banks = build_banks(objects, table, work / "banks")
         standin = work / "standin"
         export_bank(objects, config_from_table({**table, "bank": {**table["bank"], "seed": 1}}), standin)
@@ -93,26 +119,28 @@ def main(argv: list) -> int:
                 scores = score_bank(bank, reference, seed=0)
                 score_seconds.append(time.perf_counter() - started)
                 results[label][name] = {"classes": scores["classes"], "average": averages(scores)}
+    tables = []
     for label, found in results.items():
-        matched = found[MATCHED]["average"]
-        rows = []
-        for name in (MATCHED, *DEFECTS):
-            average = found[name]["average"]
-            rows.append([name] + [f"{average[m]:.3g}" + ("" if name == MATCHED else
-                                  (" ✓" if badness(m, average[m]) > badness(m, matched[m]) else " ✗"))
-                                  for m in METRICS])
-        sizes = ", ".join(f"{c} {v['real_objects']}" for c, v in found[MATCHED]["classes"].items())
-        print(f"\nreference: {label} (objects per class: {sizes}); ✓ = scores worse than matched\n")
-        print(cli.markdown_table(["bank"] + [HEADINGS[m] for m in METRICS], rows))
+        sizes = ", ".join(f"{name} {values['real_objects']}" for name, values in found[MATCHED]["classes"].items())
+        tables.append(f"### Reference: {label} (objects per class: {sizes})\n\n" + ranking_table(found))
+    body = (f"✓: worse than the matched bank (by any margin); **bold**: clearly worse (at least {CLEAR:g}x the "
+            f"matched value; COV at most {1 / CLEAR:.2f}x; 1-NNA at least 0.6). Class averages.\n\n" + "\n\n".join(tables))
+    print("\n" + body)
     summary = {label: {name: [m for m in METRICS if badness(m, found[name]["average"][m])
                               > badness(m, found[MATCHED]["average"][m])] for name in DEFECTS}
                for label, found in results.items()}
-    print(f"\nbanks built in {build_seconds:.1f} s; scoring median {np.median(score_seconds):.1f} s per bank "
-          f"(load average {os.getloadavg()[0]:.1f})")
-    record = {"machine": dev.machine(numpy=np.__version__, scipy=scipy.__version__, torch=torch.__version__),
-              "loadavg": os.getloadavg(), "quick": args.quick, "config": base_table(args.quick),
-              "bank_entries": {name: sum(v["bank_objects"] for v in results["real"][name]["classes"].values())
+    machine = dev.machine(numpy=np.__version__, scipy=scipy.__version__, torch=torch.__version__)
+    inputs = {"objects": "Chrono sedan (Car), Chrono truck (Truck), built-in sample bicycle (Cyclist), KITTI sizes",
+              "config": base_table(args.quick),
+              "bank entries": {name: sum(v["bank_objects"] for v in results["real"][name]["classes"].values())
                                for name in banks},
+              "run": f"banks built in {build_seconds:.0f} s, scored in {np.median(score_seconds):.1f} s median per "
+                     f"bank (encoder training included); load average before {load_before}, after "
+                     f"{dev.load_average()} (other work on the machine inflates the times: upper bounds)"}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".md").write_text(dev.markdown_report(
+        "Bank quality score: ranking deliberate defects", "bench_quality.py", machine, inputs, body))
+    record = {"machine": machine, "inputs": inputs, "loadavg": dev.load_average(), "quick": args.quick,
               "build_seconds": build_seconds, "score_seconds_median": float(np.median(score_seconds)),
               "worse_than_matched": summary, "results": results}
 

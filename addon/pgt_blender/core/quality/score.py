@@ -32,13 +32,13 @@ def _bar(enabled: bool, total: int, unit: str):
     return tqdm(total=total, unit=unit, mininterval=1.0, leave=False)
 
 
-def encoder_key(real_pickle, reference: str, limit, seed: int) -> str:
+def encoder_key(real_pickle, convention: str, reference: str, limit, seed: int) -> str:
     """What a cached encoder must have been trained from: the real pickle's bytes and
     the sampling and training settings."""
     from .encoder import FORMAT, STEPS
 
     digest = hashlib.sha256(Path(real_pickle).read_bytes())
-    digest.update(f"{FORMAT} {reference} {limit} {seed} {STEPS}".encode())
+    digest.update(f"{FORMAT} {convention} {reference} {limit} {seed} {STEPS}".encode())
     return digest.hexdigest()
 
 
@@ -60,17 +60,15 @@ def score_bank(bank, real, convention: str = "openpcdet", real_root=None, encode
     if bar is not None:
         bar.close()
     matched = sorted(set(bank_sets) & set(real_sets))
-    model = None
-    if not matched:
-        pass  # nothing to compare: no encoder to load or train
-    elif encoder is not None:
+    model = None  # no encoder is loaded or trained when no class can be compared
+    if matched and encoder is not None:
         from .encoder import QualityEncoder
         model = QualityEncoder.load(encoder)
-    elif learned:
+    elif matched and learned:
         from .encoder import STEPS, cached_encoder
         bar = _bar(progress, STEPS, " steps")
         model = cached_encoder(Path(bank) / WORK / ENCODER_CACHE, real_sets, dataset,
-                               encoder_key(real, reference, limit, seed), seed,
+                               encoder_key(real, convention, reference, limit, seed), seed,
                                progress=bar.update if bar is not None else None)
         if bar is not None:
             bar.close()
