@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pgt_blender.cli import run_main
+from pgt_blender.commands.score_bank import main
 from pgt_blender.core.bank.config import config_from_table
 from pgt_blender.core.bank.export import export_bank
 from pgt_blender.core.errors import InputError
@@ -203,7 +205,8 @@ def test_score_bank_command_writes_json_and_caches_its_encoder(banks, real, tmp_
 
 
 @pytest.mark.parametrize("case", ["no bank", "missing real", "crafted real", "bad encoder"])
-def test_bad_input_is_one_line_and_exit_1(banks, real, tmp_path, case):
+def test_bad_input_is_one_line_and_exit_1(banks, real, tmp_path, capsys, case):
+    """In this process (run_main: what the console script and the shim run)."""
     bank, real_pickle, extra = banks[MATCHED], real, []
     if case == "no bank":
         bank = tmp_path
@@ -217,10 +220,11 @@ def test_bad_input_is_one_line_and_exit_1(banks, real, tmp_path, case):
     else:
         (tmp_path / "encoder.pt").write_bytes(b"not a checkpoint")
         extra = ["--encoder", tmp_path / "encoder.pt"]
-    result = run_script("score_bank.py", "--bank", bank, "--real", real_pickle, "--json", tmp_path / "s.json",
-                        "--no-progress", *extra)
-    assert result.returncode == 1 and result.stderr.strip().count("\n") == 0
+    code = run_main(main, [str(arg) for arg in ("--bank", bank, "--real", real_pickle, "--json", tmp_path / "s.json",
+                                                 "--no-progress", *extra)])
+    stderr = capsys.readouterr().err
+    assert code == 1 and stderr.strip().count("\n") == 0
     culprit = {"no bank": tmp_path / "manifest.json", "missing real": real_pickle, "crafted real": real_pickle,
                "bad encoder": tmp_path / "encoder.pt"}[case]
-    assert result.stderr.startswith(f"error: {culprit}: ") and not (tmp_path / "s.json").exists()
+    assert stderr.startswith(f"error: {culprit}: ") and not (tmp_path / "s.json").exists()
     assert not (tmp_path / "code_ran").exists()
