@@ -121,6 +121,9 @@ def test_objects_stream_and_only_chosen_files_are_read(real, tmp_path):
         ("Car", 67), ("Cyclist", 18), ("Misc", 1349), ("Pedestrian", 377), ("Truck", 71)]
     with pytest.raises(InputError, match="no such file|cannot read"):
         database_sets(copy / real.name, "openpcdet", "kitti")
+    assert [len(found) for found in database_sets(real, "openpcdet", "kitti", limit=1).values()] == [1] * 5
+    dense = database_sets(real, "openpcdet", "kitti", reference="dense", limit=1)
+    assert dense["Car"].points.tolist() == [67]  # the densest car
 
 
 # --- the ranking check --------------------------------------------------------------

@@ -15,7 +15,11 @@ import numpy as np
 
 from ..bank.folder import WORK
 from . import metrics
-from .sets import bank_database, database_sets
+from .sets import PAPER_REFERENCE_SIZE, bank_database, database_sets
+
+# Objects per class and side at most (a seeded draw): the Chamfer metrics cost
+# bank x real pairs, so larger classes are drawn down, about the paper's 593.
+MAX_OBJECTS = 600
 
 ENCODER_CACHE = "quality_encoder.pt"  # under the bank's OUT/.work when no --encoder is given
 METRICS = ("bank_objects", "real_objects", "frechet", "frechet_low", "frechet_high", "mmd", "coverage",
@@ -47,7 +51,9 @@ def score_bank(bank, real, convention: str = "openpcdet", real_root=None, encode
     """{"dataset", "classes": {class: {metric: value}}, "unmatched": [names],
     "encoder": checkpoint path or None} for the bank folder ``bank`` against the real
     info pickle ``real`` (``convention``, files under ``real_root``, default its folder;
-    ``reference`` and ``limit``: sets.database_sets for the real side). ``encoder``: a
+    ``reference`` and ``limit``: sets.database_sets for the real side, ``limit``
+    defaulting to 593 for "dense" and MAX_OBJECTS for "all"; the bank's classes are
+    drawn down to MAX_OBJECTS too). ``encoder``: a
     checkpoint; without one and with ``learned``, one is trained on the real database
     and cached in the bank's .work folder (reused while the real pickle and settings
     are unchanged). ``learned`` False (or torch missing, see ``quality_available``)
@@ -55,8 +61,10 @@ def score_bank(bank, real, convention: str = "openpcdet", real_root=None, encode
     info_pickle, bank_convention, dataset, bank_root = bank_database(bank)
     bar = _bar(progress, None, " objects")
     step = bar.update if bar is not None else None
-    real_sets = database_sets(real, convention, dataset, real_root, reference, seed, limit, progress=step)
-    bank_sets = database_sets(info_pickle, bank_convention, dataset, bank_root, seed=seed, progress=step)
+    real_sets = database_sets(real, convention, dataset, real_root, reference, seed,
+                              limit or (PAPER_REFERENCE_SIZE if reference == "dense" else MAX_OBJECTS), progress=step)
+    bank_sets = database_sets(info_pickle, bank_convention, dataset, bank_root, seed=seed, limit=MAX_OBJECTS,
+                              progress=step)
     if bar is not None:
         bar.close()
     matched = sorted(set(bank_sets) & set(real_sets))
