@@ -231,3 +231,17 @@ def test_bad_input_is_one_line_and_exit_1(banks, real, tmp_path, capsys, case):
                "bad encoder": tmp_path / "encoder.pt"}[case]
     assert stderr.startswith(f"error: {culprit}: ") and not (tmp_path / "s.json").exists()
     assert not (tmp_path / "code_ran").exists()
+
+
+def test_the_bank_report_shows_the_scores_with_intervals(banks, real, encoder, tmp_path):
+    from pgt_blender.core.bank.report import real_reference, write_report
+
+    bank = Path(shutil.copytree(banks[MATCHED], tmp_path / "bank"))
+    quality = score_bank(bank, real, encoder=encoder)
+    config = json.loads((bank / "manifest.json").read_text())["config"]
+    markdown, figure = write_report(bank, real_reference(real, config), quality)
+    text = markdown.read_text()
+    car = quality["classes"]["Car"]
+    assert "## Quality score against the real database" in text
+    assert f"| Car | {car['bank_objects']} | 2 | {car['frechet']:.3f} [{car['frechet_low']:.3f}, " in text
+    assert figure.read_bytes() == write_report(bank, real_reference(real, config), quality)[1].read_bytes()
