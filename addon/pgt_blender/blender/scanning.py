@@ -238,7 +238,7 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
     world = source.matrix_world @ Matrix(np.linalg.inv(sensor_from_object).tolist())
     made = []
     try:
-        points = _points_object(f"{source.name} Scan", result.returns,
+        points = points_object(f"{source.name} Scan", result.returns,
                                 return_colors(result.returns, sensor, settings.color_by), made)
         origin = bpy.data.objects.new("PGT Sensor", None)
         made.append(origin)
@@ -270,7 +270,7 @@ def _collection(scene: bpy.types.Scene) -> bpy.types.Collection:
     return collection
 
 
-def _points_object(name: str, returns: np.ndarray, rgba: np.ndarray, made: list) -> bpy.types.Object:
+def points_object(name: str, returns: np.ndarray, rgba: np.ndarray, made: list) -> bpy.types.Object:
     """A vertex-only mesh object: positions = the returns' x, y, z (sensor frame, stored
     float32), every other column a point attribute (float32 or int32), and the (N, 4)
     linear ``rgba`` as the active color attribute "color"."""

@@ -114,19 +114,19 @@ def export_bank(args) -> int:
 
 
 def _progress(finished, total: int) -> None:
-    """Drain ``finished`` (entry counts per chunk) under a progress bar with rate and ETA."""
+    """Drain ``finished`` (export.ChunkDone per chunk) under a progress bar with rate and ETA."""
     try:
         from tqdm import tqdm
     except ImportError:  # Blender's own Python may lack tqdm: a plain count instead
         done = 0
-        for count in finished:
-            done += count
+        for chunk in finished:
+            done += chunk.entries
             print(f"\r{done:,}/{total:,} poses", end="", file=sys.stderr, flush=True)
         print(file=sys.stderr)
         return
     with tqdm(total=total, unit=" poses", smoothing=0.1, mininterval=1.0) as bar:
-        for count in finished:
-            bar.update(count)
+        for chunk in finished:
+            bar.update(chunk.entries)
 
 
 def real_reference(args, config: dict):

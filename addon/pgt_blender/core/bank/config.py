@@ -224,6 +224,29 @@ def config_from_table(table: dict, path="bank config") -> BankConfig:
     return config
 
 
+def config_toml(config: BankConfig) -> str:
+    """``config`` as the TOML text load_config reads back to the same BankConfig: every
+    key written, so the file says all the bank depends on."""
+    values = asdict(config)
+    sections = {}
+    for name, (attribute, _, _) in _KEYS.items():
+        section, key = name.split(".")
+        sections.setdefault(section, []).append(f"{key} = {_toml_value(values[attribute])}")
+    if config.classes:
+        sections["classes"] = [f"{key} = {_toml_value(name)}" for key, name in config.classes.items()]
+    return "\n\n".join(f"[{section}]\n" + "\n".join(lines) for section, lines in sections.items()) + "\n"
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return repr(value)
+
+
 def grid_values(start: float, stop: float, step: float) -> np.ndarray:
     """start, start + step, ... up to stop included (to 1e-9 of a step)."""
     count = int(np.floor((stop - start) / step + 1e-9)) + 1

@@ -320,7 +320,7 @@ def cast_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray
     returns = trace_returns(target, sensor, trace, options, sweep)
     box = placed_box(target.bounds, sensor_from_object)
     return Scan(returns, box, trace.rays, trace.seconds + time.perf_counter() - start, sensor.dataset,
-                [sensor_from_object])
+                [sensor_from_object], cast_seconds=trace.seconds)
 
 
 def trace_returns(target: ScanTarget, sensor: Sensor, trace: Trace, options: ScanOptions, sweep: int = 0):
