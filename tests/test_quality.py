@@ -227,7 +227,7 @@ def test_bad_input_is_one_line_and_exit_1(banks, real, tmp_path, capsys, case):
                                                  "--no-progress", *extra)])
     stderr = capsys.readouterr().err
     assert code == 1 and stderr.strip().count("\n") == 0
-    culprit = {"no bank": tmp_path / "manifest.json", "missing real": real_pickle, "crafted real": real_pickle,
+    culprit = {"no bank": tmp_path, "missing real": real_pickle, "crafted real": real_pickle,
                "bad encoder": tmp_path / "encoder.pt"}[case]
     assert stderr.startswith(f"error: {culprit}: ") and not (tmp_path / "s.json").exists()
     assert not (tmp_path / "code_ran").exists()

@@ -8,13 +8,12 @@ then SET_POINTS of them are drawn (without replacement when it has that many, el
 with), from a Generator seeded by (seed, object's rank in its class).
 """
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..bank.folder import INTENSITY_BINS, MANIFEST, info_path_root
+from ..bank.folder import INTENSITY_BINS, MANIFEST, info_path_root, read_manifest
 from ..errors import InputError
 from ..gt_database import CONVENTIONS, iter_objects
 from ..scan.sensors import INTENSITY_MAX
@@ -104,15 +103,13 @@ def database_sets(info_pickle, convention: str, dataset: str, root=None, referen
 
 def bank_database(out) -> tuple:
     """(info pickle, convention, dataset, root) of the bank in folder ``out``, from its
-    manifest: the OpenPCDet pickle when the bank has one, else the mmdet3d one."""
+    manifest (folder.read_manifest): the OpenPCDet pickle when the bank has one, else
+    the mmdet3d one."""
     out = Path(out)
-    try:
-        manifest = json.loads((out / MANIFEST).read_text())
-        pickles, dataset = manifest["info_pickles"], manifest["config"]["dataset"]
-    except (OSError, ValueError, KeyError, TypeError) as error:
-        raise InputError(out / MANIFEST, f"not a finished bank's manifest ({type(error).__name__}: {error})") from None
+    manifest = read_manifest(out)
+    pickles = manifest["info_pickles"]
     convention = next((fmt for fmt in ("openpcdet", "mmdet3d") if fmt in pickles), None)
     if convention is None:
         raise InputError(out / MANIFEST, "lists no openpcdet or mmdet3d info pickle")
     info_pickle = out / pickles[convention]
-    return info_pickle, convention, dataset, info_path_root(info_pickle)
+    return info_pickle, convention, manifest["config"]["dataset"], info_path_root(info_pickle)
