@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..bank.folder import WORK
+from ..progress import progress_bar
 from . import metrics
 from .sets import PAPER_REFERENCE_SIZE, bank_database, database_sets
 
@@ -24,16 +25,6 @@ MAX_OBJECTS = 600
 ENCODER_CACHE = "quality_encoder.pt"  # under the bank's OUT/.work when no --encoder is given
 METRICS = ("bank_objects", "real_objects", "frechet", "frechet_low", "frechet_high", "mmd", "coverage",
            "one_nn_accuracy", "w1_points", "w1_intensity")
-
-
-def _bar(enabled: bool, total: int, unit: str):
-    if not enabled:
-        return None
-    try:
-        from tqdm import tqdm
-    except ImportError:
-        return None
-    return tqdm(total=total, unit=unit, mininterval=1.0, leave=False)
 
 
 def encoder_key(real_pickle, convention: str, reference: str, limit, seed: int) -> str:
@@ -59,7 +50,7 @@ def score_bank(bank, real, convention: str = "openpcdet", real_root=None, encode
     are unchanged). ``learned`` False (or torch missing, see ``quality_available``)
     leaves the Fréchet values None."""
     info_pickle, bank_convention, dataset, bank_root = bank_database(bank)
-    bar = _bar(progress, None, " objects")
+    bar = progress_bar(progress, None, " objects", leave=False)
     step = bar.update if bar is not None else None
     real_sets = database_sets(real, convention, dataset, real_root, reference, seed,
                               limit or (PAPER_REFERENCE_SIZE if reference == "dense" else MAX_OBJECTS), progress=step)
@@ -74,7 +65,7 @@ def score_bank(bank, real, convention: str = "openpcdet", real_root=None, encode
         model = QualityEncoder.load(encoder)
     elif matched and learned:
         from .encoder import STEPS, cached_encoder
-        bar = _bar(progress, STEPS, " steps")
+        bar = progress_bar(progress, STEPS, " steps", leave=False)
         model = cached_encoder(Path(bank) / WORK / ENCODER_CACHE, real_sets, dataset,
                                encoder_key(real, convention, reference, limit, seed), seed,
                                progress=bar.update if bar is not None else None)
