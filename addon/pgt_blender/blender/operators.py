@@ -379,8 +379,74 @@ class OBJECT_OT_pgt_apply_intensity(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class OBJECT_OT_pgt_author_selected(bpy.types.Operator):
-    """Align, detect the front and set the size of every selected reconstruction, doing only the steps each has left"""
+class _BackgroundSteps:
+    """An operator whose work is a run of short steps: ``steps(context)`` is a generator
+    that checks its inputs (InputError: nothing done), yields 0.0, then yields the share
+    done after each step. ``execute`` (scripts, ``blender -b``) runs every step at once;
+    ``invoke`` (the panels) runs one step per timer event under Blender's progress
+    indicator, so the interface answers between steps, and Esc (or ``stop_requested``)
+    ends the run between two steps. ``finished`` and ``stopped`` say what was done."""
+
+    _run = None
+    _timer = None
+
+    def execute(self, context):
+        try:
+            for _ in self.steps(context):
+                pass
+        except InputError as error:
+            self.report({"ERROR"}, str(error))
+            return self.failed(context)
+        return self.finished(context)
+
+    def invoke(self, context, event):
+        self._run = self.steps(context)
+        try:
+            next(self._run)
+        except InputError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        manager = context.window_manager
+        manager.progress_begin(0, 1)
+        self._timer = manager.event_timer_add(0.01, window=context.window)
+        manager.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type == "ESC" or self.stop_requested(context):
+            self._end(context)
+            return self.stopped(context)
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        try:
+            share = next(self._run, None)
+        except (InputError, OSError) as error:  # a full disk, a folder gone: what is done stays done
+            self._end(context)
+            self.report({"ERROR"}, str(error))
+            return self.failed(context)
+        if share is None:
+            self._end(context)
+            return self.finished(context)
+        context.window_manager.progress_update(share)
+        for area in context.screen.areas if context.screen else ():
+            area.tag_redraw()
+        return {"RUNNING_MODAL"}
+
+    def _end(self, context):
+        self._run.close()
+        manager = context.window_manager
+        manager.event_timer_remove(self._timer)
+        manager.progress_end()
+
+    def stop_requested(self, context) -> bool:
+        return False
+
+    def failed(self, context):
+        return {"CANCELLED"}
+
+
+class OBJECT_OT_pgt_author_selected(_BackgroundSteps, bpy.types.Operator):
+    """Align, detect the front and set the size of every selected reconstruction, doing only the steps each has left (Esc stops between objects)"""
 
     bl_idname = "object.pgt_author_selected"
     bl_label = "Author Selected"
@@ -393,32 +459,36 @@ class OBJECT_OT_pgt_author_selected(bpy.types.Operator):
             return False
         return True
 
-    def execute(self, context):
+    def steps(self, context):
+        """One object's remaining steps per step; object i by name sizes with seed + i."""
         settings = context.scene.pgt_authoring
         chosen = sorted((obj for obj in context.selected_objects if authoring.is_reconstruction(obj)),
                         key=lambda obj: obj.name)
         problem = properties.class_problem(settings) if settings.size_mode == "class" else ""
         if problem:  # checked once, before any object changes
-            self.report({"ERROR"}, f"Author Selected: {problem}")
-            return {"CANCELLED"}
-        steps = 0
-        with progress(context, len(chosen)) as advance:
-            for index, obj in enumerate(chosen):  # each step applies whole: an error stops between steps
-                for done, make in (("aligned", align), ("heading", detect_front), ("size", None)):
-                    if authoring.status(obj)[done]:
-                        continue
-                    try:
-                        step = (make(context, obj, settings) if make else
-                                set_size(context, obj, settings, seed=settings.seed + index))
-                    except InputError as error:
-                        self.report({"ERROR"}, f"{error} (Author Selected stopped there: {steps} steps applied)")
-                        return {"CANCELLED"} if not steps else {"FINISHED"}
-                    authoring.apply_step(obj, step)
-                    steps += 1
-                advance(obj)
-        self.report({"INFO"}, f"Authored {len(chosen)} objects: {steps} steps applied "
-                              f"(size seeds {settings.seed} to {settings.seed + len(chosen) - 1} by name)")
+            raise InputError("Author Selected", problem)
+        self.objects, self.applied = len(chosen), 0
+        yield 0.0
+        for index, obj in enumerate(chosen):  # each step applies whole: an error stops between steps
+            for done, make in (("aligned", align), ("heading", detect_front), ("size", None)):
+                if not authoring.status(obj)[done]:
+                    authoring.apply_step(obj, make(context, obj, settings) if make else
+                                         set_size(context, obj, settings, seed=settings.seed + index))
+                    self.applied += 1
+            yield (index + 1) / len(chosen)
+
+    def finished(self, context):
+        seed = context.scene.pgt_authoring.seed
+        self.report({"INFO"}, f"Authored {self.objects} objects: {self.applied} steps applied "
+                              f"(size seeds {seed} to {seed + self.objects - 1} by name)")
         return {"FINISHED"}
+
+    def stopped(self, context):
+        self.report({"WARNING"}, f"Author Selected stopped: {self.applied} steps applied")
+        return {"FINISHED"}  # what was applied stays, and undo reverts it
+
+    def failed(self, context):  # after some steps: keep them undoable
+        return {"FINISHED"} if getattr(self, "applied", 0) else {"CANCELLED"}
 
 
 def _checkpoint(context) -> str:
@@ -427,14 +497,11 @@ def _checkpoint(context) -> str:
     return bpy.path.abspath(preferences.intensity_checkpoint) if preferences and preferences.intensity_checkpoint else ""
 
 
-class SCENE_OT_pgt_export_bank(bpy.types.Operator):
+class SCENE_OT_pgt_export_bank(_BackgroundSteps, bpy.types.Operator):
     """Export the scene's authored objects as an object bank; from the panel it runs in the background with progress (Esc or Stop ends it, resumable)"""
 
     bl_idname = "scene.pgt_export_bank"
     bl_label = "Export Bank"
-
-    _run = None
-    _timer = None
 
     @classmethod
     def poll(cls, context):
@@ -443,71 +510,44 @@ class SCENE_OT_pgt_export_bank(bpy.types.Operator):
             return False
         return True
 
-    def execute(self, context):  # scripts and blender -b: the whole export at once
+    def steps(self, context):
+        """One chunk of entries per step (the Bank section's chunk size), then the assembly
+        and the report."""
         settings = context.scene.pgt_bank
-        try:
-            run = bank.BankRun(context.scene, settings, _checkpoint(context))
-            while run.step():
-                pass
-            report = run.finish()
-        except InputError as error:
-            self.report({"ERROR"}, str(error))
-            return {"CANCELLED"}
-        return self._finished(settings, run, report)
-
-    def invoke(self, context, event):
-        settings = context.scene.pgt_bank
-        try:
-            self._run = bank.BankRun(context.scene, settings, _checkpoint(context))
-        except InputError as error:
-            self.report({"ERROR"}, str(error))
-            return {"CANCELLED"}
+        self.bank_run = run = bank.BankRun(context.scene, settings, _checkpoint(context))
         settings.running, settings.stop_requested, settings.progress = True, False, 0.0
-        settings.status = f"exporting {self._run.total:,} entries to {self._run.out}"
-        manager = context.window_manager
-        manager.progress_begin(0, 1)
-        self._timer = manager.event_timer_add(0.01, window=context.window)
-        manager.modal_handler_add(self)
-        return {"RUNNING_MODAL"}
-
-    def modal(self, context, event):
-        settings = context.scene.pgt_bank
-        if event.type == "ESC" or settings.stop_requested:
-            self._end(context)
-            settings.status = (f"stopped after {self._run.done:,} of {self._run.total:,} entries: choose "
-                               "'Resume' and export again to finish")
-            self.report({"WARNING"}, settings.status)
-            return {"CANCELLED"}
-        if event.type != "TIMER":
-            return {"PASS_THROUGH"}
+        settings.status = f"exporting {run.total:,} entries to {run.out}"
         try:
-            if self._run.step():
-                settings.progress = self._run.done / max(self._run.total, 1)
-                context.window_manager.progress_update(settings.progress)
-                for area in context.screen.areas if context.screen else ():
-                    area.tag_redraw()
-                return {"RUNNING_MODAL"}
-            report = self._run.finish()
-        except (InputError, OSError) as error:  # a full disk, a folder gone: the written chunks stay resumable
-            self._end(context)
-            settings.status = f"failed: {error}"
-            self.report({"ERROR"}, settings.status)
-            return {"CANCELLED"}
-        self._end(context)
-        return self._finished(settings, self._run, report)
+            yield 0.0
+            while run.step():
+                settings.progress = run.done / max(run.total, 1)
+                yield settings.progress
+            self.report_path = run.finish()
+        finally:  # done, stopped or failed: the folder is a bank or resumable
+            run.stop()
+            settings.running = False
 
-    def _end(self, context):
-        self._run.stop()
-        manager = context.window_manager
-        manager.event_timer_remove(self._timer)
-        manager.progress_end()
-        context.scene.pgt_bank.running = False
+    def stop_requested(self, context) -> bool:
+        return context.scene.pgt_bank.stop_requested
 
-    def _finished(self, settings, run, report: Path):
+    def finished(self, context):
+        settings, run = context.scene.pgt_bank, self.bank_run
         settings.progress = 1.0
-        settings.status = f"{run.done:,} entries written to {run.out}; report: {report}"
+        settings.status = f"{run.done:,} entries written to {run.out}; report: {self.report_path}"
         self.report({"INFO"}, settings.status)
         return {"FINISHED"}
+
+    def stopped(self, context):
+        settings, run = context.scene.pgt_bank, self.bank_run
+        settings.status = (f"stopped after {run.done:,} of {run.total:,} entries: choose 'Resume' and export again "
+                           "to finish")
+        self.report({"WARNING"}, settings.status)
+        return {"CANCELLED"}
+
+    def failed(self, context):
+        if getattr(self, "bank_run", None) is not None:
+            context.scene.pgt_bank.status = "failed: the written chunks stay; 'Resume' continues"
+        return {"CANCELLED"}
 
 
 class SCENE_OT_pgt_stop_bank(bpy.types.Operator):
