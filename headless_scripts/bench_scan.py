@@ -69,8 +69,9 @@ ERROR_FLOOR = 1e-16  # log-plot floor for exact (0 m) errors
 def reference_ranges(triangles: np.ndarray, sensor, sensor_from_object: np.ndarray,
                      max_pairs: int = 2_000_000) -> np.ndarray:
     """(beams * columns,) float64 range of each sensor cell's nearest hit on ``triangles``
-    (F, 3, 3) object frame, placed by ``sensor_from_object``; NaN where the ray misses or
-    the hit lies outside [min_range, max_range]. Exact float64 Moller-Trumbore on the
+    (F, 3, 3) object frame, placed by ``sensor_from_object``, each ray from its laser's
+    origin (Sensor.cell_origins); NaN where the ray misses or the hit lies outside
+    [min_range, max_range]. Exact float64 Moller-Trumbore on the
     (triangle, cell) pairs whose angular windows overlap: a triangle's azimuth span is
     that of its corners (its xy shadow does not contain the sensor, so the azimuth is
     monotone along every edge); its elevation span is bounded conservatively."""
@@ -82,12 +83,14 @@ def reference_ranges(triangles: np.ndarray, sensor, sensor_from_object: np.ndarr
     relative = np.angle(np.exp(1j * (np.arctan2(placed[..., 1], placed[..., 0]) - centre)))
     if np.ptp(relative, axis=1).max() > np.pi / 2:
         raise ValueError("reference: a triangle spans more than 90 degrees of azimuth")
-    azimuth_low, azimuth_high = centre + relative.min(axis=1), centre + relative.max(axis=1)
     edges = np.linalg.norm(placed[:, [1, 2, 0], :2] - placed[..., :2], axis=2).max(axis=1)
     rho_low, rho_high = np.maximum(rho.min(axis=1) - edges, 1e-6), rho.max(axis=1)
+    # lasers off the sensor origin see a triangle up to asin(offset / distance) elsewhere
+    margin = np.arcsin(np.clip(sensor.max_origin_offset / rho_low, 0.0, 1.0))
+    azimuth_low, azimuth_high = centre + relative.min(axis=1) - margin, centre + relative.max(axis=1) + margin
     z_low, z_high = placed[..., 2].min(axis=1), placed[..., 2].max(axis=1)
-    elevation_high = np.arctan2(z_high, np.where(z_high > 0, rho_low, rho_high))
-    elevation_low = np.arctan2(z_low, np.where(z_low > 0, rho_high, rho_low))
+    elevation_high = np.arctan2(z_high, np.where(z_high > 0, rho_low, rho_high)) + margin
+    elevation_low = np.arctan2(z_low, np.where(z_low > 0, rho_high, rho_low)) - margin
     elevations = np.radians(np.asarray(sensor.elevations_deg))
     ring_first = np.searchsorted(elevations, elevation_low - 1e-7, side="left")
     ring_last = np.searchsorted(elevations, elevation_high + 1e-7, side="right") - 1
@@ -112,7 +115,10 @@ def reference_ranges(triangles: np.ndarray, sensor, sensor_from_object: np.ndarr
         pair = np.repeat(np.arange(start, stop), counts)
         column = column_first[pair] + np.arange(len(pair)) - np.repeat(bounds[start:stop] - bounds[start], counts)
         cell = ring[pair] * sensor.columns + np.mod(column, sensor.columns)
-        hit, t = _moller_trumbore(placed[tri[pair]], directions[cell])
+        corners = placed[tri[pair]]
+        if sensor.cell_origins is not None:  # each ray from its own laser
+            corners = corners - sensor.cell_origins[cell][:, None, :]
+        hit, t = _moller_trumbore(corners, directions[cell])
         np.minimum.at(best, cell[hit], t[hit])
         start = stop
     best[(best < sensor.min_range) | (best > sensor.max_range)] = np.nan
@@ -139,10 +145,10 @@ def _moller_trumbore(corners: np.ndarray, directions: np.ndarray):
 
 def sphere_ranges(radius: float, sensor, sensor_from_object: np.ndarray) -> np.ndarray:
     """(beams * columns,) float64 range to the ideal sphere of ``radius`` about the object
-    origin, NaN on a miss or outside the range gate."""
-    centre = sensor_from_object[:3, 3]
-    b = sensor.directions @ centre
-    disc = b * b - (centre @ centre - radius * radius)
+    origin from each cell's laser, NaN on a miss or outside the range gate."""
+    centre = sensor_from_object[:3, 3] - (0.0 if sensor.cell_origins is None else sensor.cell_origins)
+    b = np.einsum("ij,ij->i", sensor.directions, np.broadcast_to(centre, sensor.directions.shape))
+    disc = b * b - (np.einsum("ij,ij->i", *[np.broadcast_to(centre, sensor.directions.shape)] * 2) - radius * radius)
     with np.errstate(invalid="ignore"):
         t = b - np.sqrt(disc)
     t[(disc < 0) | (t <= 0) | (t < sensor.min_range) | (t > sensor.max_range)] = np.nan
