@@ -63,11 +63,16 @@ def up_vector(choice: str, world_from_cameras=(), source="points"):
     return axis
 
 
-def align_step(positions, weights=None, up=None, source="points") -> Step:
-    """PCA alignment of the current points (see :mod:`.alignment`)."""
-    found = align_axes(positions, weights, up, source)
+def align_step(positions, weights=None, up=None, source="points", refine: bool = True, faces=None) -> Step:
+    """Axis alignment of the current points, refined to the object's surface planes
+    unless ``refine`` is False (see :mod:`.alignment`). Details: where up and yaw came
+    from, the inlier count, whether the frame was refined, the tilt the refinement
+    removed (degrees) and the estimated surface noise (source units). ``faces``: (F, 3)
+    indices of a mesh's triangles, whose normals the refinement then uses."""
+    found = align_axes(positions, weights, up, source, refine, faces)
     return Step("align", found.transform, found.dims,
-                {"up_from": found.up_from, "yaw_from": found.yaw_from, "inliers": int(found.inliers.sum())})
+                {"up_from": found.up_from, "yaw_from": found.yaw_from, "inliers": int(found.inliers.sum()),
+                 "refined": found.refined, "tilt_deg": found.tilt_deg, "noise": found.noise})
 
 
 def turn_step(turns: int, dims) -> Step:
@@ -151,14 +156,15 @@ class AuthoredObject:
 
 def prepare(recon: Reconstruction, class_name: str, dataset: str = "nuscenes", up: str = "auto",
             heading_method: str = "classifier", size: str = "class", exact=None,
-            uniform: bool = False, seed: int = 0, checkpoint=None) -> AuthoredObject:
+            uniform: bool = False, seed: int = 0, checkpoint=None, refine: bool = True) -> AuthoredObject:
     """Align, head and size ``recon`` in one go; the same steps as the Blender panel."""
     if heading_method not in HEADING_METHODS:
         raise ValueError(f"unknown heading method '{heading_method}' (have: {', '.join(HEADING_METHODS)})")
     authored = AuthoredObject.from_reconstruction(recon)
     weights = recon.attributes.get("opacity")
     poses = np.array([c.world_from_camera for c in recon.cameras]).reshape(-1, 4, 4)
-    authored.apply(align_step(authored.positions, weights, up_vector(up, poses, recon.source), recon.source))
+    authored.apply(align_step(authored.positions, weights, up_vector(up, poses, recon.source), recon.source, refine,
+                              recon.faces if len(recon.faces) else None))
     try:  # a flat or empty box cannot be headed by the classifier or scaled
         if heading_method != "none":
             authored.apply(automatic_heading_step(authored.positions, authored.dims, heading_method, checkpoint))
