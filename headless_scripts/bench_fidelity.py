@@ -3,7 +3,7 @@ object of real scans is replaced by a mesh of its class scaled to its box, the w
 scene is scanned once (objects occlude each other), and each object's simulated returns
 are compared with its real ones.
 
-    .venv/bin/python headless_scripts/bench_fidelity.py [KITTI_FOLDER] [--meshes chrono|samples|FOLDER]
+    .venv/bin/python headless_scripts/bench_fidelity.py [KITTI_FOLDER] [--meshes samples|FOLDER]
         [--sensor kitti] [--min-points 1] [--no-glass] [--no-drop] [--out bench/fidelity]
 
 KITTI_FOLDER (default ../shared/data/kitti_scans) holds velodyne/*.bin, label_2/*.txt and
@@ -151,7 +151,8 @@ def draw(rows: list):
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="bench_fidelity.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("folder", type=Path, nargs="?", default=dev.SHARED_DATA / "kitti_scans", help="KITTI frames")
-    parser.add_argument("--meshes", default="chrono", help="chrono, samples or a folder of <class>.obj/.ply")
+    parser.add_argument("--meshes", default=str(dev.CHRONO_VEHICLES),
+                        help="class meshes: samples, the Chrono vehicle folder (default) or a folder of <class>.obj/.ply")
     parser.add_argument("--sensor", default="kitti", help="sensor preset or TOML")
     parser.add_argument("--min-points", type=int, default=1, help="real points an object needs to be scored")
     parser.add_argument("--no-glass", action="store_true", help="scan glass materials as solid surfaces")
@@ -162,7 +163,7 @@ def main(argv: list) -> int:
     sensor = sensor_from_name(args.sensor)
     if sensor.dataset != "kitti":
         raise InputError(args.sensor, f"is a {sensor.dataset} sensor; the scans are KITTI's")
-    meshes = replay.class_meshes(args.meshes, dev.CHRONO_VEHICLES)
+    meshes = replay.class_meshes(args.meshes)
     options = ScanOptions(window=False, range_noise=True, ray_drop=not args.no_drop, seed=args.seed)
     start = time.perf_counter()
     objects = [obj for _, rows, labels in kitti_frames(args.folder) if labels

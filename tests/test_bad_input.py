@@ -246,7 +246,7 @@ CASES = {
     "velodyne file padded by two bytes": cut_velodyne,
     "fit_sensor on a folder without scans": lambda folder, inputs: (["fit_sensor.py", folder], folder,
                                                                     "holds no *.bin scans"),
-    "fit_returns on a folder without scans": lambda folder, inputs: (["fit_returns.py", folder], folder,
+    "fit_returns on a folder without scans": lambda folder, inputs: (["fit_returns.py", folder, "--meshes", "samples"], folder,
                                                                      "no velodyne/*.bin scans"),
 }
 

@@ -3,7 +3,7 @@ intensity loss by hand, CycleGAN training (loss goes down, resume == uninterrupt
 checkpoints), inference, the physical fallback and bad input. Synthetic sets only."""
 
 import csv
-import importlib.util
+import importlib
 import subprocess
 import sys
 from pathlib import Path
@@ -344,10 +344,8 @@ def test_bad_checkpoints_classes_datasets_and_arrays(trained, tmp_path):
 
 @pytest.fixture
 def script(sets, monkeypatch):
-    """train_intensity.py as a module, reading the synthetic sets instead of data files."""
-    spec = importlib.util.spec_from_file_location("train_intensity", ROOT / "headless_scripts" / "train_intensity.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    """The train_intensity command's module, reading the synthetic sets instead of data files."""
+    module = importlib.import_module("pgt_blender.commands.train_intensity")
     monkeypatch.setattr(module, "load_sets", lambda args: sets)
     return module
 
@@ -369,6 +367,6 @@ def test_train_script_bad_input_is_one_line_and_exit_1(script, tmp_path, monkeyp
         raise InputError(tmp_path / "db.pkl", "not a ground-truth database pickle")
 
     monkeypatch.setattr(script, "load_sets", bad)
-    assert script.run_main(script.main, ["--out", str(tmp_path / "run"), "--real", str(tmp_path)]) == 1
+    assert script.cli.run_main(script.main, ["--out", str(tmp_path / "run"), "--real", str(tmp_path)]) == 1
     assert capsys.readouterr().err == f"error: {tmp_path / 'db.pkl'}: not a ground-truth database pickle\n"
     assert not (tmp_path / "run").exists()

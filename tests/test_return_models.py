@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from pgt_blender.core.scan import ray_drop
+from pgt_blender.dev import CHRONO_VEHICLES
 from pgt_blender.core.scan.physical_intensity import REFERENCE_RANGE, fit_intensity_law, relative_intensity
 from pgt_blender.core.scan.raycast import ScanOptions, cast_rays
 from pgt_blender.core.scan.sensors import PRESETS, Sensor, load_sensor_toml
@@ -118,13 +119,14 @@ def test_sensor_models_default_to_none():
 
 def test_fit_returns_reproduces_the_presets(tmp_path, shared_data):
     out = tmp_path / "models.toml"
-    result = run_script("fit_returns.py", str(shared_data / "kitti_scans"), "--out", str(out))
+    result = run_script("fit_returns.py", str(shared_data / "kitti_scans"), "--meshes", CHRONO_VEHICLES, "--out", str(out))
     assert result.returncode == 0, result.stderr
     sensor = load_sensor_toml(out)
     assert np.allclose(sensor.ray_drop, KITTI.ray_drop, atol=1e-3)
     assert np.allclose(sensor.intensity_law, KITTI.intensity_law, atol=1e-3)
     assert "held out" in result.stdout
-    nuscenes = run_script("fit_returns.py", str(shared_data / "kitti_scans"), "--out", str(out), "--intensity-points",
+    nuscenes = run_script("fit_returns.py", str(shared_data / "kitti_scans"), "--meshes", CHRONO_VEHICLES, "--out", str(out),
+                          "--intensity-points",
                           *map(str, sorted((shared_data / "nuscenes_format_sample").glob("*/LIDAR_TOP/*.bin"))))
     assert nuscenes.returncode == 0, nuscenes.stderr
     assert np.allclose(load_sensor_toml(out).intensity_law, PRESETS["nuscenes"].intensity_law, atol=1e-3)

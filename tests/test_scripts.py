@@ -33,10 +33,10 @@ def test_import_splat_json(donut):
     assert {"opacity", "scale", "rotation"} <= set(summary["attributes"])
 
 
-@pytest.mark.parametrize("script", ["import_reconstruction.py", "demo.py", "bench_import.py", "build_extension.py",
-                                    "scan_object.py", "bench_scan.py", "train_intensity.py", "bench_intensity.py",
-                                    "export_bank.py", "mix_bank.py", "bench_bank.py", "fit_ground.py",
-                                    "fit_sensor.py", "fit_returns.py", "bench_fidelity.py"])
+COMMANDS = sorted(p.stem for p in (ROOT / "addon" / "pgt_blender" / "commands").glob("[!_]*.py"))
+
+
+@pytest.mark.parametrize("script", sorted(p.name for p in (ROOT / "headless_scripts").glob("*.py")))
 def test_help(script):
     result = run_script(script, "--help")
     assert result.returncode == 0 and result.stdout.startswith("usage:")
@@ -218,3 +218,17 @@ def test_scan_object_without_torch_keeps_the_physical_intensity(truck_sample, tm
     assert plain.returncode == result.returncode == 0, result.stderr
     assert "intensity: physical law: PyTorch (torch==2.13.0) is not installed" in result.stdout
     assert (tmp_path / "fallback.bin").read_bytes() == (tmp_path / "plain.bin").read_bytes()
+
+
+def test_every_command_is_a_console_script_with_a_shim():
+    """Each pgt_blender/commands/<name>.py is installed as pgt-<name> (pyproject.toml) and
+    has its headless_scripts/<name>.py shim (--help of every script: test_help)."""
+    import tomllib
+
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    assert scripts == {f"pgt-{name.replace('_', '-')}": f"pgt_blender.commands.{name}:run" for name in COMMANDS}
+    assert all((ROOT / "headless_scripts" / f"{name}.py").is_file() for name in COMMANDS)
+    console = Path(sys.executable).parent / "pgt-mix-bank"
+    result = subprocess.run([str(console), "--real", "missing.pkl", "--bank", "b.pkl", "--out", "o.pkl"],
+                            capture_output=True, text=True, timeout=120)
+    assert (result.returncode, result.stderr) == (1, "error: missing.pkl: no such file\n")

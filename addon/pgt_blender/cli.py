@@ -44,6 +44,16 @@ def run_main(main, argv: list) -> int:
     return 1
 
 
+def markdown_table(header: list, rows: list, align: str = "") -> str:
+    """A Markdown table of ``header`` (C,) column titles and ``rows`` of C cells each
+    (written with str()); ``align`` one letter per column, "l" left or "r" right
+    (default: the first column left, the others right)."""
+    align = align or "l" + "r" * (len(header) - 1)
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" if a == "l" else "---:" for a in align) + "|"]
+    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
 def command(main):
     """The entry point of ``main(argv) -> int``: the arguments after ``--`` when Blender
     runs it, else ``argv[1:]``; bad input as one line; the code through :func:`exit`.

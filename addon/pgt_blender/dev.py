@@ -12,6 +12,8 @@ import os
 import platform
 from pathlib import Path
 
+from .cli import markdown_table  # noqa: F401  (the benchmarks' tables: one home, in cli)
+
 SHARED_DATA = Path(os.environ.get("PGT_SHARED_DATA") or Path(__file__).resolve().parents[3] / "shared" / "data")
 CHRONO_VEHICLES = SHARED_DATA / "chrono_vehicles" / "data" / "vehicle"
 
@@ -46,13 +48,3 @@ def write_results(out: Path, results: dict, draw) -> None:
     figure.tight_layout()
     figure.savefig(out.with_suffix(".png"), dpi=100)
     print(f"\nwrote {out.with_suffix('.json')} and {out.with_suffix('.png')}")
-
-
-def markdown_table(header: list, rows: list, align: str = "") -> str:
-    """A Markdown table of ``header`` (C,) column titles and ``rows`` of C cells each
-    (written with str()); ``align`` one letter per column, "l" left or "r" right
-    (default: the first column left, the others right)."""
-    align = align or "l" + "r" * (len(header) - 1)
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" if a == "l" else "---:" for a in align) + "|"]
-    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
-    return "\n".join(lines)

@@ -30,10 +30,10 @@ CHRONO_MESHES = {"car": "sedan/sedan_chassis_vis.obj", "van": "VW_microbus/van_c
 SAMPLE_MESHES = {"truck": "truck", "cyclist": "bicycle"}
 
 
-def class_meshes(choice: str, chrono_folder: Path | None = None) -> dict:
+def class_meshes(choice: str) -> dict:
     """KITTI class (lower case) -> (vertices (V, 3), faces (F, 3), name, see-through (F,)
-    bool) in the mesh's own frame. ``choice``: "chrono" (CHRONO_MESHES under
-    ``chrono_folder``), "samples" (SAMPLE_MESHES) or a folder of ``<class>.obj|.ply``.
+    bool) in the mesh's own frame. ``choice``: "samples" (SAMPLE_MESHES), the Chrono
+    vehicle folder (holding every CHRONO_MESHES path) or a folder of ``<class>.obj|.ply``.
     Colors are not kept: replayed objects have the default reflectivity, the reference
     the fitted sensor models are relative to (ray_drop.py, physical_intensity.py)."""
     from ..importing.mesh import read_material_mesh
@@ -41,8 +41,8 @@ def class_meshes(choice: str, chrono_folder: Path | None = None) -> dict:
     if choice == "samples":
         return {kind: (vehicle.vertices, vehicle.faces, f"sample {name}", np.zeros(len(vehicle.faces), bool))
                 for kind, name in SAMPLE_MESHES.items() for vehicle in [sample_vehicle(name)]}
-    if choice == "chrono":
-        paths = {kind: Path(chrono_folder) / path for kind, path in CHRONO_MESHES.items()}
+    if all((Path(choice) / path).is_file() for path in CHRONO_MESHES.values()):
+        paths = {kind: Path(choice) / path for kind, path in CHRONO_MESHES.items()}
     else:
         paths = {path.stem.lower(): path for path in sorted(Path(choice).glob("*"))
                  if path.suffix.lower() in (".obj", ".ply")}

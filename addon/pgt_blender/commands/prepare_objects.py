@@ -1,0 +1,114 @@
+"""Prepare a folder of reconstructions for scanning: align (PCA), head (front at +x)
+and size each one, and write it in the object frame with a sidecar JSON.
+
+    pgt-prepare-objects --in DIR --class truck --out DIR
+    .venv/bin/python headless_scripts/prepare_objects.py --in DIR --class truck --out DIR
+        [--dataset nuscenes] [--up auto] [--heading auto] [--size class|keep|L,W,H]
+        [--uniform] [--seed 0] [--checkpoint PATH]
+    blender -b -P headless_scripts/prepare_objects.py -- --in DIR --class truck --out DIR
+
+Inputs: every .ply/.obj/.glb/.gltf/.stl file and COLMAP model folder (or folder with
+sparse/0) directly in --in. Outputs per input: <name>.ply (object frame: +x forward,
++y left, +z up, metres, origin at the box centre) and <name>.json (class, dataset,
+dims [l, w, h] m, transform = row-major 4x4 object_from_source, source_sha256, the
+steps). The i-th input (sorted by name) draws its size with seed --seed + i.
+A bad input is reported on stderr and skipped; the exit code is then 1.
+"""
+
+import argparse
+import sys
+from pathlib import Path
+
+
+from .. import cli
+from ..core.authoring.heading import best_available_method
+from ..core.authoring.prepare import UP_CHOICES, prepare, write_prepared
+from ..core.classes import CLASS_SIZES
+from ..core.errors import InputError
+from ..core.importing import load_reconstruction
+from ..core.importing.mesh import MESH_SUFFIXES
+
+SUFFIXES = {".ply", *MESH_SUFFIXES}
+
+
+def find_inputs(directory: Path) -> list:
+    """Reconstruction files and COLMAP model folders directly in ``directory``, sorted."""
+    if not directory.is_dir():
+        raise InputError(directory, "not a folder")
+    found = []
+    for entry in sorted(directory.iterdir()):
+        if entry.name.startswith("."):
+            continue
+        if entry.is_file() and entry.suffix.lower() in SUFFIXES:
+            found.append(entry)
+        elif entry.is_dir():
+            model = entry / "sparse" / "0" if (entry / "sparse" / "0").is_dir() else entry
+            if any((model / f"points3D{ext}").exists() for ext in (".bin", ".txt")):
+                found.append(model)
+    return found
+
+
+def size_argument(text: str):
+    """"class", "keep" or "L,W,H" in metres."""
+    if text in ("class", "keep"):
+        return text
+    try:
+        dims = [float(v) for v in text.split(",")]
+    except ValueError:
+        dims = []
+    if len(dims) != 3 or min(dims) <= 0:
+        raise argparse.ArgumentTypeError(f"expected class, keep or three positive sizes L,W,H; got '{text}'")
+    return dims
+
+
+def main(argv: list) -> int:
+    parser = argparse.ArgumentParser(prog="prepare_objects.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--in", dest="inputs", type=Path, required=True, help="folder of reconstructions")
+    parser.add_argument("--class", dest="class_name", required=True, help="class name in --dataset")
+    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--dataset", choices=sorted(CLASS_SIZES), default="nuscenes")
+    parser.add_argument("--up", choices=UP_CHOICES, default="auto",
+                        help="up direction: cameras' mean up (auto, when there are cameras), PCA minor axis, or a source axis")
+    parser.add_argument("--heading", choices=("auto", "classifier", "baseline", "none"), default="auto")
+    parser.add_argument("--size", type=size_argument, default="class",
+                        help="class (class mean with clipped 10%% noise), keep (already metric) or L,W,H metres")
+    parser.add_argument("--uniform", action="store_true", help="scale all axes by one factor (keeps proportions)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the first object's size draw")
+    parser.add_argument("--checkpoint", type=Path, help="heading classifier checkpoint (default: the shipped one)")
+    args = parser.parse_args(argv)
+    if args.class_name not in CLASS_SIZES[args.dataset]:
+        parser.error(f"{args.dataset} has no class '{args.class_name}' (have: {', '.join(CLASS_SIZES[args.dataset])})")
+    inputs = find_inputs(args.inputs)
+    if not inputs:
+        print(f"error: {args.inputs}: no reconstructions found (supported: {', '.join(sorted(SUFFIXES))}, "
+              "COLMAP model folders)", file=sys.stderr)
+        return 1
+    method = args.heading
+    if method == "auto":
+        method, why_not = best_available_method(args.checkpoint)
+        if why_not:
+            print(f"note: {why_not}; heading by the geometric baseline", file=sys.stderr)
+    mode, exact = (args.size, None) if isinstance(args.size, str) else ("exact", args.size)
+    failures = 0
+    print(f"{'object':32} {'points':>8} {'up':>6} {'heading':>18}  dims [l, w, h] m")
+    for index, path in enumerate(inputs):
+        try:
+            recon = load_reconstruction(path)
+            authored = prepare(recon, args.class_name, args.dataset, args.up, method, mode, exact,
+                               args.uniform, args.seed + index, args.checkpoint)
+            write_prepared(authored, args.class_name, args.dataset, args.out)
+        except InputError as error:
+            print(f"error: {error}", file=sys.stderr)
+            failures += 1
+            continue
+        align, *rest = authored.steps
+        heading = next((s.details for s in rest if s.name == "heading"), {"by": "none"})
+        score = f" {heading['score']:.2f}" if "score" in heading else ""
+        dims = ", ".join(f"{d:.2f}" for d in authored.dims)
+        print(f"{recon.name:32} {len(recon.positions):8d} {align.details['up_from']:>6} "
+              f"{heading['by'] + score:>18}  [{dims}]")
+    print(f"\n{len(inputs) - failures} of {len(inputs)} prepared into {args.out}")
+    return 1 if failures else 0
+
+
+run = cli.command(main)

@@ -1,0 +1,158 @@
+"""Scan one object with a simulated rotating LiDAR and write its returns.
+
+    pgt-scan-object --object PATH --sensor nuscenes
+    .venv/bin/python headless_scripts/scan_object.py --object PATH --sensor nuscenes
+        --x 15 --y 0 --heading 90 [--sweeps N] --out FILE.bin|.ply|.npy
+    blender -b -P headless_scripts/scan_object.py -- (the same arguments)
+
+--object: a mesh (.obj .ply .glb .gltf .stl), a point PLY or a Gaussian-splat PLY, in
+the object frame (+x forward, +y left, +z up, metres), e.g. prepare_objects.py's
+output. Meshes are ray cast as they are; points become surfels (or, with --surface
+range-view, the paper's range-view projection). The object stands on the ground with
+its object-frame origin at (--x, --y) m in the sensor frame, turned by --heading deg
+counter-clockwise from +x. --sensor: nuscenes, kitti, lyft, vlp16 or a .toml file.
+
+Output by suffix: .bin float32 in the dataset's columns (KITTI x y z intensity;
+nuScenes/Lyft x y z intensity time_lag), .ply every column, .npy the structured rows
+(columns: pgt_blender/core/scan/returns.py). With --sweeps N the object moves as its
+class's motion model draws (seeded; class from --class or the sidecar <object>.json),
+or at --speed/--acceleration. Intensity: the sensor's physical law, or with
+--intensity-checkpoint the learned estimator (train_intensity.py) on each return's
+color (the file's vertex or point colors) for the object's class. Bad input: a
+one-line error and exit code 1.
+"""
+
+import argparse
+import sys
+from pathlib import Path
+
+
+import numpy as np
+
+from .. import cli
+from ..core.authoring.prepare import read_sidecar
+from ..core.errors import InputError
+from ..core.importing import load_reconstruction
+from ..core.intensity.estimator import scan_intensity
+from ..core.scan.range_view import range_view_scan
+from ..core.scan.raycast import ScanOptions, placement
+from ..core.scan.returns import OUTPUT_SUFFIXES, write_scan
+from ..core.scan.sensors import PRESETS, sensor_from_name
+from ..core.scan.sweeps import CLASS_MOTION, Motion, motion_class, sample_motion, scan_sweeps
+from ..core.scan.targets import (element_colors, reflectivity_from_srgb,
+                                           target_from_reconstruction)
+
+
+def sidecar_class(path: Path) -> str | None:
+    """The class recorded by prepare_objects.py beside the object, if any."""
+    sidecar = path.with_suffix(".json")
+    if not sidecar.is_file():
+        return None
+    return read_sidecar(sidecar).get("class")
+
+
+def scan(args):
+    sensor = sensor_from_name(args.sensor)
+    recon = load_reconstruction(args.object, with_cameras=False)
+    options = ScanOptions(range_noise=args.noise, drop_rate=args.drop_rate, ray_drop=args.ray_drop, seed=args.seed)
+    heading = np.radians(args.heading)
+    class_name = args.class_name or sidecar_class(args.object)
+    if args.surface == "range-view":
+        if args.sweeps != 1:
+            raise InputError(args.object, "range view scans one sweep; drop --sweeps")
+        positions = recon.positions.astype(np.float64)
+        bounds = np.stack([positions.min(0), positions.max(0)])
+        reflectivity = None if recon.colors is None else reflectivity_from_srgb(recon.colors)
+        pose = placement(bounds, sensor, args.x, args.y, heading)
+        result = range_view_scan(positions, sensor, pose, bounds, reflectivity, options=options)
+    else:
+        result, bounds = ray_cast(args, recon, sensor, heading, class_name, options)
+    if args.intensity_checkpoint and not class_name:
+        raise InputError(recon.source, "the learned intensity needs the object's class: give --class")
+    result.returns["intensity"], note = scan_intensity(result, bounds, element_colors(recon), class_name,
+                                                       args.intensity_checkpoint, name=recon.name)
+    return result, sensor, note
+
+
+def ray_cast(args, recon, sensor, heading: float, class_name: str, options):
+    """A mesh (or surfel) scan over --sweeps sweeps: (Scan, the object's box bounds (2, 3))."""
+    if args.surface == "mesh" and not len(recon.faces):
+        raise InputError(args.object, "has no faces to scan as a mesh; use --surface surfels")
+    if args.surface == "surfels":
+        recon.faces = recon.faces[:0]
+    target = target_from_reconstruction(recon, args.radius_scale)
+    motion = Motion()
+    if args.speed is not None:
+        motion = Motion(args.speed, args.acceleration)
+    elif class_name and args.sweeps > 1:
+        motion = sample_motion(moving_class(args, class_name), np.random.default_rng(args.seed))
+    return scan_sweeps(target, sensor, args.x, args.y, heading, motion, args.sweeps, options), target.bounds
+
+
+def moving_class(args, class_name: str) -> str:
+    """``class_name``'s motion model (sweeps.CLASS_MOTION); InputError naming where the
+    class came from when it has none."""
+    known = motion_class(class_name)
+    if known is None:
+        source = "--class" if args.class_name else args.object.with_suffix(".json")
+        raise InputError(source, f"class '{class_name}' has no motion model (known: {', '.join(CLASS_MOTION)}); "
+                                 f"give --speed to set the motion")
+    return known
+
+
+def finite(text: str) -> float:
+    """A finite number, as an argparse type (NaN and infinities are refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got '{text}'")
+    return value
+
+
+def main(argv: list) -> int:
+    parser = argparse.ArgumentParser(prog="scan_object.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--object", type=Path, required=True, help="mesh, point or splat file, object frame")
+    parser.add_argument("--sensor", default="nuscenes", help=f"{', '.join(PRESETS)} or a .toml file")
+    parser.add_argument("--x", type=finite, required=True, help="object position, sensor frame (m)")
+    parser.add_argument("--y", type=finite, required=True, help="object position, sensor frame (m)")
+    parser.add_argument("--heading", type=finite, default=0.0, help="deg, counter-clockwise from +x")
+    parser.add_argument("--sweeps", type=int, default=1, help="merged sweeps of a moving object (nuScenes: 10)")
+    parser.add_argument("--class", dest="class_name", help="class for the motion model (default: sidecar JSON)")
+    parser.add_argument("--speed", type=finite, help="m/s along the heading, instead of the class's draw")
+    parser.add_argument("--acceleration", type=finite, default=0.0, help="m/s^2, with --speed")
+    parser.add_argument("--surface", choices=("auto", "mesh", "surfels", "range-view"), default="auto",
+                        help="auto: mesh when the file has faces, else surfels")
+    parser.add_argument("--radius-scale", type=finite, default=1.0, help="surfel radius / local point spacing")
+    parser.add_argument("--intensity-checkpoint", type=Path,
+                        help="intensity.pt of train_intensity.py: learned intensities instead of the physical law")
+    parser.add_argument("--noise", action="store_true", help="add the sensor's range noise")
+    parser.add_argument("--drop-rate", type=finite, default=0.0, help="random ray drop probability")
+    parser.add_argument("--ray-drop", action="store_true", help="drop returns with the sensor's fitted ray-drop "
+                                                                 "model (kitti has one)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, required=True, help=f"output file ({', '.join(OUTPUT_SUFFIXES)})")
+    args = parser.parse_args(argv)
+    if args.out.suffix not in OUTPUT_SUFFIXES:
+        parser.error(f"--out must end in {', '.join(OUTPUT_SUFFIXES)}")
+    if args.sweeps < 1 or not 0 <= args.drop_rate < 1:
+        parser.error("--sweeps must be >= 1 and --drop-rate in [0, 1)")
+    try:
+        result, sensor, intensity_note = scan(args)
+        if not result.hits:
+            raise InputError(args.object, f"no returns at x = {args.x:g} m, y = {args.y:g} m: the object is out of "
+                                         f"the {sensor.name} sensor's range or view there; nothing written")
+        write_scan(result, args.out)
+    except (InputError, OSError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 1
+    stats = result.stats()
+    box = ", ".join(f"{v:.3f}" for v in result.box)
+    print(f"{sensor.name}: {stats['points']} points from {stats['rays']} rays "
+          f"({stats['efficiency']:.0%} hit) in {stats['ms']:.2f} ms; intensity: {intensity_note}\n"
+          f"box [x, y, z, dx, dy, dz, heading, vx, vy] = [{box}]\nwrote {args.out}")
+    return 0
+
+
+run = cli.command(main)

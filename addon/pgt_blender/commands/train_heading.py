@@ -1,0 +1,101 @@
+"""Train the front/back heading classifier (PointNet, BCE, 180-degree flips with p = 0.5,
+no rotation augmentation) and save a checkpoint with its training config.
+
+    pgt-train-heading --out PATH [--seed 0] [--steps 3000] [--points 512]
+    .venv/bin/python headless_scripts/train_heading.py --out PATH [--seed 0] [--steps 3000] [--points 512]
+        [--chrono DIR] [--gt-database PKL --gt-convention mmdet3d|openpcdet] [--no-samples] [--threads 1]
+    blender -b -P headless_scripts/train_heading.py -- --out PATH [...]
+
+Training sets: the built-in sample vehicles (unless --no-samples), the meshes under
+--chrono (the shipped checkpoint used ../shared/data/chrono_vehicles) and, with --gt-database,
+the objects of an mmdetection3d / OpenPCDet ground-truth database. Same inputs, seed
+and --threads give the same checkpoint bytes. Exit status 1 and a one-line message on
+bad input; nothing is written then. The shipped checkpoint is this script's default
+run with --out addon/pgt_blender/models/heading_pointnet.pt.
+"""
+
+import argparse
+import time
+from pathlib import Path
+
+
+import numpy as np
+from tqdm import tqdm
+
+from .. import cli
+from ..core.authoring import heading_classifier as hc
+from ..core.errors import InputError
+
+
+
+def training_sets(args) -> list:
+    """The point sets the arguments name; InputError for a missing or bad input."""
+    sets = [] if args.no_samples else hc.sample_point_sets()
+    if args.chrono is not None:
+        sets += hc.mesh_folder_point_sets(args.chrono)
+    if args.gt_database is not None:
+        database = hc.read_gt_database(args.gt_database, args.gt_convention)
+        if not database:
+            raise InputError(args.gt_database, "the ground-truth database has no object with enough points")
+        sets += database
+    if not sets:
+        raise InputError(args.out, "nothing to train on (--no-samples and no meshes or ground-truth database)")
+    return sets
+
+
+def accuracy_both_ways(classifier, sets: list, points: int = 512) -> float:
+    """Share of (set, way round) pairs classified right, each set drawn once at ``points``."""
+    rng = np.random.default_rng(0)
+    right = 0
+    for item in sets:
+        cloud = hc.resample(item.points, points, rng)
+        right += hc.front_probability(cloud, item.dims, classifier) > 0.5
+        right += hc.front_probability(cloud * (-1, -1, 1), item.dims, classifier) < 0.5
+    return right / (2 * len(sets))
+
+
+def main(argv: list) -> int:
+    parser = argparse.ArgumentParser(prog="train_heading.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True, help="checkpoint to write (.pt)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--steps", type=int, default=3000, help="optimiser steps (batches of 32)")
+    parser.add_argument("--points", type=int, default=512, help="points per cloud the network sees")
+    parser.add_argument("--chrono", type=Path,
+                        help="folder of .obj meshes, front at +x (the shipped checkpoint: ../shared/data/chrono_vehicles)")
+    parser.add_argument("--gt-database", type=Path, help="mmdet3d / OpenPCDet *_dbinfos_*.pkl")
+    parser.add_argument("--gt-convention", choices=("mmdet3d", "openpcdet"),
+                        help="how the database stores points: relative to the box bottom centre (mmdet3d) or centre")
+    parser.add_argument("--no-samples", action="store_true", help="leave out the built-in sample vehicles")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (part of what makes bytes repeat)")
+    args = parser.parse_args(argv)
+    if args.gt_database is not None and args.gt_convention is None:
+        parser.error("--gt-database needs --gt-convention mmdet3d or openpcdet")
+    if args.steps < 1 or args.points < 1:
+        parser.error("--steps and --points must be positive")
+    hc.require_torch(args.out)
+    sets = training_sets(args)
+    print(f"training on {len(sets)} point sets: " + ", ".join(item.name for item in sets[:12])
+          + (", ..." if len(sets) > 12 else ""))
+    start = time.perf_counter()
+    with tqdm(total=args.steps, unit="step", mininterval=1.0) as bar:
+        def progress(step, loss):
+            bar.update()
+            if step % 50 == 0:
+                bar.set_postfix(loss=f"{loss:.3f}")
+
+        classifier = hc.train(sets, seed=args.seed, steps=args.steps, points=args.points,
+                              threads=args.threads, progress=progress)
+    seconds = time.perf_counter() - start
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    hc.save_checkpoint(args.out, classifier)
+    config = classifier.config
+    print(f"trained {config['steps']} steps (seed {config['seed']}, {config['points']} points, batch "
+          f"{config['batch']}) in {seconds:.0f} s; final batch loss {config['final_loss']:.3f}; "
+          f"training-set accuracy both ways round {accuracy_both_ways(classifier, sets, args.points):.3f}")
+    for source in config["sources"]:
+        print(f"  {source['point_sets']:5d} x {source['source']}")
+    print(f"wrote {args.out} ({args.out.stat().st_size / 1024:.0f} KiB)")
+    return 0
+
+
+run = cli.command(main)
