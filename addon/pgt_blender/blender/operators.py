@@ -3,6 +3,7 @@
 import warnings
 
 import bpy
+import numpy as np
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
@@ -166,8 +167,18 @@ class OBJECT_OT_pgt_align(_AuthoringStep, bpy.types.Operator):
     def step(self, context, obj, settings):
         if not len(obj.data.vertices):
             raise InputError(obj.pgt.source_path or obj.name, "has no points to align")
-        up = prepare.up_vector(settings.up, authoring.camera_poses(obj), obj.pgt.source_path)
-        return prepare.align_step(authoring.positions(obj), authoring.weights(obj), up, obj.pgt.source_path)
+        source = obj.pgt.source_path or obj.name
+        points = authoring.positions(obj)
+        if settings.up == "cursor":
+            up = np.array(obj.matrix_world.inverted() @ context.scene.cursor.location) - np.median(points, axis=0)
+        elif settings.up == "face":
+            up = authoring.selected_face_normal(obj)
+            if up is None:
+                raise InputError(source, "has no selected faces to take up from (select them in Edit Mode)")
+        else:
+            up = prepare.up_vector(settings.up, authoring.camera_poses(obj), source)
+        return prepare.align_step(points, authoring.weights(obj), up, source, settings.refine,
+                                  authoring.triangles(obj))
 
 
 class OBJECT_OT_pgt_turn(_AuthoringStep, bpy.types.Operator):
