@@ -311,12 +311,12 @@ def _completed(first, second) -> np.ndarray:
 
 def mirror_error(points: np.ndarray, axis: np.ndarray) -> float:
     """Median distance from ``points`` (N, 3) mirrored across the plane normal to
-    ``axis`` (through the middle of their extent along it) to the nearest original
+    ``axis`` (through the middle of their trimmed extent along it) to the nearest original
     point: about the point spacing for a mirror-symmetric shape, more otherwise."""
     from scipy.spatial import cKDTree
 
-    along = points @ axis
-    middle = (along.min() + along.max()) / 2
+    (low,), (high,) = _trimmed_bounds((points @ axis)[:, None])
+    middle = (low + high) / 2
     sample = points[:: max(1, len(points) // MIRROR_SAMPLE)]
     mirrored = sample - 2 * np.outer(sample @ axis - middle, axis)
     distances, _ = cKDTree(points).query(mirrored, workers=-1)
