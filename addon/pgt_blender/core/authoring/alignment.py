@@ -160,13 +160,15 @@ def align_axes(positions, weights=None, up=None, source="points", refine: bool =
              surface estimate (module notes).
     faces:   optional (F, 3) vertex indices of a mesh: refinement then takes the face
              normals weighted by face area (exact, whatever the vertex density) and the
-             box the vertices as they are.
+             box the vertices as they are (no density test: a mesh's vertex density
+             varies with its detail, not with floaters).
     """
     points, weights = checked_points(positions, weights, source)
     median = np.median(points, axis=0)
     centred = points - median
     inliers = weights > 0  # zero-weight points (transparent splats) take no part
-    inliers[inliers] = density_inliers(centred[inliers])
+    if not (refine and faces is not None and len(faces)):  # a mesh's vertex density says nothing of floaters
+        inliers[inliers] = density_inliers(centred[inliers])
     kept, kept_weights = centred[inliers], weights[inliers]
     mean = np.average(kept, axis=0, weights=kept_weights)
     kept = kept - mean
@@ -179,10 +181,10 @@ def align_axes(positions, weights=None, up=None, source="points", refine: bool =
         z, up_from = _minor_axis(kept, kept_weights)
     x, yaw_from = _footprint_axis(kept, kept_weights, z)
     rotation = np.stack([x, np.cross(z, x), z])  # rows: object axes in the source frame
-    box_points, extra = kept, {}
-    if refine and len(kept) > 2 * NORMAL_NEIGHBOURS:
-        surface = surface_estimate(kept) if faces is None or not len(faces) else mesh_surface(
-            kept, centred - mean, faces, source)
+    box_points, box_trim, extra = kept, BOX_TRIM, {}
+    is_mesh = faces is not None and len(faces) > 0
+    if refine and (is_mesh or len(kept) > 2 * NORMAL_NEIGHBOURS):
+        surface = mesh_surface(kept, centred - mean, faces, source) if is_mesh else surface_estimate(kept)
         planar = surface.planarity**2 * (kept_weights if len(surface.planarity) == len(kept) else 1)
         start = rotation if up is not None else dominant_frame(surface.normals, planar)
         refined, share = refine_to_planes(start, surface.normals, planar)
@@ -190,10 +192,13 @@ def align_axes(positions, weights=None, up=None, source="points", refine: bool =
             if up is None:
                 refined = _label_axes(refined, surface.denoised, kept_weights)
                 up_from = "planes"
+            else:
+                refined = _length_first(refined, surface.denoised, kept_weights)
             tilt = np.degrees(np.arccos(np.clip(abs(refined[2] @ z), 0, 1)))
             rotation, box_points, yaw_from = refined, surface.denoised, "planes"
+            box_trim = 0.0 if is_mesh else BOX_TRIM
             extra = {"refined": True, "tilt_deg": float(tilt), "noise": surface.noise}
-    low, high = _trimmed_bounds(box_points @ rotation.T)
+    low, high = _trimmed_bounds(box_points @ rotation.T, box_trim)
     centre = (low + high) / 2
     transform = np.eye(4)
     transform[:3, :3] = rotation
@@ -323,6 +328,16 @@ def mirror_error(points: np.ndarray, axis: np.ndarray) -> float:
     return float(np.median(distances))
 
 
+def _length_first(rotation, points, weights) -> np.ndarray:
+    """``rotation`` with x on the longer of its two horizontal axes (the footprint's
+    PCA can pick the width of a sparse mesh); x signed as without refinement."""
+    low, high = _trimmed_bounds(points @ rotation[:2].T)
+    if high[1] - low[1] <= high[0] - low[0]:
+        return rotation
+    x = _signed(rotation[1], points, weights, rotation[0])
+    return np.stack([x, np.cross(rotation[2], x), rotation[2]])
+
+
 def _label_axes(rotation, points, weights) -> np.ndarray:
     """Rows of ``rotation`` reordered and signed: x the longest extent, y the axis of
     mirror symmetry of the other two, z the remaining one (signs as the unrefined
@@ -337,11 +352,12 @@ def _label_axes(rotation, points, weights) -> np.ndarray:
     return np.stack([x, np.cross(z, x), z])
 
 
-def _trimmed_bounds(local: np.ndarray) -> tuple:
-    """Per-axis (low, high) of ``local`` (N, 3) without the ``BOX_TRIM`` share of most
-    extreme points on each side (none below 1 / BOX_TRIM points): floaters that sit
-    next to the surface pass the density test but must not widen the box."""
-    trim = int(BOX_TRIM * len(local))
+def _trimmed_bounds(local: np.ndarray, share: float = BOX_TRIM) -> tuple:
+    """Per-axis (low, high) of ``local`` (N, 3) without the ``share`` of most extreme
+    points on each side (none below 1 / share points): floaters that sit next to the
+    surface pass the density test but must not widen the box. A refined mesh is not
+    trimmed (it has no floaters; its extremes are thin parts such as mirrors)."""
+    trim = int(share * len(local))
     ordered = np.partition(local, (trim, len(local) - 1 - trim), axis=0)
     return ordered[trim], ordered[len(local) - 1 - trim]
 
