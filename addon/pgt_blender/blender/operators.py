@@ -147,9 +147,8 @@ class _AuthoringStep:
         obj = context.active_object
         try:
             step = self.step(context, obj, context.scene.pgt_authoring)
-        except (InputError, ValueError) as error:
-            message = str(error) if isinstance(error, InputError) else f"{obj.name}: {error}"
-            self.report({"ERROR"}, message)
+        except InputError as error:
+            self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         authoring.apply_step(obj, step)
         self.report({"INFO"}, f"{obj.name}: {self.bl_label.lower()}, box "
@@ -202,7 +201,7 @@ class OBJECT_OT_pgt_front_from_cursor(_AuthoringStep, bpy.types.Operator):
 
     def step(self, context, obj, settings):
         cursor = obj.matrix_world.inverted() @ context.scene.cursor.location
-        return prepare.front_step(tuple(cursor), authoring.current_dims(obj))
+        return prepare.front_step(tuple(cursor), authoring.current_dims(obj), obj.name)
 
 
 class OBJECT_OT_pgt_auto_heading(_AuthoringStep, bpy.types.Operator):
@@ -214,7 +213,7 @@ class OBJECT_OT_pgt_auto_heading(_AuthoringStep, bpy.types.Operator):
     def step(self, context, obj, settings):
         checkpoint = bpy.path.abspath(settings.checkpoint) if settings.checkpoint else None
         return prepare.automatic_heading_step(authoring.positions(obj), authoring.current_dims(obj),
-                                              settings.heading_method, checkpoint)
+                                              settings.heading_method, checkpoint, obj.pgt.source_path or obj.name)
 
 
 class OBJECT_OT_pgt_set_size(_AuthoringStep, bpy.types.Operator):
@@ -228,7 +227,7 @@ class OBJECT_OT_pgt_set_size(_AuthoringStep, bpy.types.Operator):
         if problem:
             raise InputError(obj.name, problem)
         return prepare.size_step(authoring.current_dims(obj), settings.size_mode, settings.dataset, settings.class_name,
-                                 settings.seed, settings.uniform, tuple(settings.exact_dims))
+                                 settings.seed, settings.uniform, tuple(settings.exact_dims), obj.name)
 
 
 class OBJECT_OT_pgt_scan(bpy.types.Operator):

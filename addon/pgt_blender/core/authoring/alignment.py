@@ -139,14 +139,15 @@ def density_inliers(points: np.ndarray, neighbours: int = NEIGHBOURS, threshold:
     return (spacing <= limit)[inverse.ravel()]
 
 
-def camera_up(world_from_cameras) -> np.ndarray:
+def camera_up(world_from_cameras, source="cameras") -> np.ndarray:
     """(3,) unit mean up vector of OpenCV cameras (their -y axis), given (C, 4, 4)
-    world_from_camera matrices; photos of an object are mostly taken upright."""
+    world_from_camera matrices; photos of an object are mostly taken upright.
+    InputError(source) when the ups cancel out."""
     ups = -np.asarray(world_from_cameras, np.float64)[:, :3, 1]
     mean = ups.sum(axis=0)
     norm = np.linalg.norm(mean)
     if norm < 1e-9 * len(ups):
-        raise ValueError("camera up vectors cancel out: choose the up axis by hand")
+        raise InputError(source, "camera up vectors cancel out: choose the up axis by hand")
     return mean / norm
 
 

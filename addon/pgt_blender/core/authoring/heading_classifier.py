@@ -235,7 +235,8 @@ def load_checkpoint(path=DEFAULT_CHECKPOINT) -> HeadingClassifier:
                                     "train one with headless_scripts/train_heading.py", build)
 
 
-def front_probability(points, dims, checkpoint=DEFAULT_CHECKPOINT, resamplings: int = 4, seed: int = 0) -> float:
+def front_probability(points, dims, checkpoint=DEFAULT_CHECKPOINT, resamplings: int = 4, seed: int = 0,
+                      source="points") -> float:
     """Probability that the front of object-frame ``points`` (N, 3) metres, in a box of
     ``dims`` (3,) metres, is at +x. ``checkpoint``: a path or a :class:`HeadingClassifier`.
 
@@ -249,9 +250,9 @@ def front_probability(points, dims, checkpoint=DEFAULT_CHECKPOINT, resamplings: 
     points = np.asarray(points, np.float64)
     dims = np.asarray(dims, np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0 or not np.isfinite(points).all():
-        raise ValueError(f"points must be a non-empty finite (N, 3) array, not shape {points.shape}")
+        raise InputError(source, f"points must be a non-empty finite (N, 3) array, not shape {points.shape}")
     if dims.shape != (3,) or not (dims > 0).all():
-        raise ValueError(f"dims must be three positive extents, not {dims}")
+        raise InputError(source, f"dims must be three positive extents, not {dims}")
     rng = np.random.default_rng(seed)
     clouds = normalise(np.stack([resample(points, classifier.config["points"], rng)
                                  for _ in range(resamplings)]), dims)
