@@ -392,3 +392,23 @@ def test_the_issue_truck_tilted_yawed_and_far_away(shared_data):
     assert np.abs(authored.dims / mesh.extents - 1).max() < 0.01
     assert error_degrees(authored.object_from_source[:3, :3], rotation.T) < 0.5
     assert authored.steps[0].details["tilt_deg"] > 3.0
+
+
+@pytest.mark.parametrize("class_name", MINORITY_CLASSES)
+def test_refined_box_is_not_inflated_by_noise_and_floaters(class_name):
+    """0.5 % noise (x box diagonal) and 10 % floaters: the refined box is the surface's.
+    Walls (length and width of the box-shaped classes) within 1 % and tighter than the
+    unrefined box of the noisy points; what the plane fit pulls in (tyres below,
+    handlebar ends, the two-wheelers' thin parts) within 3.5 %. Issue 18 asks 1 % on
+    every axis: not reached on those (see bench/alignment.md)."""
+    source, rotation, dims, _ = posed_cloud(class_name, 7, 0.005, 0.1)
+    refined = align_axes(source, up=rotation[:, 2], refine=True)
+    plain = align_axes(source, up=rotation[:, 2])
+    error = np.abs(refined.dims / dims - 1)
+    assert error.max() < 0.035
+    if class_name not in ("motorcycle", "bicycle"):
+        assert error[:2].max() < 0.01
+        assert error[:2].max() < np.abs(plain.dims / dims - 1)[:2].max()
+    source, rotation, _, _ = posed_cloud(class_name, 7, 0.0, 0.0)
+    clean = align_axes(source, up=rotation[:, 2], refine=True)
+    assert np.abs(clean.dims / dims - 1).max() < 0.005

@@ -50,7 +50,11 @@ The refined box is taken from the surface estimate, not the raw points: each poi
 moved towards its neighbourhood plane by at most six times the estimated noise (the
 10th percentile of the neighbourhoods' out-of-plane spread; 0 for a noise-free
 sampling of flat faces, which then moves nothing), so noise inflates the box less
-while thin parts with too few points for a plane stay where they are.
+while thin parts with too few points for a plane stay where they are. A side where a
+wall faces outwards is then the median of the wall's points, not their extreme
+(:func:`_surface_bounds`). What is left: the plane fit pulls a convex end (a tyre's
+contact patch, a handlebar end) inwards by its sagitta over the neighbourhood, about 1
+to 2 % of the height or width at 0.5 % noise (bench/alignment.md).
 
 Robustness: floaters are dropped by a k-nearest-neighbour density test
 (:func:`density_inliers`) before any moment is taken; moments are float64 after
@@ -71,6 +75,9 @@ NORMAL_NEIGHBOURS = 48
 REFINE_CONES_DEG = (20.0, 12.0, 8.0, 5.0, 5.0)
 MIN_PLANAR_SHARE = 0.05
 MIRROR_SAMPLE = 4000
+FACING_DEG = 30.0
+SIDE_BAND = 2.0
+WALL_RATIO = 2.0
 
 
 @dataclass
@@ -182,7 +189,7 @@ def align_axes(positions, weights=None, up=None, source="points", refine: bool =
         z, up_from = _minor_axis(kept, kept_weights)
     x, yaw_from = _footprint_axis(kept, kept_weights, z)
     rotation = np.stack([x, np.cross(z, x), z])  # rows: object axes in the source frame
-    box_points, box_trim, extra = kept, BOX_TRIM, {}
+    box_points, box_normals, box_trim, extra = kept, None, BOX_TRIM, {}
     is_mesh = faces is not None and len(faces) > 0
     if refine and (is_mesh or len(kept) > 2 * NORMAL_NEIGHBOURS):
         surface = mesh_surface(kept, centred - mean, faces, source) if is_mesh else surface_estimate(kept)
@@ -198,8 +205,12 @@ def align_axes(positions, weights=None, up=None, source="points", refine: bool =
             tilt = np.degrees(np.arccos(np.clip(abs(refined[2] @ z), 0, 1)))
             rotation, box_points, yaw_from = refined, surface.denoised, "planes"
             box_trim = 0.0 if is_mesh else BOX_TRIM
+            box_normals = None if is_mesh or surface.noise == 0 else surface.normals
             extra = {"refined": True, "tilt_deg": float(tilt), "noise": surface.noise}
-    low, high = _trimmed_bounds(box_points @ rotation.T, box_trim)
+    if box_normals is None:
+        low, high = _trimmed_bounds(box_points @ rotation.T, box_trim)
+    else:
+        low, high = _surface_bounds(box_points @ rotation.T, box_normals @ rotation.T, extra["noise"])
     centre = (low + high) / 2
     transform = np.eye(4)
     transform[:3, :3] = rotation
@@ -361,6 +372,29 @@ def _trimmed_bounds(local: np.ndarray, share: float = BOX_TRIM) -> tuple:
     trim = int(share * len(local))
     ordered = np.partition(local, (trim, len(local) - 1 - trim), axis=0)
     return ordered[trim], ordered[len(local) - 1 - trim]
+
+
+def _surface_bounds(local: np.ndarray, normals: np.ndarray, noise: float) -> tuple:
+    """Per-axis (low, high) of a denoised noisy surface ``local`` (N, 3) with its
+    ``normals`` (N, 3), same frame. A side where a wall faces outwards (the points
+    whose normal is within ``FACING_DEG`` of the axis crowd into the outer band,
+    ``SIDE_BAND`` x ``noise`` wide, at least ``WALL_RATIO`` times as many as in the
+    band inside it) is the median of that crowd: denoised points still scatter about
+    a wall, so their extreme lies outside it. Other sides (wheels, rounded ends) keep
+    the trimmed extreme."""
+    low, high = _trimmed_bounds(local)
+    facing = np.abs(normals) > np.cos(np.radians(FACING_DEG))
+    band = SIDE_BAND * noise
+    for axis in range(3):
+        values = local[facing[:, axis], axis]
+        for sign, bounds in ((1, high), (-1, low)):
+            outward = sign * values
+            edge = sign * bounds[axis]
+            outer = outward[outward >= edge - band]
+            inner = np.count_nonzero((outward < edge - band) & (outward >= edge - 2 * band))
+            if len(outer) >= 1 / BOX_TRIM and len(outer) >= WALL_RATIO * inner:
+                bounds[axis] = sign * np.median(outer)
+    return low, high
 
 
 def _weighted_cov(points, weights) -> np.ndarray:
