@@ -48,3 +48,24 @@ def write_results(out: Path, results: dict, draw) -> None:
     figure.tight_layout()
     figure.savefig(out.with_suffix(".png"), dpi=100)
     print(f"\nwrote {out.with_suffix('.json')} and {out.with_suffix('.png')}")
+
+
+def load_average() -> list:
+    """The 1, 5 and 15 minute load averages: other work on the machine inflates timings."""
+    return [round(value, 2) for value in os.getloadavg()]
+
+
+def markdown_report(title: str, script: str, machine: dict, inputs: dict, body: str) -> str:
+    """A benchmark's <out>.md: ``title``, the script that wrote it, the machine and its
+    versions, ``inputs`` (key -> value; a dict or list value becomes a bullet list), then
+    ``body`` (its tables)."""
+    lines = [f"# {title}", "", f"Written by `headless_scripts/{script}` (its docstring describes the method).", "",
+             "**machine and versions**: " + ", ".join(f"{key} {value}" for key, value in machine.items()), ""]
+    for key, value in inputs.items():
+        if isinstance(value, dict):
+            lines += [f"**{key}**:", "", *(f"- {name}: {item}" for name, item in value.items()), ""]
+        elif isinstance(value, list) and value and isinstance(value[0], str):
+            lines += [f"**{key}**:", "", *(f"- {item}" for item in value), ""]
+        else:
+            lines += [f"**{key}**: {value}", ""]
+    return "\n".join(lines) + "\n" + body.rstrip() + "\n"
