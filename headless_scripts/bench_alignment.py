@@ -2,7 +2,8 @@
 and time per call on the built-in sample vehicles and the Chrono vehicle meshes,
 sweeping point count, noise and outlier share one at a time around a default setting.
 
-    .venv/bin/python headless_scripts/bench_alignment.py [--quick] [--trials 5] [--chrono DIR] [--out bench/alignment]
+    .venv/bin/python headless_scripts/bench_alignment.py [--quick] [--trials 5] [--target-trials 20]
+        [--chrono DIR] [--out bench/alignment]
 
 Each trial samples the mesh surface (trimesh, seed k), adds Gaussian noise (sigma =
 noise x box diagonal), replaces an outlier share of the points by floaters uniform in a
@@ -22,7 +23,6 @@ setting (0.5 % noise, 10 % floaters) gives the share of no-prior trials with up 
 """
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -153,13 +153,15 @@ def summary(records: list) -> dict:
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="bench_alignment.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--trials", type=int, default=5, help="trials per object and setting")
-    parser.add_argument("--quick", action="store_true", help="1 trial, points up to 3e4 (~30 s)")
+    parser.add_argument("--quick", action="store_true",
+                        help="1 trial of the default and the target setting only, no sweeps (~1 min)")
     parser.add_argument("--chrono", type=Path, default=CHRONO, help="folder of .obj meshes, X forward, Z up")
     parser.add_argument("--target-trials", type=int, default=20, help="trials per object at the issue-18 setting")
     parser.add_argument("--out", type=Path, default=Path("bench/alignment"))
     args = parser.parse_args(argv)
     trials = 1 if args.quick else args.trials
-    sweeps = SWEEPS | ({"points": SWEEPS["points"][:-1]} if args.quick else {})
+    target_trials = 1 if args.quick else args.target_trials
+    sweeps = {key: (value,) for key, value in DEFAULT.items()} if args.quick else SWEEPS
     objects = load_objects(args.chrono)
     settings = {}  # (points, noise, outliers) -> records, each setting run once
     rows = []
@@ -169,22 +171,27 @@ def main(argv: list) -> int:
             if key not in settings:
                 settings[key] = run_setting(objects, *key, trials)
             rows.append({"varied": varied, **dict(zip(DEFAULT, key)), **summary(settings[key])})
-    default = settings[tuple(DEFAULT.values())]  # on every sweep
-    target = run_setting(objects, *TARGET.values(), args.target_trials)
+    target = run_setting(objects, *TARGET.values(), target_trials)
     per_object = [per_object_row(name, mesh, [r for r in target if r["object"] == name])
-                  | mesh_row(mesh_records(name, mesh, args.target_trials, index))
+                  | mesh_row(mesh_records(name, mesh, target_trials, index))
                   for index, (name, mesh) in enumerate(objects)]
 
     machine = dev.machine(numpy=np.__version__, scipy=scipy.__version__, trimesh=trimesh.__version__,
-                          loadavg=os.getloadavg())
+                          load_average=dev.load_average())
     inputs = {name: [round(float(e), 3) for e in mesh.extents] for name, mesh in objects}
-    config = {"default": DEFAULT, "target": TARGET, "target_trials": args.target_trials,
+    config = {"default": DEFAULT, "target": TARGET, "target_trials": target_trials,
               "prior_tilt_deg": f"uniform 0-{PRIOR_TILT_DEG:g} about a random horizontal axis", "sweeps": sweeps, "trials_per_object": trials,
               "translation_sigma_m": TRANSLATION_M, "seeds": "sample_surface seed=1000*object+trial, "
               "noise/floaters/pose default_rng([that seed, 1])", "statistic": "median and p95 over objects x trials",
               "timed": "align_axes with the up prior, time.perf_counter"}
     print(f"machine: {machine}\n\ninputs (box l x w x h m): {inputs}\n\nsettings: {config}\n")
-    print_tables(rows, per_object)
+    body = tables(rows, per_object)
+    print(body)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".md").write_text(dev.markdown_report(
+        "Axis alignment: PCA and the refinement to the surface planes", "bench_alignment.py", machine,
+        {"objects (box l x w x h m)": {name: " x ".join(map(str, dims)) for name, dims in inputs.items()},
+         "settings": {key: str(value) for key, value in config.items()}}, body))
     dev.write_results(args.out, {"machine": machine, "inputs": inputs, "settings": config, "rows": rows,
                                  "per_object": per_object}, lambda plt: plot(plt, rows))
     return 0
@@ -215,42 +222,46 @@ def mesh_row(records: list) -> dict:
             "mesh_free_up_within_1deg": float(np.mean(free < 1)), "mesh_free_up_deg_max": float(free.max())}
 
 
-def print_tables(rows: list, per_object: list) -> None:
-    print("| varied | points | noise % | outliers % | error ° median | error ° p95 | box error % median "
+def tables(rows: list, per_object: list) -> str:
+    """The Markdown tables of a run (what it prints and writes to <out>.md)."""
+    lines = []
+    add = lines.append
+    add("| varied | points | noise % | outliers % | error ° median | error ° p95 | box error % median "
           "| box error % p95 | no prior: error ° median | no prior: error ° p95 | ms per call |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    add("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['varied']} | {r['points']:,} | {100 * r['noise']:g} | {100 * r['outliers']:g} | "
+        add(f"| {r['varied']} | {r['points']:,} | {100 * r['noise']:g} | {100 * r['outliers']:g} | "
               f"{r['error_deg_median']:.2f} | {r['error_deg_p95']:.2f} | {100 * r['dims_error_median']:.1f} | "
               f"{100 * r['dims_error_p95']:.1f} | {r['no_prior_error_deg_median']:.2f} | "
               f"{r['no_prior_error_deg_p95']:.2f} | {1000 * r['seconds_median']:.1f} |")
-    print("\nrefined (issue 18):\n")
-    print("| varied | points | noise % | outliers % | prior ≤10° off: error ° median | p95 | box error % median "
+    add("\nrefined (issue 18):\n")
+    add("| varied | points | noise % | outliers % | prior ≤10° off: error ° median | p95 | box error % median "
           "| p95 | no prior: up ° median | p95 |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    add("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['varied']} | {r['points']:,} | {100 * r['noise']:g} | {100 * r['outliers']:g} | "
+        add(f"| {r['varied']} | {r['points']:,} | {100 * r['noise']:g} | {100 * r['outliers']:g} | "
               f"{r['refined_error_deg_median']:.2f} | {r['refined_error_deg_p95']:.2f} | "
               f"{100 * r['refined_dims_error_median']:.1f} | {100 * r['refined_dims_error_p95']:.1f} | "
               f"{r['refined_free_up_deg_median']:.2f} | {r['refined_free_up_deg_p95']:.2f} |")
-    print(f"\nper object at {TARGET['points']:,} points, {100 * TARGET['noise']:g} % noise, "
+    add(f"\nper object at {TARGET['points']:,} points, {100 * TARGET['noise']:g} % noise, "
           f"{100 * TARGET['outliers']:g} % floaters:\n")
-    print("| object | box l x w x h m | PCA+prior: error ° median | PCA no prior: error ° median "
+    add("| object | box l x w x h m | PCA+prior: error ° median | PCA no prior: error ° median "
           "| refined, prior ≤10° off: error ° median | max | refined box error % median "
           "| refined no prior: up within 1° | up ° median | up sign right |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    add("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in per_object:
-        print(f"| {r['object']} | {' x '.join(f'{d:.2f}' for d in r['dims_m'])} | "
+        add(f"| {r['object']} | {' x '.join(f'{d:.2f}' for d in r['dims_m'])} | "
               f"{r['error_deg_median']:.2f} | {r['no_prior_error_deg_median']:.2f} | "
               f"{r['refined_error_deg_median']:.2f} | {r['refined_error_deg_max']:.2f} | "
               f"{100 * r['refined_dims_error_median']:.1f} | {100 * r['refined_free_up_within_1deg']:.0f} % | "
               f"{r['refined_free_up_deg_median']:.2f} | {100 * r['refined_free_up_sign']:.0f} % |")
-    print("\nthe meshes themselves (vertices and faces, refined by face normals), randomly posed:\n")
-    print("| object | prior ≤10° off: error ° max | box error % max | no prior: up within 1° | up ° max |")
-    print("|---|---:|---:|---:|---:|")
+    add("\nthe meshes themselves (vertices and faces, refined by face normals), randomly posed:\n")
+    add("| object | prior ≤10° off: error ° max | box error % max | no prior: up within 1° | up ° max |")
+    add("|---|---:|---:|---:|---:|")
     for r in per_object:
-        print(f"| {r['object']} | {r['mesh_error_deg_max']:.3f} | {100 * r['mesh_dims_error_max']:.2f} | "
+        add(f"| {r['object']} | {r['mesh_error_deg_max']:.3f} | {100 * r['mesh_dims_error_max']:.2f} | "
               f"{100 * r['mesh_free_up_within_1deg']:.0f} % | {r['mesh_free_up_deg_max']:.3f} |")
+    return "\n".join(lines)
 
 
 def plot(plt, rows: list):

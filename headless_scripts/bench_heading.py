@@ -21,7 +21,6 @@ writes <out>.json and <out>.png.
 """
 
 import argparse
-import os
 import sys
 import time
 import warnings
@@ -137,7 +136,7 @@ def main(argv: list) -> int:
                 for m in meshes]
     scan_cells = [{"noise": n, **{k: mean(scan_rows, k, noise=n) for k in METHODS}} for n in NOISE_LEVELS]
     machine = dev.machine(torch_threads=args.threads, torch=str(torch.__version__), numpy=np.__version__,
-                          trimesh=trimesh.__version__, loadavg=os.getloadavg())
+                          trimesh=trimesh.__version__, load_average=dev.load_average())
     settings = {"held_out_meshes": len(meshes), "training_steps": steps,
                 "training": "train_heading.py defaults but steps and threads, seed 0",
                 "trained_on": "dense samples and scans" if args.scans else "dense samples",
@@ -147,31 +146,45 @@ def main(argv: list) -> int:
                 "noise_levels_of_diagonal": NOISE_LEVELS, "classifier_resamplings": 4, "seconds": round(seconds, 1)}
     inputs = [m.source for m in meshes]
     print(f"\nmachine: {machine}\nsettings: {settings}\ninputs: {', '.join(s.split(' sha256:')[0] for s in inputs)}\n")
-    print(f"Accuracy, mean over {len(meshes)} held-out meshes ({samplings} samplings each, half turned 180 degrees):\n")
-    print("| points | noise (of box diagonal) | baseline | classifier |")
-    print("|---:|---:|---:|---:|")
-    for c in cells:
-        print(f"| {c['points']} | {c['noise']:.0%} | {c['baseline']:.3f} | {c['classifier']:.3f} |")
-    print(f"| all | all | {mean(cells, 'baseline'):.3f} | {mean(cells, 'classifier'):.3f} |")
-    print(f"\nScans ({args.sensor}, {', '.join(f'{r:g}' for r in hc.SCAN_RANGES_M)} m, {hc.SCAN_HEADINGS} headings), "
-          "mean over held-out meshes:\n")
-    print("| noise (of box diagonal) | baseline | classifier |")
-    print("|---:|---:|---:|")
-    for c in scan_cells:
-        print(f"| {c['noise']:.0%} | {c['baseline']:.3f} | {c['classifier']:.3f} |")
-    print("\nPer held-out mesh: dense (mean over all cells) and scans per noise level:\n")
-    noise_heads = " | ".join(f"scans {n:.0%}: baseline | classifier" for n in NOISE_LEVELS)
-    print(f"| held-out mesh | source | dense: baseline | classifier | {noise_heads} |")
-    print("|---|---|" + "---:|" * (2 + 2 * len(NOISE_LEVELS)))
-    for m in per_mesh:
-        scan_cols = " | ".join(f"{m[f'scan_baseline_{n:g}']:.3f} | {m[f'scan_classifier_{n:g}']:.3f}"
-                               for n in NOISE_LEVELS)
-        print(f"| {m['mesh']} | {m['source']} | {m['baseline']:.3f} | {m['classifier']:.3f} | {scan_cols} |")
+    body = tables(cells, scan_cells, per_mesh, samplings, args.sensor)
+    print(body)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".md").write_text(dev.markdown_report(
+        "Heading: geometric baseline against the classifier, leave one mesh out", "bench_heading.py", machine,
+        {"settings": {key: str(value) for key, value in settings.items()},
+         "inputs": [source.split(" sha256:")[0] for source in inputs]}, body))
     dev.write_results(args.out, {"machine": machine, "settings": settings, "inputs": inputs, "cells": cells,
                                  "scan_cells": scan_cells, "per_mesh": per_mesh, "rows": rows,
                                  "scan_rows": scan_rows}, lambda plt: plot(plt, cells, len(meshes)))
     print(f"in {seconds:.0f} s")
     return 0
+
+
+def tables(cells: list, scan_cells: list, per_mesh: list, samplings: int, sensor: str) -> str:
+    """The Markdown tables of a run (what it prints and writes to <out>.md)."""
+    lines = []
+    add = lines.append
+    add(f"Accuracy, mean over {len(per_mesh)} held-out meshes ({samplings} samplings each, half turned 180 degrees):\n")
+    add("| points | noise (of box diagonal) | baseline | classifier |")
+    add("|---:|---:|---:|---:|")
+    for c in cells:
+        add(f"| {c['points']} | {c['noise']:.0%} | {c['baseline']:.3f} | {c['classifier']:.3f} |")
+    add(f"| all | all | {mean(cells, 'baseline'):.3f} | {mean(cells, 'classifier'):.3f} |")
+    add(f"\nScans ({sensor}, {', '.join(f'{r:g}' for r in hc.SCAN_RANGES_M)} m, {hc.SCAN_HEADINGS} headings), "
+        "mean over held-out meshes:\n")
+    add("| noise (of box diagonal) | baseline | classifier |")
+    add("|---:|---:|---:|")
+    for c in scan_cells:
+        add(f"| {c['noise']:.0%} | {c['baseline']:.3f} | {c['classifier']:.3f} |")
+    add("\nPer held-out mesh: dense (mean over all cells) and scans per noise level:\n")
+    noise_heads = " | ".join(f"scans {n:.0%}: baseline | classifier" for n in NOISE_LEVELS)
+    add(f"| held-out mesh | source | dense: baseline | classifier | {noise_heads} |")
+    add("|---|---|" + "---:|" * (2 + 2 * len(NOISE_LEVELS)))
+    for m in per_mesh:
+        scan_cols = " | ".join(f"{m[f'scan_baseline_{n:g}']:.3f} | {m[f'scan_classifier_{n:g}']:.3f}"
+                               for n in NOISE_LEVELS)
+        add(f"| {m['mesh']} | {m['source']} | {m['baseline']:.3f} | {m['classifier']:.3f} | {scan_cols} |")
+    return "\n".join(lines)
 
 
 def plot(plt, cells: list, meshes: int):
