@@ -68,6 +68,7 @@ bench: $(VENV)/.dev-installed
 	$(VENV)/bin/python headless_scripts/bench_intensity.py
 	$(VENV)/bin/python headless_scripts/bench_bank.py
 	$(VENV)/bin/python headless_scripts/bench_fidelity.py
+	$(VENV)/bin/python headless_scripts/bench_quality.py
 
 clean:
 	rm -rf $(VENV) $(MMDET3D_VENV) $(OTHER_BPY_VENVS) dist demo_output

@@ -12,7 +12,8 @@ sample truck and an icosphere of radius 1.5 m. Each stands on the ground
 (raycast.placement) at 10, 30 and 50 m from a nuScenes (HDL-32E) or KITTI (HDL-64E)
 sensor, at ``--poses`` azimuths and headings per distance drawn from
 default_rng([SEED, distance]): the same poses for every object and method. The two
-Chrono trucks are also scanned at 15 and 20 m (nuScenes) for the target. Every scan is
+Chrono trucks are also scanned at 15 and 20 m (nuScenes) for the target. Surfels are
+cast with the BVH engine, like the mesh rows they are compared with. Every scan is
 timed ``--repeats`` times (time.perf_counter around the public call); a row's time is
 the median over poses of each pose's median. Builds are reported apart ("build s"): the
 mesh BVH, each surfel BVH, and for Embree its first call (the scene's build and one scan).
@@ -227,11 +228,11 @@ def poses(distance: float, count: int) -> list:
 def method_calls(obj: Object, methods: set, args, builds: dict) -> dict:
     """method -> scan(sensor, sensor_from_object) through the public calls, every build
     (surfel BVHs, the Embree scene) done here and timed into ``builds``."""
-    calls = {"bvh windowed": lambda sensor, matrix: raycast.cast_rays(obj.target, sensor, matrix,
-                                                                      raycast.ScanOptions())}
+    bvh = raycast.ScanOptions(engine="bvh")
+    calls = {"bvh windowed": lambda sensor, matrix: raycast.cast_rays(obj.target, sensor, matrix, bvh)}
     if "full" in methods:
         calls["bvh full revolution"] = lambda sensor, matrix: raycast.cast_rays(
-            obj.target, sensor, matrix, raycast.ScanOptions(window=False))
+            obj.target, sensor, matrix, raycast.ScanOptions(window=False, engine="bvh"))
     if "embree" in methods and args.embree:
         embree = raycast.ScanOptions(engine="embree")
         start = time.perf_counter()
@@ -248,8 +249,7 @@ def method_calls(obj: Object, methods: set, args, builds: dict) -> dict:
             start = time.perf_counter()
             surfel = targets.surfel_target(points, label, radius_scale=scale)
             builds[(label, obj.name)] = time.perf_counter() - start
-            calls[label] = lambda sensor, matrix, surfel=surfel: raycast.cast_rays(surfel, sensor, matrix,
-                                                                                   raycast.ScanOptions())
+            calls[label] = lambda sensor, matrix, surfel=surfel: raycast.cast_rays(surfel, sensor, matrix, bvh)
     for count in args.range_view_points:
         points, faces = trimesh.sample.sample_surface(obj.reference.mesh, count, seed=count)
         normals = obj.reference.mesh.face_normals[faces]

@@ -129,6 +129,12 @@ def _state(scene, samples, name):
     """Bring the empty scene into the state ``name``."""
     if name == "empty":
         return
+    if name.startswith("bank"):
+        settings = scene.pgt_bank
+        settings.status = "exporting 48 entries" if name == "bank running" else "48 entries written"
+        settings.running, settings.progress = name == "bank running", 0.4
+        settings.config_file = "//bank.toml" if name == "bank config file" else ""
+        return
     obj = _add(scene, samples[0])
     settings = scene.pgt_authoring
     if name == "imported":
@@ -167,7 +173,7 @@ def _state(scene, samples, name):
 
 
 STATES = ["empty", "imported", "aligned", "class cleared", "exact size", "sized", "custom sensor", "scanned",
-          "deleted source", "edit mode", "many objects"]
+          "deleted source", "edit mode", "many objects", "bank running", "bank config file"]
 
 
 @pytest.mark.parametrize("state", STATES)
@@ -176,7 +182,7 @@ def test_every_panel_draws_with_valid_references(scene, samples, state):
     calls = draw_everything(bpy.context)
     drawn = {arguments.get("property") for name, arguments in calls if name == "prop"}
     assert {"sensor", "distance", "color_by", "intensity_checkpoint"} <= drawn
-    if state not in ("empty", "deleted source"):
+    if state not in ("empty", "deleted source", "bank running", "bank config file"):
         assert {"up", "heading_method", "size_mode"} <= drawn  # the authoring panels polled in
     if bpy.context.mode == "EDIT_MESH":
         bpy.ops.object.mode_set(mode="OBJECT")

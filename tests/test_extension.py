@@ -42,7 +42,7 @@ def test_bundled_wheels_are_the_runtime_dependencies(extension_zip):
 
     names = zipfile.ZipFile(extension_zip).namelist()
     wheels = sorted(Path(n).name.split("-")[0] for n in names if n.endswith(".whl"))
-    assert wheels == ["manifold3d", "pycolmap", "pyyaml", "scipy", "trimesh"]  # numpy comes with Blender
+    assert wheels == ["embreex", "manifold3d", "pycolmap", "pyyaml", "scipy", "trimesh"]  # numpy comes with Blender
     assert "blender_manifest.toml" in names and "__init__.py" in names
     assert "models/heading_pointnet.pt" in names  # the shipped heading classifier
     assert not any("__pycache__" in n for n in names)
@@ -57,7 +57,8 @@ INSTALL_SCRIPT = textwrap.dedent("""
     site = {p for p in sys.path if p.endswith("site-packages")}
     class HideVenvCopies(importlib.abc.MetaPathFinder):
         def find_spec(self, name, path=None, target=None):
-            if name.split(".")[0] not in ("pycolmap", "trimesh", "manifold3d", "scipy", "yaml") or path is not None:
+            if name.split(".")[0] not in ("pycolmap", "trimesh", "manifold3d", "scipy", "yaml", "embreex") \\
+                    or path is not None:
                 return None
             spec = importlib.machinery.PathFinder.find_spec(name, [p for p in sys.path if p not in site])
             if spec is None:
@@ -84,6 +85,10 @@ INSTALL_SCRIPT = textwrap.dedent("""
     assert len(sensors.read_velodyne_calibration(calibration)["elevations_deg"]) == 32
     import yaml
     assert "extensions" in yaml.__file__, yaml.__file__
+    bpy.context.scene.pgt_scan.distance = 10.0
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}  # the default engine: Embree, from the bundled wheel
+    import embreex
+    assert "extensions" in embreex.__file__, embreex.__file__
     bpy.ops.preferences.addon_disable(module=module)
     assert not hasattr(bpy.types.Object, "pgt") and not hasattr(bpy.types, "VIEW3D_PT_pgt_import")
     bpy.ops.preferences.addon_enable(module=module)

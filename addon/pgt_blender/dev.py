@@ -69,3 +69,30 @@ def markdown_report(title: str, script: str, machine: dict, inputs: dict, body: 
         else:
             lines += [f"**{key}**: {value}", ""]
     return "\n".join(lines) + "\n" + body.rstrip() + "\n"
+
+
+# The quality score's ranking check (test_quality.py, bench_quality.py): KITTI classes
+# the shared scans label, each from a real mesh (Chrono) or the built-in sample.
+RANKING_OBJECTS = (("car", CHRONO_VEHICLES / "sedan" / "sedan_chassis_vis.obj"),
+                   ("truck", CHRONO_VEHICLES / "truck" / "truck_chassis.obj"),
+                   ("cyclist", None))
+
+
+def ranking_objects(folder, dataset: str = "kitti") -> list:
+    """BankObjects of RANKING_OBJECTS, prepared into ``folder`` (z up, the mesh's own
+    heading, sized to the dataset's class mean)."""
+    from .core.authoring.prepare import prepare, write_prepared
+    from .core.bank.inputs import checked_objects, prepared_objects
+    from .core.importing import load_reconstruction
+    from .core.samples import write_sample
+
+    folder = Path(folder)
+    for class_name, mesh in RANKING_OBJECTS:
+        if mesh is None:
+            mesh = write_sample(folder / "sample_bicycle", "bicycle", seed=0, points=3000)["reconstruction.ply"]
+            authored = prepare(load_reconstruction(mesh), class_name, dataset, up="pca", heading_method="baseline")
+        else:
+            authored = prepare(load_reconstruction(mesh), class_name, dataset, up="+z", heading_method="none")
+        write_prepared(authored, class_name, dataset, folder / "prepared")
+    found, incomplete = prepared_objects(folder / "prepared")
+    return checked_objects(found, incomplete, False, folder / "prepared")

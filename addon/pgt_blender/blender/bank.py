@@ -1,20 +1,32 @@
-"""Gather a scene's authored objects as the bank's inputs (core/bank/inputs.py), in bulk.
+"""The Bank section: a scene's authored objects as the bank's inputs, the export run
+chunk by chunk, and a preview of a finished bank in the viewport.
 
-An object's mesh data is its object frame (authoring wrote it so); its box is the last
+Gathering the inputs (core/bank/inputs.py) is done in bulk. An object's mesh data is its object frame (authoring wrote it so); its box is the last
 authoring step's dims. Meshes give their triangles, point objects their points; colors
 come from the per-point color attribute (sRGB), as the prepared-object route reads them
 from the PLY, so the same objects by either route make the same bank.
 """
 
+import math
 from pathlib import Path
 
 import bpy
 import numpy as np
 
-from ..core.bank.inputs import BankObject, incomplete_reason
+from ..core.bank import export
+from ..core.bank.config import (DATASET_CONSTANT_INTENSITY, DATASET_GRIDS, FORMATS, BankConfig,
+                                load_config)
+from ..core.bank.folder import read_manifest
+from ..core.bank.inputs import BankObject, checked_objects, incomplete_reason
+from ..core.bank.report import write_report
+from ..core.errors import InputError
+from ..core.files import read_float32_rows
+from ..core.gt_database import load_infos
 from ..core.reconstruction import Reconstruction
+from ..core.scan.sensors import BIN_COLUMNS, INTENSITY_MAX
 from .authoring import current_dims, is_reconstruction, status
-from .scanning import mesh_triangles, mesh_vertices, point_colors
+from .objects import remove_datablocks
+from .scanning import mesh_triangles, mesh_vertices, point_colors, points_object, ramp
 
 
 def scene_bank_objects(scene: bpy.types.Scene) -> tuple[list, list]:
@@ -35,3 +47,108 @@ def scene_bank_objects(scene: bpy.types.Scene) -> tuple[list, list]:
                                   faces=faces, colors=point_colors(mesh))
         objects.append(BankObject(obj.name, obj.pgt.class_name, current_dims(obj), geometry))
     return objects, incomplete
+
+
+def bank_config(settings, checkpoint: str = "") -> BankConfig:
+    """The BankConfig of the Bank section (``Scene.pgt_bank``): its config file when one
+    is set, else its fields over the defaults; ``checkpoint`` (the preferences' intensity
+    checkpoint) makes the intensities learned, as in the Scan section."""
+    if settings.config_file:
+        return load_config(bpy.path.abspath(settings.config_file))
+    formats = tuple(name for name in FORMATS if getattr(settings, name))
+    if not formats:
+        raise InputError("Bank", "no format chosen: tick OpenPCDet or mmdetection3d")
+    (x_low, x_high, _), (y_low, y_high, _) = DATASET_GRIDS[settings.dataset]
+    learned = checkpoint and settings.dataset not in DATASET_CONSTANT_INTENSITY
+    return BankConfig(dataset=settings.dataset, sensor="" if settings.sensor == "DATASET" else settings.sensor,
+                      formats=formats, seed=settings.seed, sweeps=settings.sweeps, chunk_size=settings.chunk_size,
+                      headings_deg=(-180.0, 180.0, round(math.degrees(settings.heading_step), 6)),
+                      x=(x_low, x_high, settings.grid_step), y=(y_low, y_high, settings.grid_step),
+                      engine=settings.engine, intensity_checkpoint=checkpoint if learned else "")
+
+
+class BankRun:
+    """One bank export of ``scene``'s authored objects driven chunk by chunk, so that a
+    modal operator keeps Blender responsive: ``step`` writes the next chunk (its
+    ``chunk_size`` entries, well under a second on the built-in samples), ``finish``
+    assembles the bank and writes its report. Stopping between steps leaves a folder
+    that an export with "Resume" continues to the same bytes (core/bank/folder.py).
+    InputError for what cannot make a bank, before anything is written."""
+
+    def __init__(self, scene: bpy.types.Scene, settings, checkpoint: str = ""):
+        if not settings.output:
+            raise InputError("Bank", "no output folder chosen")
+        objects, incomplete = scene_bank_objects(scene)
+        config = bank_config(settings, checkpoint)
+        source = bpy.data.filepath or scene.name
+        checked = checked_objects(objects, incomplete, settings.skip_incomplete, source)
+        self.out = Path(bpy.path.abspath(settings.output))
+        self.plan = export.plan_bank(checked, config, self.out, resume=settings.existing == "RESUME",
+                                     overwrite=settings.existing == "OVERWRITE")
+        self.total, self.done = self.plan.pending_entries, 0
+        self._chunks = export.run_plan(self.plan, workers=1)
+
+    def step(self) -> bool:
+        """Write the next chunk; False when every chunk is written."""
+        chunk = next(self._chunks, None)
+        if chunk is None:
+            return False
+        self.done += chunk.entries
+        return True
+
+    def finish(self) -> Path:
+        """Assemble the info pickles and the manifest, write the report; its path."""
+        export.assemble(self.out)
+        return write_report(self.out)[0]
+
+    def stop(self) -> None:
+        self._chunks.close()
+
+
+PREVIEW_COLLECTION = "PGT Bank Preview"
+
+
+def preview_bank(scene: bpy.types.Scene, folder, count: int) -> list:
+    """Load ``count`` entries of the bank in ``folder``, spread evenly over it, as point
+    objects (the points at their place in the sensor frame, intensity as an attribute and
+    as color) each with its box (a cube empty: centre, dims, heading), into the "PGT Bank
+    Preview" collection, replacing an earlier preview. Returns the point objects."""
+    folder = Path(folder)
+    manifest = read_manifest(folder)
+    fmt = manifest["config"]["formats"][0]
+    infos = [info for entries in load_infos(folder / manifest["info_pickles"][fmt]).values() for info in entries]
+    if not infos:
+        raise InputError(folder, "the bank has no entries")
+    chosen = [infos[i] for i in np.unique(np.linspace(0, len(infos) - 1, min(count, len(infos))).round().astype(int))]
+    dataset = manifest["config"]["dataset"]
+    entries = [(info, read_float32_rows(folder / fmt / info["path"], len(BIN_COLUMNS[dataset]))) for info in chosen]
+    remove_preview()
+    collection = bpy.data.collections.new(PREVIEW_COLLECTION)
+    scene.collection.children.link(collection)
+    made = []
+    for info, rows in entries:
+        box = np.asarray(info["box3d_lidar"], np.float64)
+        origin = box[:3] - ([0.0, 0.0, box[5] / 2] if fmt == "mmdet3d" else 0.0)  # where the file's points start
+        returns = np.zeros(len(rows), [("x", "f8"), ("y", "f8"), ("z", "f8"), ("intensity", "f4")])
+        for axis, name in enumerate("xyz"):
+            returns[name] = rows[:, axis] + origin[axis]
+        returns["intensity"] = rows[:, 3]
+        name = Path(info["path"]).stem
+        points = points_object(name, returns, ramp(np.clip(rows[:, 3] / INTENSITY_MAX[dataset], 0.0, 1.0)), made)
+        cube = bpy.data.objects.new(f"{name} box", None)
+        made.append(cube)
+        cube.empty_display_type = "CUBE"
+        cube.location, cube.rotation_euler, cube.scale = box[:3], (0.0, 0.0, box[6]), box[3:6] / 2
+        for obj in (points, cube):
+            collection.objects.link(obj)
+    return [obj for obj in made if isinstance(obj, bpy.types.Object) and obj.type == "MESH"]
+
+
+def remove_preview() -> None:
+    """Remove an earlier bank preview: its collection, objects and their meshes."""
+    collection = bpy.data.collections.get(PREVIEW_COLLECTION)
+    if collection is None:
+        return
+    old = list(collection.objects)
+    remove_datablocks(old + [obj.data for obj in old if obj.type == "MESH" and obj.data.users == 1])
+    bpy.data.collections.remove(collection)

@@ -1,17 +1,37 @@
 """Operators: each reads with the core, then builds Blender data with ``objects``."""
 
 import warnings
+from contextlib import contextmanager
+from pathlib import Path
 
 import bpy
 import numpy as np
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
-from bpy_extras.io_utils import ImportHelper
+from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from ..core.authoring import prepare
+from ..core.bank.config import config_toml
 from ..core.classes import MINORITY_CLASSES
 from ..core.errors import InputError
-from ..core.importing import load_reconstruction
-from . import authoring, intensity, objects, properties, scanning
+from ..core.files import atomic_output
+from ..core.importing import SUPPORTED, find_reconstructions, load_reconstruction
+from . import authoring, bank, intensity, objects, properties, scanning
+
+
+@contextmanager
+def progress(context, total: int):
+    """Blender's progress indicator over ``total`` items: yields ``advance(item) -> item``."""
+    manager, done = context.window_manager, [0]
+    manager.progress_begin(0, max(total, 1))
+
+    def advance(item):
+        done[0] += 1
+        manager.progress_update(done[0])
+        return item
+    try:
+        yield advance
+    finally:
+        manager.progress_end()
 
 
 def _select_only(context, obj):
@@ -102,6 +122,45 @@ class IMPORT_SCENE_OT_pgt_mesh(ImportHelper, _ImportReconstruction, bpy.types.Op
     filter_glob: StringProperty(default="*.obj;*.ply;*.glb;*.gltf;*.stl", options={"HIDDEN"})
 
 
+class IMPORT_SCENE_OT_pgt_folder(bpy.types.Operator):
+    """Import every reconstruction in a folder (files and COLMAP model folders); one bad file imports none"""
+
+    bl_idname = "import_scene.pgt_folder"
+    bl_label = "Import Folder"
+    bl_options = {"REGISTER", "UNDO"}
+
+    directory: StringProperty(name="Folder", subtype="DIR_PATH", options=properties.PATH_OPTIONS,
+                              description="Folder whose reconstructions are imported")
+    filter_folder: BoolProperty(default=True, options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        if not self.directory:
+            self.report({"ERROR"}, f"{self.bl_label}: no folder chosen")
+            return {"CANCELLED"}
+        folder = Path(bpy.path.abspath(self.directory))
+        try:  # every file is read before any Blender data is made: a bad one leaves the scene as it was
+            found = find_reconstructions(folder)
+            if not found:
+                raise InputError(folder, f"no reconstructions found (supported: {SUPPORTED})")
+            with progress(context, len(found)) as advance:
+                recons = [advance(load_reconstruction(path)) for path in found]
+        except InputError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        for other in context.selected_objects:
+            other.select_set(False)
+        made = [objects.add_reconstruction(context.scene, recon, collection=context.collection) for recon in recons]
+        for obj in made:
+            obj.select_set(True)
+        context.view_layer.objects.active = made[0]
+        self.report({"INFO"}, f"Imported {len(made)} reconstructions from {folder}")
+        return {"FINISHED"}
+
+
 class OBJECT_OT_pgt_add_sample(bpy.types.Operator):
     """Add a built-in synthetic reconstruction of a parametric vehicle (noisy, posed, scaled)"""
 
@@ -123,6 +182,40 @@ class OBJECT_OT_pgt_add_sample(bpy.types.Operator):
         obj = objects.add_reconstruction(context.scene, sample.to_reconstruction(), collection=context.collection)
         _select_only(context, obj)
         return {"FINISHED"}
+
+
+def align(context, obj, settings) -> prepare.Step:
+    """The Align Axes step of ``obj`` with the scene's authoring ``settings``."""
+    if not len(obj.data.vertices):
+        raise InputError(obj.pgt.source_path or obj.name, "has no points to align")
+    source = obj.pgt.source_path or obj.name
+    points = authoring.positions(obj)
+    if settings.up == "cursor":
+        up = np.array(obj.matrix_world.inverted() @ context.scene.cursor.location) - np.median(points, axis=0)
+    elif settings.up == "face":
+        up = authoring.selected_face_normal(obj)
+        if up is None:
+            raise InputError(source, "has no selected faces to take up from (select them in Edit Mode)")
+    else:
+        up = prepare.up_vector(settings.up, authoring.camera_poses(obj), source)
+    return prepare.align_step(points, authoring.weights(obj), up, source, settings.refine, authoring.triangles(obj))
+
+
+def detect_front(context, obj, settings) -> prepare.Step:
+    """The Detect Front step of ``obj``."""
+    checkpoint = bpy.path.abspath(settings.checkpoint) if settings.checkpoint else None
+    return prepare.automatic_heading_step(authoring.positions(obj), authoring.current_dims(obj),
+                                          settings.heading_method, checkpoint, obj.pgt.source_path or obj.name)
+
+
+def set_size(context, obj, settings, seed: int | None = None) -> prepare.Step:
+    """The Set Size step of ``obj`` (``seed``: the size noise's, default the settings')."""
+    problem = properties.class_problem(settings) if settings.size_mode == "class" else ""
+    if problem:
+        raise InputError(obj.name, problem)
+    return prepare.size_step(authoring.current_dims(obj), settings.size_mode, settings.dataset, settings.class_name,
+                             settings.seed if seed is None else seed, settings.uniform, tuple(settings.exact_dims),
+                             obj.name)
 
 
 class _AuthoringStep:
@@ -164,20 +257,7 @@ class OBJECT_OT_pgt_align(_AuthoringStep, bpy.types.Operator):
     needs_alignment = False
 
     def step(self, context, obj, settings):
-        if not len(obj.data.vertices):
-            raise InputError(obj.pgt.source_path or obj.name, "has no points to align")
-        source = obj.pgt.source_path or obj.name
-        points = authoring.positions(obj)
-        if settings.up == "cursor":
-            up = np.array(obj.matrix_world.inverted() @ context.scene.cursor.location) - np.median(points, axis=0)
-        elif settings.up == "face":
-            up = authoring.selected_face_normal(obj)
-            if up is None:
-                raise InputError(source, "has no selected faces to take up from (select them in Edit Mode)")
-        else:
-            up = prepare.up_vector(settings.up, authoring.camera_poses(obj), source)
-        return prepare.align_step(points, authoring.weights(obj), up, source, settings.refine,
-                                  authoring.triangles(obj))
+        return align(context, obj, settings)
 
 
 class OBJECT_OT_pgt_turn(_AuthoringStep, bpy.types.Operator):
@@ -211,9 +291,7 @@ class OBJECT_OT_pgt_auto_heading(_AuthoringStep, bpy.types.Operator):
     bl_label = "Detect Front"
 
     def step(self, context, obj, settings):
-        checkpoint = bpy.path.abspath(settings.checkpoint) if settings.checkpoint else None
-        return prepare.automatic_heading_step(authoring.positions(obj), authoring.current_dims(obj),
-                                              settings.heading_method, checkpoint, obj.pgt.source_path or obj.name)
+        return detect_front(context, obj, settings)
 
 
 class OBJECT_OT_pgt_set_size(_AuthoringStep, bpy.types.Operator):
@@ -223,11 +301,7 @@ class OBJECT_OT_pgt_set_size(_AuthoringStep, bpy.types.Operator):
     bl_label = "Set Size"
 
     def step(self, context, obj, settings):
-        problem = properties.class_problem(settings) if settings.size_mode == "class" else ""
-        if problem:
-            raise InputError(obj.name, problem)
-        return prepare.size_step(authoring.current_dims(obj), settings.size_mode, settings.dataset, settings.class_name,
-                                 settings.seed, settings.uniform, tuple(settings.exact_dims), obj.name)
+        return set_size(context, obj, settings)
 
 
 class OBJECT_OT_pgt_scan(bpy.types.Operator):
@@ -315,8 +389,257 @@ class OBJECT_OT_pgt_apply_intensity(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class _BackgroundSteps:
+    """An operator whose work is a run of short steps: ``steps(context)`` is a generator
+    that checks its inputs (InputError: nothing done), yields 0.0, then yields the share
+    done after each step. ``execute`` (scripts, ``blender -b``) runs every step at once;
+    ``invoke`` (the panels) runs one step per timer event under Blender's progress
+    indicator, so the interface answers between steps, and Esc (or ``stop_requested``)
+    ends the run between two steps. ``finished`` and ``stopped`` say what was done."""
+
+    _run = None
+    _timer = None
+
+    def execute(self, context):
+        try:
+            for _ in self.steps(context):
+                pass
+        except InputError as error:
+            self.report({"ERROR"}, str(error))
+            return self.failed(context)
+        return self.finished(context)
+
+    def invoke(self, context, event):
+        self._run = self.steps(context)
+        try:
+            next(self._run)
+        except InputError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        manager = context.window_manager
+        manager.progress_begin(0, 1)
+        self._timer = manager.event_timer_add(0.01, window=context.window)
+        manager.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type == "ESC" or self.stop_requested(context):
+            self._end(context)
+            return self.stopped(context)
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        try:
+            share = next(self._run, None)
+        except (InputError, OSError) as error:  # a full disk, a folder gone: what is done stays done
+            self._end(context)
+            self.report({"ERROR"}, str(error))
+            return self.failed(context)
+        if share is None:
+            self._end(context)
+            return self.finished(context)
+        context.window_manager.progress_update(share)
+        for area in context.screen.areas if context.screen else ():
+            area.tag_redraw()
+        return {"RUNNING_MODAL"}
+
+    def _end(self, context):
+        self._run.close()
+        manager = context.window_manager
+        manager.event_timer_remove(self._timer)
+        manager.progress_end()
+
+    def stop_requested(self, context) -> bool:
+        return False
+
+    def failed(self, context):
+        return {"CANCELLED"}
+
+
+class OBJECT_OT_pgt_author_selected(_BackgroundSteps, bpy.types.Operator):
+    """Align, detect the front and set the size of every selected reconstruction, doing only the steps each has left (Esc stops between objects)"""
+
+    bl_idname = "object.pgt_author_selected"
+    bl_label = "Author Selected"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        if not any(authoring.is_reconstruction(obj) for obj in context.selected_objects):
+            cls.poll_message_set("Select imported reconstructions")
+            return False
+        return True
+
+    def steps(self, context):
+        """One object's remaining steps per step; object i by name sizes with seed + i."""
+        settings = context.scene.pgt_authoring
+        chosen = sorted((obj for obj in context.selected_objects if authoring.is_reconstruction(obj)),
+                        key=lambda obj: obj.name)
+        problem = properties.class_problem(settings) if settings.size_mode == "class" else ""
+        if problem:  # checked once, before any object changes
+            raise InputError("Author Selected", problem)
+        self.objects, self.applied = len(chosen), 0
+        yield 0.0
+        for index, obj in enumerate(chosen):  # each step applies whole: an error stops between steps
+            for done, make in (("aligned", align), ("heading", detect_front), ("size", None)):
+                if not authoring.status(obj)[done]:
+                    authoring.apply_step(obj, make(context, obj, settings) if make else
+                                         set_size(context, obj, settings, seed=settings.seed + index))
+                    self.applied += 1
+            yield (index + 1) / len(chosen)
+
+    def finished(self, context):
+        seed = context.scene.pgt_authoring.seed
+        self.report({"INFO"}, f"Authored {self.objects} objects: {self.applied} steps applied "
+                              f"(size seeds {seed} to {seed + self.objects - 1} by name)")
+        return {"FINISHED"}
+
+    def stopped(self, context):
+        self.report({"WARNING"}, f"Author Selected stopped: {self.applied} steps applied")
+        return {"FINISHED"}  # what was applied stays, and undo reverts it
+
+    def failed(self, context):  # after some steps: keep them undoable
+        return {"FINISHED"} if getattr(self, "applied", 0) else {"CANCELLED"}
+
+
+def _checkpoint(context) -> str:
+    """The preferences' intensity checkpoint (absolute), or ""."""
+    preferences = properties.preferences(context)
+    return bpy.path.abspath(preferences.intensity_checkpoint) if preferences and preferences.intensity_checkpoint else ""
+
+
+class SCENE_OT_pgt_export_bank(_BackgroundSteps, bpy.types.Operator):
+    """Export the scene's authored objects as an object bank; from the panel it runs in the background with progress (Esc or Stop ends it, resumable)"""
+
+    bl_idname = "scene.pgt_export_bank"
+    bl_label = "Export Bank"
+
+    @classmethod
+    def poll(cls, context):
+        if context.scene.pgt_bank.running:
+            cls.poll_message_set("An export is running")
+            return False
+        return True
+
+    def steps(self, context):
+        """One chunk of entries per step (the Bank section's chunk size), then the assembly
+        and the report."""
+        settings = context.scene.pgt_bank
+        self.bank_run = run = bank.BankRun(context.scene, settings, _checkpoint(context))
+        settings.running, settings.stop_requested, settings.progress = True, False, 0.0
+        settings.status = f"exporting {run.total:,} entries to {run.out}"
+        try:
+            yield 0.0
+            while run.step():
+                settings.progress = run.done / max(run.total, 1)
+                yield settings.progress
+            self.report_path = run.finish()
+        finally:  # done, stopped or failed: the folder is a bank or resumable
+            run.stop()
+            settings.running = False
+
+    def stop_requested(self, context) -> bool:
+        return context.scene.pgt_bank.stop_requested
+
+    def finished(self, context):
+        settings, run = context.scene.pgt_bank, self.bank_run
+        settings.progress = 1.0
+        settings.status = f"{run.done:,} entries written to {run.out}; report: {self.report_path}"
+        self.report({"INFO"}, settings.status)
+        return {"FINISHED"}
+
+    def stopped(self, context):
+        settings, run = context.scene.pgt_bank, self.bank_run
+        settings.status = (f"stopped after {run.done:,} of {run.total:,} entries: choose 'Resume' and export again "
+                           "to finish")
+        self.report({"WARNING"}, settings.status)
+        return {"CANCELLED"}
+
+    def failed(self, context):
+        if getattr(self, "bank_run", None) is not None:
+            context.scene.pgt_bank.status = "failed: the written chunks stay; 'Resume' continues"
+        return {"CANCELLED"}
+
+
+class SCENE_OT_pgt_stop_bank(bpy.types.Operator):
+    """Stop the running bank export after its current chunk; Resume continues it"""
+
+    bl_idname = "scene.pgt_stop_bank"
+    bl_label = "Stop"
+
+    def execute(self, context):
+        context.scene.pgt_bank.stop_requested = True
+        return {"FINISHED"}
+
+
+class SCENE_OT_pgt_save_bank_config(bpy.types.Operator, ExportHelper):
+    """Write the Bank section's settings as a bank .toml, the config file export_bank --config reads"""
+
+    bl_idname = "scene.pgt_save_bank_config"
+    bl_label = "Save Config"
+    filename_ext = ".toml"
+    filter_glob: StringProperty(default="*.toml", options={"HIDDEN"})
+
+    def execute(self, context):
+        try:
+            config = bank.bank_config(context.scene.pgt_bank, _checkpoint(context))
+            with atomic_output(Path(bpy.path.abspath(self.filepath))) as stream:
+                stream.write(config_toml(config).encode())
+        except (InputError, OSError) as error:
+            self.report({"ERROR"}, f"{self.filepath}: {getattr(error, 'strerror', None) or error}")
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"Wrote {self.filepath}")
+        return {"FINISHED"}
+
+
+class SCENE_OT_pgt_open_bank_report(bpy.types.Operator):
+    """Open the bank's report.md as a text (shown in a Text Editor area when there is one)"""
+
+    bl_idname = "scene.pgt_open_bank_report"
+    bl_label = "Open Report"
+
+    def execute(self, context):
+        path = Path(bpy.path.abspath(context.scene.pgt_bank.output)) / "report.md"
+        if not path.is_file():
+            self.report({"ERROR"}, f"{path}: no report yet: export the bank first")
+            return {"CANCELLED"}
+        old = bpy.data.texts.get(path.name)
+        if old is not None:
+            bpy.data.texts.remove(old)
+        text = bpy.data.texts.load(str(path))
+        for area in context.screen.areas if context.screen else ():
+            if area.type == "TEXT_EDITOR":
+                area.spaces.active.text = text
+        self.report({"INFO"}, f"Opened {path} as the text '{text.name}'")
+        return {"FINISHED"}
+
+
+class SCENE_OT_pgt_preview_bank(bpy.types.Operator):
+    """Load entries of the bank in the output folder as point objects colored by intensity, with their boxes"""
+
+    bl_idname = "scene.pgt_preview_bank"
+    bl_label = "Preview Bank"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        settings = context.scene.pgt_bank
+        if not settings.output:
+            self.report({"ERROR"}, "Preview Bank: no output folder chosen")
+            return {"CANCELLED"}
+        try:
+            shown = bank.preview_bank(context.scene, bpy.path.abspath(settings.output), settings.preview_count)
+        except InputError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        settings.status = f"previewing {len(shown)} entries in the '{bank.PREVIEW_COLLECTION}' collection"
+        self.report({"INFO"}, settings.status)
+        return {"FINISHED"}
+
+
 AUTHORING = (OBJECT_OT_pgt_align, OBJECT_OT_pgt_turn, OBJECT_OT_pgt_front_from_cursor,
              OBJECT_OT_pgt_auto_heading, OBJECT_OT_pgt_set_size)
 IMPORTERS = (IMPORT_SCENE_OT_pgt_colmap, IMPORT_SCENE_OT_pgt_gaussian_splat,
-             IMPORT_SCENE_OT_pgt_point_cloud, IMPORT_SCENE_OT_pgt_mesh)
-classes = IMPORTERS + (OBJECT_OT_pgt_add_sample,) + AUTHORING + (OBJECT_OT_pgt_scan, OBJECT_OT_pgt_apply_intensity)
+             IMPORT_SCENE_OT_pgt_point_cloud, IMPORT_SCENE_OT_pgt_mesh, IMPORT_SCENE_OT_pgt_folder)
+BANK = (SCENE_OT_pgt_export_bank, SCENE_OT_pgt_stop_bank, SCENE_OT_pgt_save_bank_config,
+        SCENE_OT_pgt_open_bank_report, SCENE_OT_pgt_preview_bank)
+classes = (IMPORTERS + (OBJECT_OT_pgt_add_sample,) + AUTHORING + (OBJECT_OT_pgt_author_selected, OBJECT_OT_pgt_scan,
+                                                                 OBJECT_OT_pgt_apply_intensity) + BANK)

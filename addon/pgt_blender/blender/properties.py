@@ -1,5 +1,6 @@
 """Data pgt_blender stores on Blender objects (``Object.pgt``), the authoring settings
-(``Scene.pgt_authoring``) and the scan settings (``Scene.pgt_scan``) of the scene."""
+(``Scene.pgt_authoring``), the scan settings (``Scene.pgt_scan``) and the bank settings
+(``Scene.pgt_bank``) of the scene: all saved with the .blend."""
 
 import math
 
@@ -8,6 +9,7 @@ from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorPro
                        PointerProperty, StringProperty)
 
 from ..core.authoring.prepare import UP_CHOICES
+from ..core.bank.config import BankConfig
 from ..core.classes import CLASS_SIZES
 from ..core.reconstruction import SOURCE_KINDS
 from ..core.scan.sensors import PRESETS
@@ -143,6 +145,60 @@ class PGT_PG_scan(bpy.types.PropertyGroup):
     stats: StringProperty(name="Statistics", description="Points, rays and time of the last scan")
 
 
+_BANK_DEFAULTS = BankConfig()
+
+
+class PGT_PG_bank(bpy.types.PropertyGroup):
+    """Settings of the Bank section (``Scene.pgt_bank``): the bank config's main keys (every
+    other key keeps core/bank/config.py's default), or a config file instead of them;
+    where the bank goes; the state of the export running in the background."""
+
+    config_file: StringProperty(name="Config file", subtype="FILE_PATH", options=PATH_OPTIONS,
+                                description="A bank .toml (export_bank --config): when set, the export uses it "
+                                            "instead of the fields below")
+    dataset: EnumProperty(name="Dataset", default="nuscenes", description="Dataset the bank is made for: its grid, "
+                          "sensor, sweeps, intensity scale and class names",
+                          items=[(d, _DATASET_LABELS[d], f"A {_DATASET_LABELS[d]} bank") for d in CLASS_SIZES])
+    sensor: EnumProperty(name="Sensor", default="DATASET", description="LiDAR the bank is scanned with", items=[
+        ("DATASET", "Dataset's", "The chosen dataset's own LiDAR")]
+        + [(name, _SENSOR_LABELS.get(name, name), sensor.note) for name, sensor in PRESETS.items()])
+    sweeps: IntProperty(name="Sweeps", default=0, min=0, soft_max=20,
+                        description="Sweeps merged per entry; 0: the dataset's (nuScenes, Lyft 10; KITTI 1)")
+    heading_step: FloatProperty(name="Heading step", default=math.radians(_BANK_DEFAULTS.headings_deg[2]),
+                                min=math.radians(1.0), max=math.radians(360.0), subtype="ANGLE",
+                                description="Headings from -180 to 180 degrees every this many")
+    grid_step: FloatProperty(name="Grid step", default=5.0, min=0.5, soft_max=50.0, unit="LENGTH",
+                             description="Box centres every this many metres over the dataset's x and y range")
+    openpcdet: BoolProperty(name="OpenPCDet", default=True, description="Write the OpenPCDet ground-truth database")
+    mmdet3d: BoolProperty(name="mmdetection3d", default=True,
+                          description="Write the mmdetection3d ground-truth database")
+    engine: EnumProperty(name="Engine", default=_BANK_DEFAULTS.engine, description="Ray engine of the scans", items=[
+        ("auto", "Auto", "Embree where it runs (the extension ships it), else BVH"),
+        ("bvh", "BVH", "Blender's BVHTree: exact, everywhere"),
+        ("embree", "Embree", "embreex: several times faster, when installed")])
+    seed: IntProperty(name="Seed", default=0, min=0, description="Seed of every draw of the bank")
+    chunk_size: IntProperty(name="Chunk size", default=8, min=1, soft_max=256,
+                            description="Entries per unit of work: what a background step writes before the "
+                                        "interface answers again, and what Resume redoes at most")
+    skip_incomplete: BoolProperty(name="Skip incomplete", description="Leave out objects whose class or size is "
+                                                                      "not set instead of refusing to export")
+    output: StringProperty(name="Output folder", subtype="DIR_PATH", options=PATH_OPTIONS,
+                           description="Folder the bank is written to (OpenPCDet and mmdetection3d layouts inside)")
+    existing: EnumProperty(name="If it exists", default="REFUSE", description="What to do with a non-empty output "
+                           "folder", items=[
+        ("REFUSE", "Refuse", "Stop with an error: nothing is overwritten"),
+        ("RESUME", "Resume", "Continue a stopped export of the same objects and settings"),
+        ("OVERWRITE", "Overwrite", "Delete the folder's bank and export anew")])
+    preview_count: IntProperty(name="Entries", default=12, min=1, soft_max=100,
+                               description="Bank entries Preview Bank loads, spread evenly over the bank")
+    status: StringProperty(name="Status", description="What the last export or preview did")
+    progress: FloatProperty(name="Progress", min=0.0, max=1.0, subtype="FACTOR",
+                            description="Share of the running export's entries written")
+    running: BoolProperty(name="Running", description="An export runs in the background (Esc or Stop ends it)")
+    stop_requested: BoolProperty(name="Stop requested", description="Set by Stop: the running export ends after "
+                                                                    "its current chunk, resumable")
+
+
 # The add-on's own module name: "pgt_blender", or "bl_ext.<repo>.pgt_blender" as an extension.
 ADDON = __package__.rpartition(".")[0]
 
@@ -168,16 +224,18 @@ def preferences(context):
     return addon.preferences if addon is not None else None
 
 
-classes = (PGT_PG_object, PGT_PG_authoring, PGT_PG_scan, PGTPreferences)
+classes = (PGT_PG_object, PGT_PG_authoring, PGT_PG_scan, PGT_PG_bank, PGTPreferences)
 
 
 def register():
     bpy.types.Object.pgt = PointerProperty(type=PGT_PG_object)
     bpy.types.Scene.pgt_authoring = PointerProperty(type=PGT_PG_authoring)
     bpy.types.Scene.pgt_scan = PointerProperty(type=PGT_PG_scan)
+    bpy.types.Scene.pgt_bank = PointerProperty(type=PGT_PG_bank)
 
 
 def unregister():
+    del bpy.types.Scene.pgt_bank
     del bpy.types.Scene.pgt_scan
     del bpy.types.Scene.pgt_authoring
     del bpy.types.Object.pgt

@@ -12,8 +12,8 @@ with a fingerprint of everything that went into it, so scans from other poses re
 it and an edited mesh, color or material rebuilds it.
 """
 
-import hashlib
 import math
+import zlib
 from dataclasses import replace
 
 import bpy
@@ -21,7 +21,7 @@ import numpy as np
 from mathutils import Matrix
 
 from ..core.errors import InputError
-from ..core.scan.raycast import ScanOptions, cast_rays, placement
+from ..core.scan.raycast import ScanOptions, cast_rays, placement, resolve_engine
 from ..core.scan.returns import Scan
 from ..core.scan.sensors import PRESETS, Sensor, load_sensor_toml
 from ..core.scan.targets import (DEFAULT_REFLECTIVITY, ScanTarget, mesh_target, reflectivity_from_linear,
@@ -56,18 +56,19 @@ def scan(obj: bpy.types.Object, settings) -> tuple[Scan, Sensor, np.ndarray]:
     ``settings.azimuth`` (rad, from +x counter-clockwise), turned to ``settings.heading``
     (rad). Returns the scan (sensor frame), the sensor and the (4, 4) float64
     sensor_from_object. Bad input raises InputError before any Blender data is made."""
-    sensor = sensor_of(settings)
-    target = scan_target(obj, settings.surfel_scale)
+    sensor, options = sensor_of(settings), ScanOptions()
+    target = scan_target(obj, settings.surfel_scale, options.engine)
     x, y = settings.distance * math.cos(settings.azimuth), settings.distance * math.sin(settings.azimuth)
     sensor_from_object = placement(target.bounds, sensor, x, y, settings.heading)
-    return cast_rays(target, sensor, sensor_from_object, ScanOptions()), sensor, sensor_from_object
+    return cast_rays(target, sensor, sensor_from_object, options), sensor, sensor_from_object
 
 
-def scan_target(obj: bpy.types.Object, radius_scale: float = 1.0) -> ScanTarget:
-    """The (cached) ScanTarget of ``obj``'s mesh data, object frame, m. With faces: its
-    triangles, ``source_index`` = the Blender polygon index of each. Without: surfels of
+def scan_target(obj: bpy.types.Object, radius_scale: float = 1.0, engine: str = "auto") -> ScanTarget:
+    """The (cached) ScanTarget of ``obj``'s mesh data, object frame, m, for ``engine``
+    (raycast.ENGINES; Blender's BVH is built for "bvh" only). With faces: its triangles,
+    ``source_index`` = the Blender polygon index of each. Without: surfels of
     ``radius_scale`` x the point spacing, ``source_index`` = the vertex index."""
-    inputs, build = _target_inputs(obj, radius_scale)
+    inputs, build = _target_inputs(obj, radius_scale, resolve_engine(engine) == "bvh")
     fingerprint = _fingerprint(inputs)
     cached = _cache.pop(obj.name, None)
     if cached is None or cached[0] != fingerprint:
@@ -78,7 +79,7 @@ def scan_target(obj: bpy.types.Object, radius_scale: float = 1.0) -> ScanTarget:
     return cached[1]
 
 
-def _target_inputs(obj: bpy.types.Object, radius_scale: float):
+def _target_inputs(obj: bpy.types.Object, radius_scale: float, with_bvh: bool):
     """Everything the target is made of (the cache's fingerprint covers it all) and the
     function that builds the target from it."""
     mesh = obj.data
@@ -88,29 +89,27 @@ def _target_inputs(obj: bpy.types.Object, radius_scale: float):
         opacity = mesh.attributes.get("opacity")  # Gaussian splats: faint ones are seen through
         opacities = read(opacity.data, "value", len(vertices), np.float32) if opacity is not None \
             and opacity.data_type == "FLOAT" and opacity.domain == "POINT" else None
-        return ("surfels", vertices, colors, radius_scale, opacities), \
-            lambda: surfel_target(vertices, obj.name, colors, radius_scale, opacities=opacities)
-    triangles, polygon_index = mesh_triangles(mesh)
-    slots = _triangle_slots(obj, len(triangles))
-    reflectivity = _face_reflectivity(obj, triangles, slots)
+        return ("surfels", vertices, colors, radius_scale, opacities, with_bvh), \
+            lambda: surfel_target(vertices, obj.name, colors, radius_scale, with_bvh=with_bvh, opacities=opacities)
+    corners, polygon_index = _triangle_corners(mesh)
+    triangles = _corner_vertices(mesh)[corners]
+    slots = _triangle_slots(obj, polygon_index)
+    reflectivity = _face_reflectivity(obj, triangles, corners, slots)
     see_through = _face_see_through(obj, slots)
 
     def build():
-        target = mesh_target(vertices, triangles, obj.name, reflectivity, face_see_through=see_through)
+        target = mesh_target(vertices, triangles, obj.name, reflectivity, with_bvh=with_bvh,
+                             face_see_through=see_through)
         return replace(target, source_index=polygon_index[target.source_index])
 
-    return ("mesh", vertices, triangles, polygon_index, reflectivity, see_through), build
+    return ("mesh", vertices, triangles, polygon_index, reflectivity, see_through, with_bvh), build
 
 
-def _fingerprint(inputs: tuple) -> bytes:
-    digest = hashlib.blake2b(digest_size=16)
-    for part in inputs:
-        if isinstance(part, np.ndarray):
-            digest.update(f"{part.dtype}{part.shape}".encode())
-            digest.update(np.ascontiguousarray(part).data)
-        else:
-            digest.update(repr(part).encode())
-    return digest.digest()
+def _fingerprint(inputs: tuple) -> tuple:
+    """What tells a changed target input: arrays by dtype, shape and CRC-32 of their bytes
+    (zlib's runs at memory speed; a cache key, not a security check), the rest by repr."""
+    return tuple((part.dtype.str, part.shape, zlib.crc32(np.ascontiguousarray(part).data))
+                 if isinstance(part, np.ndarray) else repr(part) for part in inputs)
 
 
 def read(collection, field: str, count: int, dtype) -> np.ndarray:
@@ -120,18 +119,42 @@ def read(collection, field: str, count: int, dtype) -> np.ndarray:
 
 
 def mesh_vertices(mesh: bpy.types.Mesh) -> np.ndarray:
-    """(V, 3) float32 vertex positions, object frame (an empty mesh has no "position"
-    attribute, so read ``vertices``)."""
-    return read(mesh.vertices, "co", len(mesh.vertices) * 3, np.float32).reshape(-1, 3)
+    """(V, 3) float32 vertex positions, object frame, from the "position" attribute (a
+    bulk copy, 50x faster than ``vertices``' "co"; an empty mesh has none)."""
+    position = mesh.attributes.get("position")
+    if position is None:
+        return np.zeros((0, 3), np.float32)
+    return read(position.data, "vector", len(mesh.vertices) * 3, np.float32).reshape(-1, 3)
 
 
 def mesh_triangles(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
     """(T, 3) int32 vertex indices of the mesh's triangulation and (T,) int32 polygon
     each triangle belongs to."""
+    corners, polygons = _triangle_corners(mesh)
+    return _corner_vertices(mesh)[corners], polygons
+
+
+def _triangle_corners(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 3) int32 corner (loop) indices of each triangle of the mesh's triangulation
+    and (T,) int32 its polygon. A mesh of triangles only is its own triangulation (the
+    usual reconstruction: read in bulk); others go through Blender's loop triangles,
+    whose per-element reads are slow on millions of faces."""
+    polygons = len(mesh.polygons)
+    if len(mesh.loops) == 3 * polygons:  # every polygon has >= 3 corners: all are triangles, in corner order
+        return np.arange(3 * polygons, dtype=np.int32).reshape(-1, 3), np.arange(polygons, dtype=np.int32)
     mesh.calc_loop_triangles()
     count = len(mesh.loop_triangles)
-    triangles = read(mesh.loop_triangles, "vertices", count * 3, np.int32).reshape(-1, 3)
-    return triangles, read(mesh.loop_triangles, "polygon_index", count, np.int32)
+    corners = read(mesh.loop_triangles, "loops", count * 3, np.int32).reshape(-1, 3)
+    return corners, read(mesh.loop_triangle_polygons, "value", count, np.int32)
+
+
+def _corner_vertices(mesh: bpy.types.Mesh) -> np.ndarray:
+    """(L,) int32 vertex of each corner (loop), from Blender's ".corner_vert" attribute
+    (a bulk copy; ``loops``' "vertex_index" is 50x slower)."""
+    corner_vert = mesh.attributes.get(".corner_vert")
+    if corner_vert is None:
+        return read(mesh.loops, "vertex_index", len(mesh.loops), np.int32)
+    return read(corner_vert.data, "value", len(mesh.loops), np.int32)
 
 
 def srgb(attribute) -> np.ndarray:
@@ -150,24 +173,24 @@ def point_colors(mesh: bpy.types.Mesh):
     return srgb(attribute) if attribute is not None and attribute.domain == "POINT" else None
 
 
-def _triangle_slots(obj: bpy.types.Object, triangles: int):
-    """(T,) int32 material slot of each triangle, or None when no slot holds a material."""
+def _triangle_slots(obj: bpy.types.Object, polygons: np.ndarray):
+    """(T,) int32 material slot of each triangle (``polygons``: its polygon), or None when
+    no slot holds a material."""
     if not any(slot.material for slot in obj.material_slots):
         return None
-    slots = read(obj.data.loop_triangles, "material_index", triangles, np.int32)
+    slots = read(obj.data.polygons, "material_index", len(obj.data.polygons), np.int32)[polygons]
     return np.clip(slots, 0, len(obj.material_slots) - 1)
 
 
-def _face_reflectivity(obj: bpy.types.Object, triangles: np.ndarray, slots):
+def _face_reflectivity(obj: bpy.types.Object, triangles: np.ndarray, corners: np.ndarray, slots):
     """(T,) reflectivity per triangle: the mean over its corners of the color
-    attribute, else its material's base color (``slots``: _triangle_slots), else None
-    (the core's default)."""
+    attribute (``triangles`` its vertices, ``corners`` its loops), else its material's
+    base color (``slots``: _triangle_slots), else None (the core's default)."""
     mesh = obj.data
     attribute = color_attribute(mesh)
     if attribute is not None:
-        corners = (triangles if attribute.domain == "POINT"
-                   else read(mesh.loop_triangles, "loops", triangles.size, np.int32).reshape(-1, 3))
-        return reflectivity_from_srgb(srgb(attribute))[corners].mean(axis=1)
+        per_element = triangles if attribute.domain == "POINT" else corners
+        return reflectivity_from_srgb(srgb(attribute))[per_element].mean(axis=1)
     return None if slots is None else _material_reflectivity(obj)[slots]
 
 
@@ -238,7 +261,7 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
     world = source.matrix_world @ Matrix(np.linalg.inv(sensor_from_object).tolist())
     made = []
     try:
-        points = _points_object(f"{source.name} Scan", result.returns,
+        points = points_object(f"{source.name} Scan", result.returns,
                                 return_colors(result.returns, sensor, settings.color_by), made)
         origin = bpy.data.objects.new("PGT Sensor", None)
         made.append(origin)
@@ -270,7 +293,7 @@ def _collection(scene: bpy.types.Scene) -> bpy.types.Collection:
     return collection
 
 
-def _points_object(name: str, returns: np.ndarray, rgba: np.ndarray, made: list) -> bpy.types.Object:
+def points_object(name: str, returns: np.ndarray, rgba: np.ndarray, made: list) -> bpy.types.Object:
     """A vertex-only mesh object: positions = the returns' x, y, z (sensor frame, stored
     float32), every other column a point attribute (float32 or int32), and the (N, 4)
     linear ``rgba`` as the active color attribute "color"."""

@@ -160,12 +160,47 @@ class VIEW3D_PT_pgt_objects(_PGTPanel, bpy.types.Panel):
     bl_idname = "VIEW3D_PT_pgt_objects"
 
     def draw(self, context):
-        column = self.layout.column(align=True)
+        layout = self.layout
+        layout.operator("object.pgt_author_selected", icon="MODIFIER")
+        column = layout.column(align=True)
         for obj in context.scene.objects:
             if authoring.is_reconstruction(obj):
                 row = column.row()
                 row.label(text=obj.name, icon="CHECKMARK" if all(authoring.status(obj).values()) else "DOT")
                 row.label(text=status_text(obj))
+
+
+class VIEW3D_PT_pgt_bank(_PGTPanel, bpy.types.Panel):
+    """The bank of the scene's authored objects: settings, export in the background, preview."""
+
+    bl_label = "Bank"
+    bl_idname = "VIEW3D_PT_pgt_bank"
+
+    def draw(self, context):
+        layout, settings = self.layout, context.scene.pgt_bank
+        layout.prop(settings, "config_file")
+        fields = layout.column()
+        fields.enabled = not settings.config_file  # a config file replaces the fields
+        for name in ("dataset", "sensor", "sweeps", "heading_step", "grid_step", "engine", "seed", "chunk_size"):
+            fields.prop(settings, name)
+        row = fields.row(align=True)
+        row.prop(settings, "openpcdet", toggle=True)
+        row.prop(settings, "mmdet3d", toggle=True)
+        layout.operator("scene.pgt_save_bank_config", icon="FILE_TICK")
+        layout.prop(settings, "output")
+        layout.prop(settings, "existing")
+        layout.prop(settings, "skip_incomplete")
+        if settings.running:
+            layout.progress(factor=settings.progress, text=f"{100 * settings.progress:.0f} %")
+            layout.operator("scene.pgt_stop_bank", icon="CANCEL")
+        else:
+            layout.operator("scene.pgt_export_bank", icon="EXPORT")
+        if settings.status:
+            layout.label(text=settings.status, icon="INFO")
+        row = layout.row(align=True)
+        row.operator("scene.pgt_open_bank_report", icon="TEXT")
+        row.operator("scene.pgt_preview_bank", icon="HIDE_OFF")
+        layout.prop(settings, "preview_count")
 
 
 def menu_import(self, context):
@@ -174,7 +209,7 @@ def menu_import(self, context):
 
 
 classes = (VIEW3D_PT_pgt_import, VIEW3D_PT_pgt_align, VIEW3D_PT_pgt_heading, VIEW3D_PT_pgt_size,
-           VIEW3D_PT_pgt_scan, VIEW3D_PT_pgt_objects)
+           VIEW3D_PT_pgt_scan, VIEW3D_PT_pgt_objects, VIEW3D_PT_pgt_bank)
 
 
 def register():

@@ -17,7 +17,8 @@ for a seed whatever the workers. A killed run continues with --resume. Cluster a
 jobs run --shard i/n each (into the same folder, or separate ones copied together
 with --assemble --from DIR ...), then one --assemble writes the info pickles and the
 manifest. The bank report (report.md + report.png in the folder) compares the bank with
-a real database given by --real. --data-root makes the info paths relative to the
+a real database given by --real, with its quality score per class (score_bank.py; --real-convention
+says how --real stores points). --data-root makes the info paths relative to the
 dataset root the detector joins them to, so the bank loads beside the real database
 (also with --assemble, to move a finished bank). An output folder that is not empty is refused without
 --resume/--overwrite.
@@ -113,19 +114,19 @@ def export_bank(args) -> int:
 
 
 def _progress(finished, total: int) -> None:
-    """Drain ``finished`` (entry counts per chunk) under a progress bar with rate and ETA."""
+    """Drain ``finished`` (export.ChunkDone per chunk) under a progress bar with rate and ETA."""
     try:
         from tqdm import tqdm
     except ImportError:  # Blender's own Python may lack tqdm: a plain count instead
         done = 0
-        for count in finished:
-            done += count
+        for chunk in finished:
+            done += chunk.entries
             print(f"\r{done:,}/{total:,} poses", end="", file=sys.stderr, flush=True)
         print(file=sys.stderr)
         return
     with tqdm(total=total, unit=" poses", smoothing=0.1, mininterval=1.0) as bar:
-        for count in finished:
-            bar.update(count)
+        for chunk in finished:
+            bar.update(chunk.entries)
 
 
 def real_reference(args, config: dict):
@@ -136,12 +137,20 @@ def real_reference(args, config: dict):
     return report.real_reference(args.real, config) if args.real else None
 
 
+def quality_score(args) -> dict:
+    """The bank's quality score against --real (Fréchet when torch imports: the encoder
+    is trained on --real and cached in the bank's .work folder)."""
+    from ..core.quality.score import quality_available, score_bank
+
+    return score_bank(args.out, args.real, args.real_convention, learned=quality_available())
+
+
 def finish(args, manifest: dict, reference, seconds: float, poses: int = 0) -> int:
     """Write the bank report (beside ``reference`` when given) and print the headline numbers."""
     try:
         from ..core.bank.report import write_report
 
-        report = f"report: {write_report(args.out, reference)[0]}"
+        report = f"report: {write_report(args.out, reference, quality_score(args) if reference else None)[0]}"
     except ImportError as error:  # matplotlib is not in Blender's own Python
         report = f"no report ({error.name} is not installed)"
     counts = ", ".join(f"{name} {count:,}" for name, count in manifest["counts"].items())
@@ -173,6 +182,9 @@ def main(argv: list) -> int:
                              "DATA_PATH/VERSION for nuScenes and Lyft; mmdet3d: data_root): paths are written "
                              "relative to it (default: relative to each format folder)")
     parser.add_argument("--real", type=Path, help="a real *_dbinfos_*.pkl the bank report compares with")
+    parser.add_argument("--real-convention", choices=("openpcdet", "mmdet3d"), default="openpcdet",
+                        help="how --real stores points, for the report's quality score: about the box centre "
+                             "(openpcdet, default) or its bottom centre (mmdet3d)")
     parser.add_argument("--from", dest="shard_dirs", type=Path, nargs="+", default=[],
                         help="with --assemble: shard folders to copy into --out first")
     args = parser.parse_args(argv)

@@ -26,28 +26,7 @@ from ..core.authoring.heading import best_available_method
 from ..core.authoring.prepare import UP_CHOICES, prepare, write_prepared
 from ..core.classes import CLASS_SIZES
 from ..core.errors import InputError
-from ..core.importing import load_reconstruction
-from ..core.importing.mesh import MESH_SUFFIXES
-
-SUFFIXES = {".ply", *MESH_SUFFIXES}
-
-
-def find_inputs(directory: Path) -> list:
-    """Reconstruction files and COLMAP model folders directly in ``directory``, sorted."""
-    if not directory.is_dir():
-        raise InputError(directory, "not a folder")
-    found = []
-    for entry in sorted(directory.iterdir()):
-        if entry.name.startswith("."):
-            continue
-        if entry.is_file() and entry.suffix.lower() in SUFFIXES:
-            found.append(entry)
-        elif entry.is_dir():
-            model = entry / "sparse" / "0" if (entry / "sparse" / "0").is_dir() else entry
-            if any((model / f"points3D{ext}").exists() for ext in (".bin", ".txt")):
-                found.append(model)
-    return found
-
+from ..core.importing import SUPPORTED, find_reconstructions, load_reconstruction
 
 def size_argument(text: str):
     """"class", "keep" or "L,W,H" in metres."""
@@ -81,11 +60,9 @@ def main(argv: list) -> int:
     args = parser.parse_args(argv)
     if args.class_name not in CLASS_SIZES[args.dataset]:
         parser.error(f"{args.dataset} has no class '{args.class_name}' (have: {', '.join(CLASS_SIZES[args.dataset])})")
-    inputs = find_inputs(args.inputs)
+    inputs = find_reconstructions(args.inputs)
     if not inputs:
-        print(f"error: {args.inputs}: no reconstructions found (supported: {', '.join(sorted(SUFFIXES))}, "
-              "COLMAP model folders)", file=sys.stderr)
-        return 1
+        raise InputError(args.inputs, f"no reconstructions found (supported: {SUPPORTED})")
     method = args.heading
     if method == "auto":
         method, why_not = best_available_method(args.checkpoint)

@@ -29,7 +29,8 @@ class DatabaseObject:
     """One object of a database in its box frame: ``points`` (N, 3) float64 metres,
     origin at the box centre, +x its heading; ``dims`` (3,) length, width, height;
     ``features`` (N, C) float32 the file's columns after x, y, z (intensity, ...);
-    ``name`` "<class>:<path>"; ``source`` the pickle with its checksum."""
+    ``name`` "<class>:<path>"; ``source`` the pickle with its checksum; ``centre``
+    (3,) float64 the box centre in the sensor frame (m)."""
 
     name: str
     class_name: str
@@ -37,6 +38,7 @@ class DatabaseObject:
     dims: np.ndarray
     features: np.ndarray
     source: str
+    centre: np.ndarray
 
 
 def load_infos(path, required: tuple = REQUIRED_KEYS) -> dict:
@@ -68,23 +70,32 @@ def load_infos(path, required: tuple = REQUIRED_KEYS) -> dict:
 
 
 def read_objects(path, convention: str, min_points: int = 5) -> list:
-    """DatabaseObject per info of the pickle at ``path`` with at least ``min_points``
-    points (sorted by class, then as listed), each turned into its box frame: moved by
-    the box centre (``convention`` "openpcdet") or bottom centre ("mmdet3d"), rotated by
-    -heading about z. Object files are relative to the pickle's folder."""
+    """Every object of ``iter_objects`` in a list."""
+    return list(iter_objects(path, convention, min_points))
+
+
+def iter_objects(path, convention: str, min_points: int = 5, root=None, choose=None):
+    """Yield a DatabaseObject per info of the pickle at ``path`` with at least
+    ``min_points`` points (by class name, then as listed), one .bin file read at a
+    time, so a database of any size streams. Each is turned into its box frame: moved
+    by the box centre (``convention`` "openpcdet") or bottom centre ("mmdet3d"),
+    rotated by -heading about z. Object files are relative to ``root`` (default: the
+    pickle's folder). ``choose(class_name, counts)`` -> indices into ``counts`` (the
+    (n,) num_points_in_gt of the class's infos with enough points) picks which to read,
+    in that order (default: all)."""
     if convention not in CONVENTIONS:
         raise ValueError(f"unknown ground-truth database convention '{convention}' ({', '.join(CONVENTIONS)})")
     path = Path(path)
+    root = path.parent if root is None else Path(root)
     infos = load_infos(path, OBJECT_KEYS)
     source = f"gt_database:{path.name} ({convention}) sha256:{hashlib.sha256(path.read_bytes()).hexdigest()}"
-    found = []
     for class_name, class_infos in sorted(infos.items()):
-        for info in class_infos:
-            count = int(info["num_points_in_gt"])
-            if count >= max(min_points, 1):
-                found.append(_object(path.parent / info["path"], np.asarray(info["box3d_lidar"], np.float64)[:7],
-                                     count, convention, class_name, info["path"], source))
-    return found
+        usable = [info for info in class_infos if int(info["num_points_in_gt"]) >= max(min_points, 1)]
+        counts = np.array([int(info["num_points_in_gt"]) for info in usable], np.int64)
+        for index in (range(len(usable)) if choose is None else choose(class_name, counts)):
+            info = usable[index]
+            yield _object(root / info["path"], np.asarray(info["box3d_lidar"], np.float64)[:7],
+                          int(counts[index]), convention, class_name, info["path"], source)
 
 
 def _object(path: Path, box: np.ndarray, count: int, convention: str, class_name: str, relative: str,
@@ -100,5 +111,8 @@ def _object(path: Path, box: np.ndarray, count: int, convention: str, class_name
         points[:, 2] -= box[5] / 2  # bottom centre -> centre
     cos, sin = np.cos(box[6]), np.sin(box[6])
     points[:, :2] = points[:, :2] @ np.array([[cos, -sin], [sin, cos]])  # rows rotated by -heading
+    centre = box[:3].copy()
+    if convention == "mmdet3d":
+        centre[2] += box[5] / 2  # mmdet3d's box3d_lidar z is the bottom
     return DatabaseObject(f"{class_name}:{relative}", class_name, points, box[3:6].copy(), columns[:, 3:].copy(),
-                          source)
+                          source, centre)

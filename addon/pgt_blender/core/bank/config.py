@@ -31,7 +31,7 @@
     drop_rate = 0.0             # extra random drop on top of ray_drop
     ray_drop = true             # the sensor's fitted ray-drop model (ray_drop.py; kitti has one)
     max_incidence_deg = 90.0
-    engine = "bvh"              # bvh (Blender's BVHTree) or embree (embreex: about 2x the entries/s)
+    engine = "auto"             # auto: embree where embreex imports, else bvh (Blender's BVHTree)
     ego_motion = true           # multi-sweep entries seen from a moving ego vehicle (sweeps.EGO_MOTION)
 
     [ground]                    # the ground under each pose (ground.py); 0 and 0: flat at -mounting height
@@ -95,7 +95,7 @@ class BankConfig:
     drop_rate: float = 0.0
     ray_drop: bool = True
     max_incidence_deg: float = 90.0
-    engine: str = "bvh"
+    engine: str = "auto"
     ego_motion: bool = True
     grade_deg: float = 0.69
     slope_deg: float = 1.32
@@ -222,6 +222,29 @@ def config_from_table(table: dict, path="bank config") -> BankConfig:
         raise InputError(path, f"bank.intensity_checkpoint is set but {config.dataset} intensities are the constant "
                                f"{config.constant_intensity:g}; set bank.intensity = \"model\" to use the checkpoint")
     return config
+
+
+def config_toml(config: BankConfig) -> str:
+    """``config`` as the TOML text load_config reads back to the same BankConfig: every
+    key written, so the file says all the bank depends on."""
+    values = asdict(config)
+    sections = {}
+    for name, (attribute, _, _) in _KEYS.items():
+        section, key = name.split(".")
+        sections.setdefault(section, []).append(f"{key} = {_toml_value(values[attribute])}")
+    if config.classes:
+        sections["classes"] = [f"{key} = {_toml_value(name)}" for key, name in config.classes.items()]
+    return "\n\n".join(f"[{section}]\n" + "\n".join(lines) for section, lines in sections.items()) + "\n"
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return repr(value)
 
 
 def grid_values(start: float, stop: float, step: float) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Where a bank's chunks run: this process, a local process pool, or a Ray cluster.
 Each runs ``write(job, cache, chunk_id, entries)`` (export.write_chunk) for the pending
-chunks and yields each one's entry count as it finishes; a worker holds one job and one
+chunks and yields what it returns (export.ChunkDone) as each finishes; a worker holds one job and one
 TargetCache (one BVH per object variant, reused across its chunks)."""
 
 import os
@@ -26,22 +26,20 @@ def start_worker(job, write) -> None:
     _job, _write, _cache = job, write, TargetCache(job.objects, job.config)
 
 
-def run_chunk(chunk_id: int, entries: np.ndarray) -> int:
-    """Export one chunk in this worker (``start_worker`` first); returns its entry count."""
-    _write(_job, _cache, chunk_id, entries)
-    return len(entries)
+def run_chunk(chunk_id: int, entries: np.ndarray):
+    """Export one chunk in this worker (``start_worker`` first); returns what ``write`` does."""
+    return _write(_job, _cache, chunk_id, entries)
 
 
 def run_local(job, chunks: list, pending: list, workers: int, write):
-    """Yield each pending chunk's entry count as it finishes, on ``workers`` processes
+    """Yield each pending chunk's ChunkDone as it finishes, on ``workers`` processes
     (1: in this process). Linux forks (the BVH library is already loaded), except for a
     learned intensity: PyTorch's thread pool does not survive a fork, so those workers,
     like every worker elsewhere, are spawned with the job."""
     if workers <= 1 or len(pending) <= 1:
         cache = TargetCache(job.objects, job.config)
         for chunk_id in pending:
-            write(job, cache, chunk_id, chunks[chunk_id])
-            yield len(chunks[chunk_id])
+            yield write(job, cache, chunk_id, chunks[chunk_id])
         return
     import multiprocessing
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -85,7 +83,7 @@ def _python_path() -> list:
     return [package_parent, os.environ.get("PYTHONPATH", "")]
 
 
-def _ray_chunk(job, write, chunk_id: int, entries: np.ndarray) -> int:
+def _ray_chunk(job, write, chunk_id: int, entries: np.ndarray):
     """One chunk as a Ray task: a worker process starts the job on its first task."""
     if _job is None or _job.out != job.out:
         start_worker(job, write)

@@ -11,7 +11,8 @@ are written last, from the chunk records, in chunk order.
 import json
 import os
 import pickle
-from dataclasses import dataclass, field
+import time
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -19,6 +20,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import atomic_output
+from ..scan.raycast import resolve_engine
 from ..scan.sensors import INTENSITY_MAX, sensor_from_name
 from ..scan.sweeps import motion_class
 from . import executors
@@ -58,6 +60,7 @@ class BankJob:
 def new_job(objects: list, config: BankConfig, out) -> BankJob:
     """A job for ``objects`` (checked BankObjects); InputError for a class without a
     dataset name, an unusable sensor or intensity checkpoint."""
+    config = replace(config, engine=resolve_engine(config.engine))  # the bank records the engine it used
     names = [class_name_for(config.dataset, obj.class_name, config.classes) for obj in objects]
     unnamed = sorted({obj.class_name for obj, name in zip(objects, names) if name is None})
     if unnamed:
@@ -118,7 +121,7 @@ def plan_bank(objects: list, config: BankConfig, out, resume: bool = False, over
 
 
 def run_plan(plan: Plan, workers: int = 1, executor: str = "local", address: str | None = None):
-    """Export the pending chunks; yields each one's entry count as it finishes."""
+    """Export the pending chunks; yields each one's ChunkDone as it finishes."""
     if executor == "ray":
         return executors.run_ray(plan.job, plan.chunks, plan.pending, address, write_chunk)
     return executors.run_local(plan.job, plan.chunks, plan.pending, workers, write_chunk)
@@ -134,15 +137,47 @@ def export_bank(objects: list, config: BankConfig, out, workers: int = 1, overwr
     return assemble(plan.job.out, data_root)
 
 
-def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.ndarray) -> None:
+CHUNK_STAGES = ("targets", "scans", "casts", "intensity", "records", "writes")
+
+
+@dataclass
+class ChunkDone:
+    """One written chunk: its entry count and the wall seconds of its stages, as the
+    executors report them (benchmarks sum them; nothing in the bank depends on them).
+
+    targets:   building the object variants' ray targets (BVH / Embree), first use only;
+    scans:     the entries' sweeps (scan_entry: casts, returns, noise, drop, box crop);
+    casts:     the part of ``scans`` spent casting rays (Scan.cast_seconds);
+    intensity: the learned intensity estimator, when the config names one;
+    records:   points in the dataset's columns and each format's record;
+    writes:    the .bin files and the chunk record.
+    """
+
+    entries: int
+    seconds: dict
+
+
+def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.ndarray) -> ChunkDone:
     """Scan ``entries``, write their .bin files in every format, then the chunk record."""
     config, sensor = job.config, job.sensor
     infos = {fmt: [] for fmt in config.formats}
     files, stats = {}, np.zeros(len(entries), STATS_DTYPE)
     histograms = {}
+    seconds = dict.fromkeys(CHUNK_STAGES, 0.0)
+    clock = [time.perf_counter()]
+
+    def lap(stage: str) -> None:
+        now = time.perf_counter()
+        seconds[stage] += now - clock[0]
+        clock[0] = now
+
     for row, entry in zip(stats, entries):
         obj: BankObject = job.objects[entry["object"]]
+        cache.get(int(entry["object"]), int(entry["variant"]))
+        lap("targets")
         scan, keep = scan_entry(cache, sensor, entry, config)
+        seconds["casts"] += scan.cast_seconds
+        lap("scans")
         rows = scan.returns[keep]
         row["object"], row["index"], row["heading"] = entry["object"], entry["index"], entry["heading"]
         row["x"], row["y"], row["points"] = scan.box[0], scan.box[1], len(rows)
@@ -153,6 +188,7 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
             rows["intensity"] = config.constant_intensity
         elif config.intensity_checkpoint:
             rows["intensity"] = _learned_intensity(config, cache, entry, obj, scan, keep)
+            lap("intensity")
         class_name = job.class_names[entry["object"]]
         name = f"{safe_name(obj.name)}_{safe_name(class_name)}_{int(entry['index']):05d}.bin"
         shared = {"name": class_name, "path": f"{DATABASE_FOLDER}/{name}", "image_idx": _group_id(entry),
@@ -160,13 +196,18 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
         points = entry_points(rows, config.dataset)
         for fmt in config.formats:
             data, info = database_record(fmt, config.dataset, points, scan.box, shared)
+            lap("records")
             relative = f"{fmt}/{info['path']}"
             files[relative] = write_file(job.out / relative, data.tobytes())
+            lap("writes")
             infos[fmt].append(info)
         histogram = histograms.setdefault(class_name, np.zeros(INTENSITY_BINS, np.int64))
         histogram += np.histogram(rows["intensity"], INTENSITY_BINS, (0.0, INTENSITY_MAX[config.dataset]))[0]
+        lap("records")
     record = {"chunk": chunk_id, "infos": infos, "files": files, "stats": stats, "intensity": histograms}
     write_file(chunk_record_path(job.out, chunk_id), write_record(record))
+    lap("writes")
+    return ChunkDone(len(entries), seconds)
 
 
 def _group_id(entry) -> int:

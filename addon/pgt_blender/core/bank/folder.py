@@ -53,7 +53,8 @@ def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared
                 raise InputError(out, "holds a bank of other objects or settings; use --overwrite or another --out")
             return
         else:
-            raise InputError(out, "is not empty: pass --resume to continue the bank there or --overwrite to replace it")
+            raise InputError(out, "is not empty: resume the bank there or overwrite it (--resume / --overwrite; the "
+                                  "Bank panel's 'If it exists')")
     (out / WORK / "chunks").mkdir(parents=True, exist_ok=True)
     with atomic_output(marker) as stream:
         stream.write(json.dumps(ident, indent=1).encode())
@@ -82,6 +83,22 @@ def read_identity(out: Path) -> dict:
         raise InputError(path, "not a bank identity (config, objects, class_names, chunks); --overwrite starts "
                                "the bank anew")
     return ident
+
+
+def read_manifest(out: Path) -> dict:
+    """OUT/manifest.json of a finished bank; InputError naming the folder when there is
+    none (not a bank, or an export not assembled yet) or naming the file when damaged."""
+    path = Path(out) / MANIFEST
+    if not path.is_file():
+        raise InputError(out, f"is not a finished bank: no {MANIFEST} (an export still running or stopped is "
+                              "finished by resuming it)")
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise InputError(path, f"damaged ({type(error).__name__}: {error})") from None
+    if not (isinstance(manifest, dict) and {"config", "info_pickles", "entries"} <= manifest.keys()):
+        raise InputError(path, "not a bank manifest (config, info_pickles, entries)")
+    return manifest
 
 
 def chunk_record_path(out: Path, chunk_id: int) -> Path:

@@ -214,15 +214,17 @@ def real_reference(real, config: dict, real_root=None) -> dict:
     return real_statistics(real, real_root, dataset=config["dataset"], grid=(config["x"], config["y"]))
 
 
-def write_report(out, reference: dict | None = None) -> tuple:
+def write_report(out, reference: dict | None = None, quality: dict | None = None) -> tuple:
     """Write OUT/report.md and OUT/report.png for the bank in ``out``, side by side with
-    a real database's ``reference`` (real_reference) when given. Every statistic is
+    a real database's ``reference`` (real_reference) when given, with its quality score
+    ``quality`` (quality.score.score_bank: a table and a plot) when given. Every statistic is
     computed before anything is written and each file is written atomically, so bad
     input (InputError) leaves no report file. The same bank gives the same bytes.
     Returns (md path, png path)."""
     out = Path(out)
     bank = bank_statistics(out)
-    outputs = {out / REPORT_MD: _markdown(bank, reference).encode(), out / REPORT_PNG: _figure_png(bank, reference)}
+    outputs = {out / REPORT_MD: _markdown(bank, reference, quality).encode(),
+               out / REPORT_PNG: _figure_png(bank, reference, quality)}
     for path, data in outputs.items():
         with atomic_output(path) as stream:
             stream.write(data)
@@ -261,7 +263,7 @@ def _class_names(bank: dict, real) -> list:
     return sorted(set(bank["classes"]) | set(real["classes"] if real else ()))
 
 
-def _markdown(bank: dict, real) -> str:
+def _markdown(bank: dict, real, quality=None) -> str:
     """The report's Markdown text (no timestamp, no absolute path: the same statistics
     give the same bytes)."""
     names = _class_names(bank, real)
@@ -283,6 +285,11 @@ def _markdown(bank: dict, real) -> str:
     unit = f"0..{_number(INTENSITY_MAX[bank['dataset']])}"
     lines += _table(["class"] + [f"{label} mean ({unit})" for label, _ in sources],
                     [[name] + [_intensity_mean(source, name) for _, source in sources] for name in names])
+    if quality is not None:
+        from ..quality.score import table_rows
+
+        lines += ["", "## Quality score against the real database", ""] + _table(*table_rows(quality))
+        lines += ["", _QUALITY_NOTE]
     lines += ["", "## Columns", "", *_COLUMN_NOTES, ""]
     return "\n".join(lines)
 
@@ -335,16 +342,27 @@ _COLUMN_NOTES = (
 )
 
 
+_QUALITY_NOTE = ("Per class matched by name (docs/formats.md, \"Quality score\"): objects compared, the Fréchet "
+                 "distance of the quality encoder's features with its 95 % bootstrap interval (– without torch), "
+                 "MMD-CD and COV (Chamfer on box-normalised 64-point objects), 1-NNA (0.5 = indistinguishable), "
+                 "W1 of log points scaled to 10 m and W1 of intensity over the dataset's maximum. Lower is better "
+                 "except COV.")
+
+
 # Figure
 
-def _figure_png(bank: dict, real) -> bytes:
-    """The report's PNG: points vs distance, intensity densities, bird's-eye coverage."""
+def _figure_png(bank: dict, real, quality=None) -> bytes:
+    """The report's PNG: points vs distance, intensity densities, bird's-eye coverage,
+    and with ``quality`` the per-class quality scores."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    figure = Figure(figsize=(17, 5), layout="constrained")
+    figure = Figure(figsize=(17 + 6 * (quality is not None), 5), layout="constrained")
     FigureCanvasAgg(figure)
-    distance_axes, intensity_axes, coverage_axes = figure.subplots(1, 3)
+    axes = figure.subplots(1, 3 + (quality is not None))
+    distance_axes, intensity_axes, coverage_axes = axes[:3]
+    if quality is not None:
+        _plot_quality(axes[3], quality)
     colors = {name: f"C{index % 10}" for index, name in enumerate(_class_names(bank, real))}
     for label, source, linestyle, marker in (("bank", bank, "-", "o"), ("real", real, "--", "s")):
         for name, stats in (source["classes"].items() if source else ()):
@@ -388,3 +406,28 @@ def _plot_coverage(figure, axes, bank: dict) -> None:
     axes.plot(0, 0, "r+", markersize=12)  # the sensor
     axes.set(xlabel="x (m)", ylabel="y (m)", title="Bird's-eye coverage (kept entries)", aspect="equal")
     figure.colorbar(mesh, ax=axes, label="kept entries per cell")
+
+
+def _plot_quality(axes, quality: dict) -> None:
+    """Per class: the feature-free distances as bars (lower is better; COV as 1 - COV so
+    every bar reads the same way), the Fréchet distance with its interval on a twin axis."""
+    names = list(quality["classes"])
+    keys = (("mmd", "MMD-CD"), ("coverage", "1 - COV"), ("w1_points", "W1 points"), ("w1_intensity", "W1 intensity"))
+    width = 0.8 / (len(keys) + 1)
+    for index, (key, label) in enumerate(keys):
+        values = [quality["classes"][name][key] for name in names]
+        values = [1 - value for value in values] if key == "coverage" else values
+        axes.bar(np.arange(len(names)) + index * width, values, width, label=label)
+    frechet = [quality["classes"][name]["frechet"] for name in names]
+    if names and all(value is not None for value in frechet):
+        twin = axes.twinx()
+        low = [value - quality["classes"][name]["frechet_low"] for name, value in zip(names, frechet)]
+        high = [quality["classes"][name]["frechet_high"] - value for name, value in zip(names, frechet)]
+        twin.errorbar(np.arange(len(names)) + len(keys) * width, frechet, yerr=[low, high], fmt="ks",
+                      label="Fréchet (95 % interval)")
+        twin.set_ylabel("Fréchet distance")
+        twin.legend(fontsize="small", loc="upper right")
+    axes.set_xticks(np.arange(len(names)) + len(keys) * width / 2, names)
+    axes.set(ylabel="distance (lower is better)", title="Quality score against the real database")
+    if axes.has_data():
+        axes.legend(fontsize="small", loc="upper left")

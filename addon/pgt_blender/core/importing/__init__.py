@@ -55,3 +55,23 @@ def load_reconstruction(path, kind: str = "auto", with_cameras: bool = True) -> 
         return load_mesh(path)
     header = read_header(path)
     return load_gaussian_splat(path, header) if detected == "gaussian_splat" else load_point_ply(path, header)
+
+
+def find_reconstructions(directory) -> list:
+    """The reconstructions directly in ``directory``, sorted by name: files of the
+    suffixes above and COLMAP model folders (a folder with points3D, or its sparse/0).
+    InputError when ``directory`` is not a folder."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise InputError(directory, "not a folder")
+    found = []
+    for entry in sorted(directory.iterdir()):
+        if entry.name.startswith("."):
+            continue
+        if entry.is_file() and entry.suffix.lower() in {".ply", *MESH_SUFFIXES}:
+            found.append(entry)
+        elif entry.is_dir():
+            model = entry / "sparse" / "0" if (entry / "sparse" / "0").is_dir() else entry
+            if any((model / f"points3D{ext}").exists() for ext in (".bin", ".txt")):
+                found.append(model)
+    return found

@@ -44,6 +44,7 @@ from ..classes import DATASETS
 from ..errors import InputError
 from ..files import atomic_output
 from ..learning import load_checkpoint, save_checkpoint
+from ..progress import progress_bar
 from . import losses, model
 
 TRAINING_FORMAT = "pgt_blender.intensity_training/1"
@@ -292,17 +293,6 @@ def _loss_rows(path: Path, step: int) -> list:
     return [row for row in table[1:] if int(row[0]) <= step]
 
 
-def _progress_bar(enabled: bool, total: int, initial: int):
-    """A tqdm bar when asked for and tqdm is installed, else None."""
-    if not enabled:
-        return None
-    try:
-        from tqdm import tqdm
-    except ImportError:
-        return None
-    return tqdm(total=total, initial=initial, unit="step", mininterval=1.0)
-
-
 def train(real, rgb, config: TrainConfig, out_dir, resume: bool = False, progress: bool = True) -> Path:
     """Train on ObjectSets ``real`` (K = 1) and ``rgb`` (K = 3) and return the path of
     the final checkpoint, ``out_dir``/intensity.pt. With ``resume`` and a checkpoint.pt
@@ -334,7 +324,7 @@ def train(real, rgb, config: TrainConfig, out_dir, resume: bool = False, progres
                                                             f"{config.steps} steps asked for")
             nets.load(state)
             start = state["step"]
-        bar = _progress_bar(progress, config.steps, start)
+        bar = progress_bar(progress, config.steps, "step", initial=start)
         for step in range(start + 1, config.steps + 1):
             rgb_rows, real_rows = draw_pairs(real, rgb, config.batch, config.seed, step)
             values = train_step(torch, nets, rgb_domain, real_domain, rgb_rows, real_rows, config)

@@ -19,6 +19,7 @@ test). A full revolution casts every cell; both return the same rows, bit for bi
 import math
 import time
 from dataclasses import dataclass
+from functools import lru_cache
 from itertools import chain, repeat
 
 import numpy as np
@@ -30,9 +31,23 @@ from .sensors import Sensor
 from .targets import ScanTarget
 
 
-ENGINES = ("bvh", "embree")
+ENGINES = ("auto", "bvh", "embree")
 MAX_SEE_THROUGH = 4  # see-through surfaces a ray passes (both sides of a cabin, twice)
 SEE_THROUGH_STEP = 1e-4  # m: how far past a see-through hit the ray goes on
+
+
+def resolve_engine(engine: str) -> str:
+    """The engine ``engine`` names: "auto" is "embree" when embreex imports, else "bvh"."""
+    return ("embree" if embree_available() else "bvh") if engine == "auto" else engine
+
+
+@lru_cache(maxsize=None)
+def embree_available() -> bool:
+    try:
+        import embreex  # noqa: F401  (only whether it imports)
+    except ImportError:
+        return False
+    return True
 
 
 @dataclass(frozen=True)
@@ -47,9 +62,11 @@ class ScanOptions:
     ray_drop:          drop returns with the sensor's ray-drop model (ray_drop.py), if it has one.
     seed:              the seed of the noise and the random drop.
     window:            cast only cells that can meet the box (False: full revolution).
-    engine:            "bvh" (Blender's BVHTree, one call per ray: exact, everywhere) or
+    engine:            "bvh" (Blender's BVHTree, one call per ray: exact, everywhere),
                        "embree" (embreex, one batched call per scan, about 20x faster on
-                       the rays; it may pick the other polygon at a shared edge).
+                       the rays; it may pick the other polygon at a shared edge) or
+                       "auto" (the default: embree where embreex imports, which the
+                       package and the extension ship, else bvh); resolved on creation.
     """
 
     range_noise: bool = False
@@ -59,11 +76,12 @@ class ScanOptions:
     ray_drop: bool = False
     seed: int = 0
     window: bool = True
-    engine: str = "bvh"
+    engine: str = "auto"
 
     def __post_init__(self):
         if self.engine not in ENGINES:
             raise ValueError(f"scan options: engine must be one of {', '.join(ENGINES)}")
+        object.__setattr__(self, "engine", resolve_engine(self.engine))
         if not 0 < self.max_incidence_deg <= 90 or not 0 <= self.min_intensity <= 1 \
                 or not 0 <= self.drop_rate < 1:
             raise ValueError("scan options: max_incidence_deg in (0, 90], min_intensity in [0, 1], "
@@ -320,7 +338,7 @@ def cast_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray
     returns = trace_returns(target, sensor, trace, options, sweep)
     box = placed_box(target.bounds, sensor_from_object)
     return Scan(returns, box, trace.rays, trace.seconds + time.perf_counter() - start, sensor.dataset,
-                [sensor_from_object])
+                [sensor_from_object], cast_seconds=trace.seconds)
 
 
 def trace_returns(target: ScanTarget, sensor: Sensor, trace: Trace, options: ScanOptions, sweep: int = 0):

@@ -47,6 +47,8 @@ class Scan:
              object stood then, in the key frame (the current sweep's sensor frame).
     origins: (3,) float64 per sweep: where the (moving) sensor fired that sweep from, key
              frame; returns are motion-compensated into the key frame. Empty: all at 0.
+    cast_seconds: the part of ``seconds`` spent casting rays (raycast.trace_rays: the
+             window, the engine's call, the float64 refinement); 0 for the range view.
     """
 
     returns: np.ndarray
@@ -56,6 +58,7 @@ class Scan:
     dataset: str = "nuscenes"
     poses: list = field(default_factory=list)
     origins: list = field(default_factory=list)
+    cast_seconds: float = 0.0
 
     @property
     def hits(self) -> int:

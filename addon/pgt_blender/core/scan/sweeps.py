@@ -136,4 +136,5 @@ def scan_sweeps(target: ScanTarget, sensor: Sensor, x: float, y: float, heading:
         origins.append(origin)
         rays += traces[key].rays
     box = placed_box(bounds, poses[0], motion.speed * direction)
-    return Scan(np.concatenate(parts), box, rays, time.perf_counter() - start, sensor.dataset, poses, origins)
+    return Scan(np.concatenate(parts), box, rays, time.perf_counter() - start, sensor.dataset, poses, origins,
+                sum(trace.seconds for trace in traces.values()))
