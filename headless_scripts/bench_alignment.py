@@ -2,7 +2,8 @@
 and time per call on the built-in sample vehicles and the Chrono vehicle meshes,
 sweeping point count, noise and outlier share one at a time around a default setting.
 
-    .venv/bin/python headless_scripts/bench_alignment.py [--quick] [--trials 5] [--chrono DIR] [--out bench/alignment]
+    .venv/bin/python headless_scripts/bench_alignment.py [--quick] [--trials 5] [--target-trials 20]
+        [--chrono DIR] [--out bench/alignment]
 
 Each trial samples the mesh surface (trimesh, seed k), adds Gaussian noise (sigma =
 noise x box diagonal), replaces an outlier share of the points by floaters uniform in a
@@ -12,6 +13,13 @@ The error is the angle between the found and the true rotation up to the documen
 symmetry: the 180 degree heading turn with the up prior (up = the true up); without a
 prior (PCA minor axis as up) also the up sign. Prints Markdown tables (medians and 95th
 percentiles over all objects and trials) and writes <out>.json and <out>.png.
+
+Refined (issue 18, align_axes(refine=True)): "refined prior" takes an up prior tilted
+by a random 0-10 degrees (the refinement must remove the tilt; error up to the heading
+turn), "refined free" no prior (up-axis error, sign not counted; the sign is reported
+as a share), box error of the refined box. A per-object table at the issue's target
+setting (0.5 % noise, 10 % floaters) gives the share of no-prior trials with up within
+1 degree.
 """
 
 import argparse
@@ -35,6 +43,8 @@ from pgt_blender.core.samples import random_rotation, sample_vehicle  # noqa: E4
 
 CHRONO = dev.SHARED_DATA / "chrono_vehicles"
 DEFAULT = {"points": 20000, "noise": 0.005, "outliers": 0.05}
+TARGET = {"points": 20000, "noise": 0.005, "outliers": 0.1}  # issue 18's setting, per object
+PRIOR_TILT_DEG = 10.0
 SWEEPS = {"points": (1000, 3000, 10000, 30000, 100000),
           "noise": (0.0, 0.0025, 0.005, 0.01, 0.02),
           "outliers": (0.0, 0.02, 0.05, 0.1, 0.2)}
@@ -68,6 +78,17 @@ def observe(mesh, points: int, noise: float, outliers: float, seed: int) -> tupl
     return (cloud @ rotation.T + translation).astype(np.float32), rotation
 
 
+def seed_of(index: int, trial: int) -> int:
+    return 1000 * index + trial
+
+
+def tilted_up(up: np.ndarray, degrees: float, rng) -> np.ndarray:
+    """``up`` turned by ``degrees`` about a random axis perpendicular to it."""
+    axis = np.cross(up, rng.normal(size=3))
+    axis /= np.linalg.norm(axis)
+    return Rotation.from_rotvec(np.radians(degrees) * axis).apply(up)
+
+
 def error_deg(found: np.ndarray, rotation: np.ndarray, symmetries: np.ndarray) -> float:
     """Angle of found object_from_source @ true source_from_object, least over ``symmetries``."""
     return float(np.degrees(Rotation.from_matrix(symmetries @ found @ rotation).magnitude().min()))
@@ -78,12 +99,21 @@ def run_setting(objects: list, points: int, noise: float, outliers: float, trial
     records = []
     for index, (name, mesh) in enumerate(objects):
         for trial in range(trials):
-            cloud, rotation = observe(mesh, points, noise, outliers, seed=1000 * index + trial)
+            cloud, rotation = observe(mesh, points, noise, outliers, seed=seed_of(index, trial))
             start = time.perf_counter()
             prior = align_axes(cloud, up=rotation[:, 2])
             seconds = time.perf_counter() - start
             free = align_axes(cloud)
+            tilt_rng = np.random.default_rng([seed_of(index, trial), 2])
+            tilted = tilted_up(rotation[:, 2], tilt_rng.uniform(0, PRIOR_TILT_DEG), tilt_rng)
+            refined = align_axes(cloud, up=tilted, refine=True)
+            refined_free = align_axes(cloud, refine=True)
             records.append({
+                "refined_error_deg": error_deg(refined.transform[:3, :3], rotation, WITH_PRIOR),
+                "refined_dims_error": float(np.max(np.abs(refined.dims - mesh.extents) / mesh.extents)),
+                "refined_free_up_deg": float(np.degrees(np.arccos(min(1.0, abs(refined_free.transform[2, :3]
+                                                                              @ rotation[:, 2]))))),
+                "refined_free_up_sign": bool(refined_free.transform[2, :3] @ rotation[:, 2] > 0),
                 "object": name, "trial": trial, "seconds": seconds,
                 "error_deg": error_deg(prior.transform[:3, :3], rotation, WITH_PRIOR),
                 "dims_error": float(np.max(np.abs(prior.dims - mesh.extents) / mesh.extents)),
@@ -92,10 +122,29 @@ def run_setting(objects: list, points: int, noise: float, outliers: float, trial
     return records
 
 
+def mesh_records(name: str, mesh, poses: int, index: int) -> list:
+    """The mesh itself (vertices and faces, float64), randomly posed ``poses`` times:
+    refined with a prior up to 10 degrees off and without a prior (face normals)."""
+    records = []
+    for pose in range(poses):
+        rng = np.random.default_rng([seed_of(index, pose), 3])
+        rotation, translation = random_rotation(rng), rng.normal(scale=TRANSLATION_M, size=3)
+        vertices = mesh.vertices @ rotation.T + translation
+        tilted = tilted_up(rotation[:, 2], rng.uniform(0, PRIOR_TILT_DEG), rng)
+        prior = align_axes(vertices, up=tilted, refine=True, faces=mesh.faces)
+        free = align_axes(vertices, refine=True, faces=mesh.faces)
+        records.append({"error_deg": error_deg(prior.transform[:3, :3], rotation, WITH_PRIOR),
+                        "dims_error": float(np.max(np.abs(prior.dims - mesh.extents) / mesh.extents)),
+                        "free_up_deg": float(np.degrees(np.arccos(min(1.0, abs(free.transform[2, :3]
+                                                                              @ rotation[:, 2])))))})
+    return records
+
+
 def summary(records: list) -> dict:
     """Medians and 95th percentiles over ``records``."""
     columns = {key: np.array([r[key] for r in records]) for key in
-               ("error_deg", "dims_error", "no_prior_error_deg", "seconds")}
+               ("error_deg", "dims_error", "no_prior_error_deg", "seconds", "refined_error_deg",
+                "refined_dims_error", "refined_free_up_deg")}
     stats = {f"{key}_{name}": float(np.percentile(values, q)) for key, values in columns.items()
              for name, q in (("median", 50), ("p95", 95))}
     return stats | {"trials": len(records)}
@@ -104,12 +153,15 @@ def summary(records: list) -> dict:
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="bench_alignment.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--trials", type=int, default=5, help="trials per object and setting")
-    parser.add_argument("--quick", action="store_true", help="1 trial, points up to 3e4 (~30 s)")
+    parser.add_argument("--quick", action="store_true",
+                        help="1 trial of the default and the target setting only, no sweeps (~1 min)")
     parser.add_argument("--chrono", type=Path, default=CHRONO, help="folder of .obj meshes, X forward, Z up")
+    parser.add_argument("--target-trials", type=int, default=20, help="trials per object at the issue-18 setting")
     parser.add_argument("--out", type=Path, default=Path("bench/alignment"))
     args = parser.parse_args(argv)
     trials = 1 if args.quick else args.trials
-    sweeps = SWEEPS | ({"points": SWEEPS["points"][:-1]} if args.quick else {})
+    target_trials = 1 if args.quick else args.target_trials
+    sweeps = {key: (value,) for key, value in DEFAULT.items()} if args.quick else SWEEPS
     objects = load_objects(args.chrono)
     settings = {}  # (points, noise, outliers) -> records, each setting run once
     rows = []
@@ -119,18 +171,27 @@ def main(argv: list) -> int:
             if key not in settings:
                 settings[key] = run_setting(objects, *key, trials)
             rows.append({"varied": varied, **dict(zip(DEFAULT, key)), **summary(settings[key])})
-    default = settings[tuple(DEFAULT.values())]  # on every sweep
-    per_object = [per_object_row(name, mesh, [r for r in default if r["object"] == name])
-                  for name, mesh in objects]
+    target = run_setting(objects, *TARGET.values(), target_trials)
+    per_object = [per_object_row(name, mesh, [r for r in target if r["object"] == name])
+                  | mesh_row(mesh_records(name, mesh, target_trials, index))
+                  for index, (name, mesh) in enumerate(objects)]
 
-    machine = dev.machine(numpy=np.__version__, scipy=scipy.__version__, trimesh=trimesh.__version__)
+    machine = dev.machine(numpy=np.__version__, scipy=scipy.__version__, trimesh=trimesh.__version__,
+                          load_average=dev.load_average())
     inputs = {name: [round(float(e), 3) for e in mesh.extents] for name, mesh in objects}
-    config = {"default": DEFAULT, "sweeps": sweeps, "trials_per_object": trials,
+    config = {"default": DEFAULT, "target": TARGET, "target_trials": target_trials,
+              "prior_tilt_deg": f"uniform 0-{PRIOR_TILT_DEG:g} about a random horizontal axis", "sweeps": sweeps, "trials_per_object": trials,
               "translation_sigma_m": TRANSLATION_M, "seeds": "sample_surface seed=1000*object+trial, "
               "noise/floaters/pose default_rng([that seed, 1])", "statistic": "median and p95 over objects x trials",
               "timed": "align_axes with the up prior, time.perf_counter"}
     print(f"machine: {machine}\n\ninputs (box l x w x h m): {inputs}\n\nsettings: {config}\n")
-    print_tables(rows, per_object)
+    body = tables(rows, per_object)
+    print(body)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".md").write_text(dev.markdown_report(
+        "Axis alignment: PCA and the refinement to the surface planes", "bench_alignment.py", machine,
+        {"objects (box l x w x h m)": {name: " x ".join(map(str, dims)) for name, dims in inputs.items()},
+         "settings": {key: str(value) for key, value in config.items()}}, body))
     dev.write_results(args.out, {"machine": machine, "inputs": inputs, "settings": config, "rows": rows,
                                  "per_object": per_object}, lambda plt: plot(plt, rows))
     return 0
@@ -145,27 +206,62 @@ def per_object_row(name: str, mesh, records: list) -> dict:
             "no_prior_error_deg_median": float(np.median(free)),
             "no_prior_error_deg_max": float(free.max()),
             "no_prior_within_10deg": f"{int((free < 10).sum())}/{len(free)}",
-            "no_prior_up_from": sorted({r["no_prior_up_from"] for r in records})}
+            "no_prior_up_from": sorted({r["no_prior_up_from"] for r in records}),
+            "refined_error_deg_median": float(np.median([r["refined_error_deg"] for r in records])),
+            "refined_error_deg_max": float(np.max([r["refined_error_deg"] for r in records])),
+            "refined_dims_error_median": float(np.median([r["refined_dims_error"] for r in records])),
+            "refined_free_up_within_1deg": float(np.mean([r["refined_free_up_deg"] < 1 for r in records])),
+            "refined_free_up_deg_median": float(np.median([r["refined_free_up_deg"] for r in records])),
+            "refined_free_up_sign": float(np.mean([r["refined_free_up_sign"] for r in records]))}
 
 
-def print_tables(rows: list, per_object: list) -> None:
-    print("| varied | points | noise % | outliers % | error ° median | error ° p95 | box error % median "
+def mesh_row(records: list) -> dict:
+    free = np.array([r["free_up_deg"] for r in records])
+    return {"mesh_error_deg_max": float(max(r["error_deg"] for r in records)),
+            "mesh_dims_error_max": float(max(r["dims_error"] for r in records)),
+            "mesh_free_up_within_1deg": float(np.mean(free < 1)), "mesh_free_up_deg_max": float(free.max())}
+
+
+def tables(rows: list, per_object: list) -> str:
+    """The Markdown tables of a run (what it prints and writes to <out>.md)."""
+    lines = []
+    add = lines.append
+    add("| varied | points | noise % | outliers % | error ° median | error ° p95 | box error % median "
           "| box error % p95 | no prior: error ° median | no prior: error ° p95 | ms per call |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    add("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['varied']} | {r['points']:,} | {100 * r['noise']:g} | {100 * r['outliers']:g} | "
+        add(f"| {r['varied']} | {r['points']:,} | {100 * r['noise']:g} | {100 * r['outliers']:g} | "
               f"{r['error_deg_median']:.2f} | {r['error_deg_p95']:.2f} | {100 * r['dims_error_median']:.1f} | "
               f"{100 * r['dims_error_p95']:.1f} | {r['no_prior_error_deg_median']:.2f} | "
               f"{r['no_prior_error_deg_p95']:.2f} | {1000 * r['seconds_median']:.1f} |")
-    print("\nper object at the default setting:\n")
-    print("| object | box l x w x h m | h / w | error ° median | no prior: error ° median "
-          "| no prior: error ° max | no prior: within 10° | no prior: up from |")
-    print("|---|---|---:|---:|---:|---:|---:|---|")
+    add("\nrefined (issue 18):\n")
+    add("| varied | points | noise % | outliers % | prior ≤10° off: error ° median | p95 | box error % median "
+          "| p95 | no prior: up ° median | p95 |")
+    add("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        add(f"| {r['varied']} | {r['points']:,} | {100 * r['noise']:g} | {100 * r['outliers']:g} | "
+              f"{r['refined_error_deg_median']:.2f} | {r['refined_error_deg_p95']:.2f} | "
+              f"{100 * r['refined_dims_error_median']:.1f} | {100 * r['refined_dims_error_p95']:.1f} | "
+              f"{r['refined_free_up_deg_median']:.2f} | {r['refined_free_up_deg_p95']:.2f} |")
+    add(f"\nper object at {TARGET['points']:,} points, {100 * TARGET['noise']:g} % noise, "
+          f"{100 * TARGET['outliers']:g} % floaters:\n")
+    add("| object | box l x w x h m | PCA+prior: error ° median | PCA no prior: error ° median "
+          "| refined, prior ≤10° off: error ° median | max | refined box error % median "
+          "| refined no prior: up within 1° | up ° median | up sign right |")
+    add("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in per_object:
-        print(f"| {r['object']} | {' x '.join(f'{d:.2f}' for d in r['dims_m'])} | {r['height_over_width']:.2f} | "
+        add(f"| {r['object']} | {' x '.join(f'{d:.2f}' for d in r['dims_m'])} | "
               f"{r['error_deg_median']:.2f} | {r['no_prior_error_deg_median']:.2f} | "
-              f"{r['no_prior_error_deg_max']:.2f} | {r['no_prior_within_10deg']} | "
-              f"{', '.join(r['no_prior_up_from'])} |")
+              f"{r['refined_error_deg_median']:.2f} | {r['refined_error_deg_max']:.2f} | "
+              f"{100 * r['refined_dims_error_median']:.1f} | {100 * r['refined_free_up_within_1deg']:.0f} % | "
+              f"{r['refined_free_up_deg_median']:.2f} | {100 * r['refined_free_up_sign']:.0f} % |")
+    add("\nthe meshes themselves (vertices and faces, refined by face normals), randomly posed:\n")
+    add("| object | prior ≤10° off: error ° max | box error % max | no prior: up within 1° | up ° max |")
+    add("|---|---:|---:|---:|---:|")
+    for r in per_object:
+        add(f"| {r['object']} | {r['mesh_error_deg_max']:.3f} | {100 * r['mesh_dims_error_max']:.2f} | "
+              f"{100 * r['mesh_free_up_within_1deg']:.0f} % | {r['mesh_free_up_deg_max']:.3f} |")
+    return "\n".join(lines)
 
 
 def plot(plt, rows: list):
@@ -174,7 +270,8 @@ def plot(plt, rows: list):
     for axis, (varied, label) in zip(axes, labels.items()):
         mine = [r for r in rows if r["varied"] == varied]
         x = [r[varied] * (1 if varied == "points" else 100) for r in mine]
-        for prefix, name, color in (("", "up prior", "C0"), ("no_prior_", "no prior", "C3")):
+        for prefix, name, color in (("", "up prior", "C0"), ("no_prior_", "no prior", "C3"),
+                                    ("refined_", "refined, prior ≤10° off", "C2")):
             axis.plot(x, [r[f"{prefix}error_deg_median"] for r in mine], "o-", color=color, label=f"{name} median")
             axis.plot(x, [r[f"{prefix}error_deg_p95"] for r in mine], "x--", color=color, label=f"{name} p95")
         axis.set_xscale("log" if varied == "points" else "linear")

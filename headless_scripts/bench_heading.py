@@ -1,6 +1,7 @@
 """Held-out front/back accuracy of the geometric baseline (profile_front_score > 0) and
 the learned classifier (front_probability > 0.5), leave-one-mesh-out over the built-in
-sample vehicles and the Chrono vehicle meshes, at several point densities and noise levels.
+sample vehicles and the Chrono vehicle meshes, at several point densities and noise levels,
+on dense surface samplings and on what a LiDAR sees of the held-out mesh.
 
     .venv/bin/python headless_scripts/bench_heading.py [--quick] [--steps N] [--samplings N] [--threads 2]
         [--chrono DIR] [--out bench/heading]
@@ -10,13 +11,19 @@ as train_heading.py but --steps, default 1000; --quick: 150), then both methods 
 --samplings seeded samplings of the held-out mesh per (points, noise) cell, half of
 them turned 180 degrees (the truth turns with them). Samplings are random subsets of
 the mesh's area-weighted surface sample plus Gaussian noise (sigma = noise x box
-diagonal). Prints Markdown tables (per cell, mean over held-out meshes; per mesh) and
+diagonal). Scans: the held-out mesh scanned by the project's ray caster
+(heading_classifier.scanned_point_sets: --sensor, 10, 20 and 35 m straight ahead, 8
+headings, one sweep), each view judged as it is and turned 180 degrees, with Gaussian
+noise (sigma = noise x box diagonal). The classifier is trained on the other meshes'
+dense samples and their scans alike (--no-scans: dense only, the former training).
+Prints Markdown tables (per cell, mean over held-out meshes; per mesh and noise) and
 writes <out>.json and <out>.png.
 """
 
 import argparse
 import sys
 import time
+import warnings
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,6 +60,20 @@ def judge(held_out, classifier, points: int, noise: float, samplings: int, seed:
     return baseline, learned
 
 
+def judge_scans(views: list, classifier, noise: float, seed: int) -> tuple:
+    """(baseline right, classifier right, judged) over the scanned ``views`` (PointSets)
+    of a held-out mesh, each judged as it is and turned 180 degrees, noise added."""
+    rng = np.random.default_rng(seed)
+    baseline = learned = judged = 0
+    for view in views:
+        noisy = view.points + rng.normal(scale=noise * np.linalg.norm(view.dims), size=view.points.shape)
+        for front_at_x, cloud in ((True, noisy), (False, noisy * (-1, -1, 1))):
+            baseline += (profile_front_score(cloud) > 0) == front_at_x
+            learned += (hc.front_probability(cloud, view.dims, classifier) > 0.5) == front_at_x
+            judged += 1
+    return baseline, learned, judged
+
+
 def mean(rows: list, key: str, **match) -> float:
     """Mean of ``key`` over the rows whose fields equal ``match``."""
     return float(np.mean([r[key] for r in rows if all(r[k] == v for k, v in match.items())]))
@@ -67,58 +88,103 @@ def main(argv: list) -> int:
                         help="samplings per (mesh, points, noise) cell (default 40, --quick 8)")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--chrono", type=Path, default=CHRONO, help="folder of .obj meshes, front at +x")
+    parser.add_argument("--sensor", default="nuscenes", help="sensor preset of the scans")
+    parser.add_argument("--no-scans", dest="scans", action="store_false",
+                        help="train on dense samples only (the scans are still judged)")
     parser.add_argument("--out", type=Path, default=Path("bench/heading"))
     args = parser.parse_args(argv)
     steps = args.steps or (150 if args.quick else 1000)
     samplings = args.samplings or (8 if args.quick else 40)
     torch.set_num_threads(args.threads)
-    meshes = hc.sample_point_sets()
+    labelled = hc.sample_meshes()
     if args.chrono.is_dir():
-        meshes += hc.mesh_folder_point_sets(args.chrono)
+        labelled += hc.mesh_folder_meshes(args.chrono)
     else:
         print(f"note: no Chrono meshes at {args.chrono}; leave-one-out over the built-in samples only")
+    meshes = [hc.point_set_from_mesh(mesh, name, source) for name, mesh, source in labelled]
+    with warnings.catch_warnings():  # zero-area faces dropped: said once per mesh is enough here
+        warnings.simplefilter("ignore")
+        scans = [hc.scanned_point_sets(mesh, name, source, args.sensor) for name, mesh, source in labelled]
     start = time.perf_counter()
-    rows = []  # one per (held-out mesh, points, noise)
+    rows, scan_rows = [], []  # one per (held-out mesh, points, noise); per (held-out mesh, noise)
     for held, held_out in enumerate(meshes):
         others = meshes[:held] + meshes[held + 1:]
+        if args.scans:
+            others += [view for index, views in enumerate(scans) if index != held for view in views]
         classifier = hc.train(others, seed=0, steps=steps, threads=args.threads)
+        for noise in NOISE_LEVELS:
+            baseline, learned, judged = judge_scans(scans[held], classifier, noise, held * 1000 + int(noise * 1000))
+            scan_rows.append({"mesh": held_out.name, "noise": noise, "views": judged,
+                              "baseline": baseline / judged, "classifier": learned / judged})
         for points in DENSITIES:
             for noise in NOISE_LEVELS:
                 seed = held * 1_000_000 + points * 100 + int(noise * 1000)
                 baseline, learned = judge(held_out, classifier, points, noise, samplings, seed)
                 rows.append({"mesh": held_out.name, "points": points, "noise": noise,
                              "baseline": baseline / samplings, "classifier": learned / samplings})
-        print(f"held out {held_out.name}: baseline {mean(rows, 'baseline', mesh=held_out.name):.3f}, "
-              f"classifier {mean(rows, 'classifier', mesh=held_out.name):.3f} "
+        print(f"held out {held_out.name}: dense: baseline {mean(rows, 'baseline', mesh=held_out.name):.3f}, "
+              f"classifier {mean(rows, 'classifier', mesh=held_out.name):.3f}; scans: baseline "
+              f"{mean(scan_rows, 'baseline', mesh=held_out.name):.3f}, "
+              f"classifier {mean(scan_rows, 'classifier', mesh=held_out.name):.3f} "
               f"({time.perf_counter() - start:.0f} s so far)", flush=True)
     seconds = time.perf_counter() - start
     cells = [{"points": p, "noise": n, **{k: mean(rows, k, points=p, noise=n) for k in METHODS}}
              for p in DENSITIES for n in NOISE_LEVELS]
     per_mesh = [{"mesh": m.name, "source": m.source.split(" sha256:")[0],
-                 **{k: mean(rows, k, mesh=m.name) for k in METHODS}} for m in meshes]
+                 **{k: mean(rows, k, mesh=m.name) for k in METHODS},
+                 **{f"scan_{k}_{n:g}": mean(scan_rows, k, mesh=m.name, noise=n) for k in METHODS for n in NOISE_LEVELS}}
+                for m in meshes]
+    scan_cells = [{"noise": n, **{k: mean(scan_rows, k, noise=n) for k in METHODS}} for n in NOISE_LEVELS]
     machine = dev.machine(torch_threads=args.threads, torch=str(torch.__version__), numpy=np.__version__,
-                          trimesh=trimesh.__version__)
+                          trimesh=trimesh.__version__, load_average=dev.load_average())
     settings = {"held_out_meshes": len(meshes), "training_steps": steps,
                 "training": "train_heading.py defaults but steps and threads, seed 0",
+                "trained_on": "dense samples and scans" if args.scans else "dense samples",
+                "scans": {"sensor": args.sensor, "ranges_m": hc.SCAN_RANGES_M, "headings": hc.SCAN_HEADINGS,
+                          "views_per_mesh": [len(v) for v in scans], "judged": "each view as is and turned 180"},
                 "samplings_per_cell": samplings, "flipped_share": 0.5, "densities": DENSITIES,
                 "noise_levels_of_diagonal": NOISE_LEVELS, "classifier_resamplings": 4, "seconds": round(seconds, 1)}
     inputs = [m.source for m in meshes]
     print(f"\nmachine: {machine}\nsettings: {settings}\ninputs: {', '.join(s.split(' sha256:')[0] for s in inputs)}\n")
-    print(f"Accuracy, mean over {len(meshes)} held-out meshes ({samplings} samplings each, half turned 180 degrees):\n")
-    print("| points | noise (of box diagonal) | baseline | classifier |")
-    print("|---:|---:|---:|---:|")
-    for c in cells:
-        print(f"| {c['points']} | {c['noise']:.0%} | {c['baseline']:.3f} | {c['classifier']:.3f} |")
-    print(f"| all | all | {mean(cells, 'baseline'):.3f} | {mean(cells, 'classifier'):.3f} |")
-    print("\nPer held-out mesh, mean over all cells:\n")
-    print("| held-out mesh | source | baseline | classifier |")
-    print("|---|---|---:|---:|")
-    for m in per_mesh:
-        print(f"| {m['mesh']} | {m['source']} | {m['baseline']:.3f} | {m['classifier']:.3f} |")
+    body = tables(cells, scan_cells, per_mesh, samplings, args.sensor)
+    print(body)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".md").write_text(dev.markdown_report(
+        "Heading: geometric baseline against the classifier, leave one mesh out", "bench_heading.py", machine,
+        {"settings": {key: str(value) for key, value in settings.items()},
+         "inputs": [source.split(" sha256:")[0] for source in inputs]}, body))
     dev.write_results(args.out, {"machine": machine, "settings": settings, "inputs": inputs, "cells": cells,
-                                 "per_mesh": per_mesh, "rows": rows}, lambda plt: plot(plt, cells, len(meshes)))
+                                 "scan_cells": scan_cells, "per_mesh": per_mesh, "rows": rows,
+                                 "scan_rows": scan_rows}, lambda plt: plot(plt, cells, len(meshes)))
     print(f"in {seconds:.0f} s")
     return 0
+
+
+def tables(cells: list, scan_cells: list, per_mesh: list, samplings: int, sensor: str) -> str:
+    """The Markdown tables of a run (what it prints and writes to <out>.md)."""
+    lines = []
+    add = lines.append
+    add(f"Accuracy, mean over {len(per_mesh)} held-out meshes ({samplings} samplings each, half turned 180 degrees):\n")
+    add("| points | noise (of box diagonal) | baseline | classifier |")
+    add("|---:|---:|---:|---:|")
+    for c in cells:
+        add(f"| {c['points']} | {c['noise']:.0%} | {c['baseline']:.3f} | {c['classifier']:.3f} |")
+    add(f"| all | all | {mean(cells, 'baseline'):.3f} | {mean(cells, 'classifier'):.3f} |")
+    add(f"\nScans ({sensor}, {', '.join(f'{r:g}' for r in hc.SCAN_RANGES_M)} m, {hc.SCAN_HEADINGS} headings), "
+        "mean over held-out meshes:\n")
+    add("| noise (of box diagonal) | baseline | classifier |")
+    add("|---:|---:|---:|")
+    for c in scan_cells:
+        add(f"| {c['noise']:.0%} | {c['baseline']:.3f} | {c['classifier']:.3f} |")
+    add("\nPer held-out mesh: dense (mean over all cells) and scans per noise level:\n")
+    noise_heads = " | ".join(f"scans {n:.0%}: baseline | classifier" for n in NOISE_LEVELS)
+    add(f"| held-out mesh | source | dense: baseline | classifier | {noise_heads} |")
+    add("|---|---|" + "---:|" * (2 + 2 * len(NOISE_LEVELS)))
+    for m in per_mesh:
+        scan_cols = " | ".join(f"{m[f'scan_baseline_{n:g}']:.3f} | {m[f'scan_classifier_{n:g}']:.3f}"
+                               for n in NOISE_LEVELS)
+        add(f"| {m['mesh']} | {m['source']} | {m['baseline']:.3f} | {m['classifier']:.3f} | {scan_cols} |")
+    return "\n".join(lines)
 
 
 def plot(plt, cells: list, meshes: int):

@@ -1,6 +1,7 @@
 """PCA axis alignment: analytic hard cases and property-based recovery of known poses."""
 
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -305,3 +306,109 @@ CHRONO = ("Nissan_Patrol/suv_chassis.obj", "sedan/sedan_chassis_vis.obj", "sedan
 @given(**POSES)
 def test_recovers_chrono_mesh_axes(shared_data, mesh, seed, noise, outliers):
     check_recovery(f"chrono_vehicles/data/vehicle/{mesh}", seed, noise, outliers)
+
+
+# ---- refinement to the surface planes (issue 18) -----------------------------------------
+
+def up_axis_degrees(found, rotation) -> float:
+    """Angle between the found and the true up axis, up to the up sign (the documented
+    symmetry without a prior)."""
+    return float(np.degrees(np.arccos(min(1.0, abs(found.transform[2, :3] @ rotation[:, 2])))))
+
+
+def posed_cloud(name, seed, noise, outliers):
+    """A sample or Chrono cloud with noise (x box diagonal) and floaters, randomly posed."""
+    points, dims = object_frame_points(name)
+    rng = np.random.default_rng(seed)
+    noisy = points + rng.normal(scale=noise * np.linalg.norm(dims), size=points.shape)
+    floaters = rng.random(len(points)) < outliers
+    noisy[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * dims
+    rotation = random_rotation(rng)
+    return (noisy @ rotation.T + rng.normal(scale=100, size=3)).astype(np.float32), rotation, dims, rng
+
+
+def tilted(vector, degrees, rng) -> np.ndarray:
+    """``vector`` turned by ``degrees`` about a random axis perpendicular to it."""
+    axis = np.cross(vector, rng.normal(size=3))
+    axis /= np.linalg.norm(axis)
+    angle = np.radians(degrees)
+    return vector * np.cos(angle) + np.cross(axis, vector) * np.sin(angle)
+
+
+REFINE_SETTINGS = settings(max_examples=2, deadline=None, derandomize=True)
+
+
+@pytest.mark.parametrize("class_name", MINORITY_CLASSES)
+@REFINE_SETTINGS
+@given(seed=st.integers(0, 2**32 - 1), prior_error=st.floats(0.0, 10.0), noise=st.sampled_from([0.0, 0.005]))
+def test_refinement_corrects_a_prior_within_ten_degrees(class_name, seed, prior_error, noise):
+    """A prior up to 10 degrees off, 10 % floaters: the refined axes are within 0.5
+    degrees (up to the heading turn), and the tilt it reports is the prior's error."""
+    source, rotation, _, rng = posed_cloud(class_name, seed, noise, 0.1)
+    found = align_axes(source, up=tilted(rotation[:, 2], prior_error, rng), refine=True)
+    assert found.refined and found.up_from == "prior"
+    assert error_degrees(found.transform[:3, :3], rotation.T) < 0.5
+    assert found.tilt_deg == pytest.approx(prior_error, abs=0.5)
+
+
+@pytest.mark.parametrize("class_name", MINORITY_CLASSES)
+@REFINE_SETTINGS
+@given(seed=st.integers(0, 2**32 - 1), noise=st.sampled_from([0.0, 0.005]))
+def test_refinement_finds_up_without_a_prior(class_name, seed, noise):
+    """Arbitrary pose, no prior, 10 % floaters: the up axis within 1 degree."""
+    source, rotation, _, _ = posed_cloud(class_name, seed, noise, 0.1)
+    found = align_axes(source, refine=True)
+    assert found.up_from == "planes"
+    assert up_axis_degrees(found, rotation) < 1.0
+
+
+@pytest.mark.parametrize("mesh", [m for m in CHRONO if "tire" not in m])
+def test_refinement_of_chrono_meshes_by_face_normals(shared_data, mesh):
+    """A real mesh, arbitrarily posed, no prior: its face normals give the axes exactly."""
+    loaded = trimesh.load(shared_data / "chrono_vehicles/data/vehicle" / mesh, force="mesh")
+    rotation = random_rotation(np.random.default_rng(len(mesh)))
+    vertices = loaded.vertices @ rotation.T + 2000.0
+    found = align_axes(vertices, faces=loaded.faces, refine=True)
+    assert up_axis_degrees(found, rotation) < 0.5
+    prior = align_axes(vertices, up=tilted(rotation[:, 2], 8.0, np.random.default_rng(1)), faces=loaded.faces,
+                       refine=True)
+    assert error_degrees(prior.transform[:3, :3], rotation.T) < 0.5
+
+
+def test_the_issue_truck_tilted_yawed_and_far_away(shared_data):
+    """Issue 18's case: truck_chassis tilted 4 degrees about x, 37 degrees of yaw, 2 km
+    away, prepared with the size kept: box within 1 %, axes within 0.5 degrees."""
+    from scipy.spatial.transform import Rotation
+
+    from pgt_blender.core.authoring.prepare import prepare
+    from pgt_blender.core.reconstruction import Reconstruction
+
+    mesh = trimesh.load(shared_data / "chrono_vehicles/data/vehicle/truck/truck_chassis.obj", force="mesh")
+    rotation = Rotation.from_euler("x", 4, degrees=True).as_matrix() @ Rotation.from_euler("z", 37, degrees=True).as_matrix()
+    vertices = (mesh.vertices @ rotation.T + [2000.0, 0, 0]).astype(np.float32)
+    recon = Reconstruction(positions=vertices, kind="mesh", source=Path("truck_chassis.obj"), sha256="",
+                           faces=np.asarray(mesh.faces, np.int32))
+    authored = prepare(recon, "truck", up="auto", heading_method="baseline", size="keep")
+    assert np.abs(authored.dims / mesh.extents - 1).max() < 0.01
+    assert error_degrees(authored.object_from_source[:3, :3], rotation.T) < 0.5
+    assert authored.steps[0].details["tilt_deg"] > 3.0
+
+
+@pytest.mark.parametrize("class_name", MINORITY_CLASSES)
+def test_refined_box_is_not_inflated_by_noise_and_floaters(class_name):
+    """0.5 % noise (x box diagonal) and 10 % floaters: the refined box is the surface's.
+    Walls (length and width of the box-shaped classes) within 1 % and tighter than the
+    unrefined box of the noisy points; what the plane fit pulls in (tyres below,
+    handlebar ends, the two-wheelers' thin parts) within 3.5 %. Issue 18 asks 1 % on
+    every axis: not reached on those (see bench/alignment.md)."""
+    source, rotation, dims, _ = posed_cloud(class_name, 7, 0.005, 0.1)
+    refined = align_axes(source, up=rotation[:, 2], refine=True)
+    plain = align_axes(source, up=rotation[:, 2])
+    error = np.abs(refined.dims / dims - 1)
+    assert error.max() < 0.035
+    if class_name not in ("motorcycle", "bicycle"):
+        assert error[:2].max() < 0.01
+        assert error[:2].max() < np.abs(plain.dims / dims - 1)[:2].max()
+    source, rotation, _, _ = posed_cloud(class_name, 7, 0.0, 0.0)
+    clean = align_axes(source, up=rotation[:, 2], refine=True)
+    assert np.abs(clean.dims / dims - 1).max() < 0.005

@@ -199,3 +199,37 @@ def test_bench_script_runs(tmp_path):
     assert {m["mesh"] for m in report["per_mesh"]} >= {"truck", "bicycle"}
     assert (tmp_path / "heading.png").stat().st_size > 0
     assert "| points | noise (of box diagonal) | baseline | classifier |" in result.stdout
+
+
+@pytest.fixture(scope="module")
+def truck_scans():
+    name, mesh, source = hc.sample_meshes(["truck"])[0]
+    return hc.scanned_point_sets(mesh, name, source, "nuscenes", ranges=(10.0, 30.0), headings=4), mesh
+
+
+def test_scans_are_partial_one_sided_views_in_the_object_frame(truck_scans):
+    """Each view holds only what the sensor saw: inside the box, fewer points far away,
+    the rear seen when the front points away (heading 0) and the front when turned
+    180 degrees; the dims are the whole mesh's box."""
+    views, mesh = truck_scans
+    assert [v.name for v in views] == [f"truck@{r}m/{h}deg" for r in (10, 30) for h in (0, 90, 180, 270)]
+    dims = mesh.extents
+    for view in views:
+        np.testing.assert_allclose(view.dims, dims)
+        assert (np.abs(view.points) <= dims / 2 + 1e-6).all()
+        assert view.source.endswith("scans:nuscenes")
+    near, far = views[:4], views[4:]
+    assert all(len(n.points) > 2 * len(f.points) for n, f in zip(near, far))
+    assert near[0].points[:, 0].mean() < -dims[0] / 4 < dims[0] / 4 < near[2].points[:, 0].mean()
+    assert near[3].points[:, 1].mean() < 0 < near[1].points[:, 1].mean()  # turned left: its left side faces us
+
+
+@needs_torch
+def test_short_training_on_scans_learns_them(samples, truck_scans):
+    """Dense samples plus scans, a short run: the scanned views are told front from back."""
+    views, _ = truck_scans
+    classifier = hc.train(samples + views, seed=0, steps=250)
+    right = [(hc.front_probability(cloud, view.dims, classifier) > 0.5) == front
+             for view in views for front, cloud in ((True, view.points), (False, view.points * FLIP))]
+    assert np.mean(right) >= 0.85
+    assert any("scans:nuscenes" in source["source"] for source in classifier.config["sources"])

@@ -44,6 +44,33 @@ def cameras(obj: bpy.types.Object) -> list:
     return [child for child in obj.children if child.type == "CAMERA"]
 
 
+def triangles(obj: bpy.types.Object):
+    """(F, 3) int32 vertex indices of ``obj``'s faces, triangulated, or None for a point cloud."""
+    mesh = obj.data
+    if not len(mesh.polygons):
+        return None
+    mesh.calc_loop_triangles()
+    values = np.empty(len(mesh.loop_triangles) * 3, np.int32)
+    mesh.loop_triangles.foreach_get("vertices", values)
+    return values.reshape(-1, 3)
+
+
+def selected_face_normal(obj: bpy.types.Object):
+    """(3,) area-weighted mean normal of the selected faces (local frame), or None."""
+    mesh = obj.data
+    if obj.mode == "EDIT":
+        obj.update_from_editmode()
+    count = len(mesh.polygons)
+    selected, normals, areas = np.empty(count, bool), np.empty(count * 3, np.float32), np.empty(count, np.float32)
+    mesh.polygons.foreach_get("select", selected)
+    mesh.polygons.foreach_get("normal", normals)
+    mesh.polygons.foreach_get("area", areas)
+    if not selected.any():
+        return None
+    mean = (normals.reshape(-1, 3)[selected] * areas[selected, None]).sum(axis=0)
+    return mean if np.linalg.norm(mean) > 0 else None
+
+
 def camera_poses(obj: bpy.types.Object) -> np.ndarray:
     """(C, 4, 4) OpenCV world_from_camera of the child cameras, in ``obj``'s local frame."""
     poses = [np.array(_local_matrix(camera)) @ _BLENDER_FROM_OPENCV for camera in cameras(obj)]

@@ -5,6 +5,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import bpy
+import numpy as np
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
@@ -187,15 +188,24 @@ def align(context, obj, settings) -> prepare.Step:
     """The Align Axes step of ``obj`` with the scene's authoring ``settings``."""
     if not len(obj.data.vertices):
         raise InputError(obj.pgt.source_path or obj.name, "has no points to align")
-    up = prepare.up_vector(settings.up, authoring.camera_poses(obj), obj.pgt.source_path)
-    return prepare.align_step(authoring.positions(obj), authoring.weights(obj), up, obj.pgt.source_path)
+    source = obj.pgt.source_path or obj.name
+    points = authoring.positions(obj)
+    if settings.up == "cursor":
+        up = np.array(obj.matrix_world.inverted() @ context.scene.cursor.location) - np.median(points, axis=0)
+    elif settings.up == "face":
+        up = authoring.selected_face_normal(obj)
+        if up is None:
+            raise InputError(source, "has no selected faces to take up from (select them in Edit Mode)")
+    else:
+        up = prepare.up_vector(settings.up, authoring.camera_poses(obj), source)
+    return prepare.align_step(points, authoring.weights(obj), up, source, settings.refine, authoring.triangles(obj))
 
 
 def detect_front(context, obj, settings) -> prepare.Step:
     """The Detect Front step of ``obj``."""
     checkpoint = bpy.path.abspath(settings.checkpoint) if settings.checkpoint else None
     return prepare.automatic_heading_step(authoring.positions(obj), authoring.current_dims(obj),
-                                          settings.heading_method, checkpoint)
+                                          settings.heading_method, checkpoint, obj.pgt.source_path or obj.name)
 
 
 def set_size(context, obj, settings, seed: int | None = None) -> prepare.Step:
@@ -204,7 +214,8 @@ def set_size(context, obj, settings, seed: int | None = None) -> prepare.Step:
     if problem:
         raise InputError(obj.name, problem)
     return prepare.size_step(authoring.current_dims(obj), settings.size_mode, settings.dataset, settings.class_name,
-                             settings.seed if seed is None else seed, settings.uniform, tuple(settings.exact_dims))
+                             settings.seed if seed is None else seed, settings.uniform, tuple(settings.exact_dims),
+                             obj.name)
 
 
 class _AuthoringStep:
@@ -229,9 +240,8 @@ class _AuthoringStep:
         obj = context.active_object
         try:
             step = self.step(context, obj, context.scene.pgt_authoring)
-        except (InputError, ValueError) as error:
-            message = str(error) if isinstance(error, InputError) else f"{obj.name}: {error}"
-            self.report({"ERROR"}, message)
+        except InputError as error:
+            self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         authoring.apply_step(obj, step)
         self.report({"INFO"}, f"{obj.name}: {self.bl_label.lower()}, box "
@@ -271,7 +281,7 @@ class OBJECT_OT_pgt_front_from_cursor(_AuthoringStep, bpy.types.Operator):
 
     def step(self, context, obj, settings):
         cursor = obj.matrix_world.inverted() @ context.scene.cursor.location
-        return prepare.front_step(tuple(cursor), authoring.current_dims(obj))
+        return prepare.front_step(tuple(cursor), authoring.current_dims(obj), obj.name)
 
 
 class OBJECT_OT_pgt_auto_heading(_AuthoringStep, bpy.types.Operator):

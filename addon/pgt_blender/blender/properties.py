@@ -19,9 +19,12 @@ _KIND_LABELS = {
     "point_ply": "Point cloud", "mesh": "Mesh",
 }
 _IDENTITY = ((1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1))
+UI_UP_CHOICES = ("cursor", "face")  # up choices only the UI has (the CLI has no cursor or selection)
 _UP_LABELS = {"auto": ("Auto", "Cameras' mean up when the object has cameras, else the PCA minor axis"),
               "cameras": ("Cameras", "Mean up vector of the reconstruction's cameras"),
-              "pca": ("PCA", "Minor principal axis: right for objects lower than they are wide")}
+              "pca": ("PCA", "Minor principal axis: right for objects lower than they are wide"),
+              "cursor": ("3D Cursor", "From the middle of the points towards the 3D cursor"),
+              "face": ("Selected Faces", "Mean normal of the mesh's selected faces (pick them in Edit Mode)")}
 _SENSOR_LABELS = {"nuscenes": "nuScenes", "kitti": "KITTI", "lyft": "Lyft", "vlp16": "VLP-16"}
 _DATASET_LABELS = {"nuscenes": "nuScenes", "kitti": "KITTI", "lyft": "Lyft"}
 # "//" (relative to the .blend) is a supported file-path form; 4.5 warns about it
@@ -87,7 +90,10 @@ class PGT_PG_authoring(bpy.types.PropertyGroup):
 
     up: EnumProperty(name="Up", default="auto", description="Which direction Align Axes takes as up", items=[
         (choice, *_UP_LABELS.get(choice, (f"Source {choice.upper()}", f"The source frame's {choice} axis")))
-        for choice in UP_CHOICES])
+        for choice in (*UP_CHOICES, *UI_UP_CHOICES)])
+    refine: BoolProperty(name="Refine from Geometry", default=True,
+                         description="Turn the chosen up and the yaw onto the object's own flat faces (sides, "
+                                     "roof, floor); without a prior, find up from them")
     heading_method: EnumProperty(name="Method", default="classifier",
                                  description="How Detect Front decides which end is the front", items=[
         ("classifier", "Classifier", "PointNet front/back classifier (needs torch)"),

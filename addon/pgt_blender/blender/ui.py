@@ -62,6 +62,14 @@ def status_text(obj) -> str:
     return " | ".join(parts)
 
 
+def refinement_text(obj) -> str:
+    """What the last alignment's refinement did: the tilt it removed and the noise."""
+    align = next((step for step in reversed(authoring.steps(obj)) if step["step"] == "align"), {})
+    if not align.get("refined"):
+        return "Not refined to the surface"
+    return f"Refined: tilt removed {align['tilt_deg']:.2f}°, noise {align['noise']:.3g}"
+
+
 class _AuthoringPanel(_PGTPanel):
     @classmethod
     def poll(cls, context):
@@ -77,9 +85,11 @@ class VIEW3D_PT_pgt_align(_AuthoringPanel, bpy.types.Panel):
         layout = self.layout
         layout.label(text=status_text(obj), icon="CHECKMARK" if all(authoring.status(obj).values()) else "INFO")
         layout.prop(context.scene.pgt_authoring, "up")
+        layout.prop(context.scene.pgt_authoring, "refine")
         layout.operator("object.pgt_align", icon="ORIENTATION_GIMBAL")
         if authoring.status(obj)["aligned"]:
             layout.label(text="Box " + " x ".join(f"{d:.3g}" for d in obj.pgt.dims))
+            layout.label(text=refinement_text(obj))
 
 
 class VIEW3D_PT_pgt_heading(_AuthoringPanel, bpy.types.Panel):

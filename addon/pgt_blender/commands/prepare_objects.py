@@ -1,10 +1,11 @@
-"""Prepare a folder of reconstructions for scanning: align (PCA), head (front at +x)
+"""Prepare a folder of reconstructions for scanning: align (PCA, refined to the
+object's surface planes unless --no-refine), head (front at +x)
 and size each one, and write it in the object frame with a sidecar JSON.
 
     pgt-prepare-objects --in DIR --class truck --out DIR
     .venv/bin/python headless_scripts/prepare_objects.py --in DIR --class truck --out DIR
         [--dataset nuscenes] [--up auto] [--heading auto] [--size class|keep|L,W,H]
-        [--uniform] [--seed 0] [--checkpoint PATH]
+        [--uniform] [--seed 0] [--checkpoint PATH] [--no-refine]
     blender -b -P headless_scripts/prepare_objects.py -- --in DIR --class truck --out DIR
 
 Inputs: every .ply/.obj/.glb/.gltf/.stl file and COLMAP model folder (or folder with
@@ -54,6 +55,8 @@ def main(argv: list) -> int:
     parser.add_argument("--uniform", action="store_true", help="scale all axes by one factor (keeps proportions)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first object's size draw")
     parser.add_argument("--checkpoint", type=Path, help="heading classifier checkpoint (default: the shipped one)")
+    parser.add_argument("--no-refine", dest="refine", action="store_false",
+                        help="keep the up choice and PCA yaw as they are (no refinement to the surface planes)")
     args = parser.parse_args(argv)
     if args.class_name not in CLASS_SIZES[args.dataset]:
         parser.error(f"{args.dataset} has no class '{args.class_name}' (have: {', '.join(CLASS_SIZES[args.dataset])})")
@@ -67,12 +70,12 @@ def main(argv: list) -> int:
             print(f"note: {why_not}; heading by the geometric baseline", file=sys.stderr)
     mode, exact = (args.size, None) if isinstance(args.size, str) else ("exact", args.size)
     failures = 0
-    print(f"{'object':32} {'points':>8} {'up':>6} {'heading':>18}  dims [l, w, h] m")
+    print(f"{'object':32} {'points':>8} {'up':>6} {'tilt °':>6} {'heading':>18}  dims [l, w, h] m")
     for index, path in enumerate(inputs):
         try:
             recon = load_reconstruction(path)
             authored = prepare(recon, args.class_name, args.dataset, args.up, method, mode, exact,
-                               args.uniform, args.seed + index, args.checkpoint)
+                               args.uniform, args.seed + index, args.checkpoint, args.refine)
             write_prepared(authored, args.class_name, args.dataset, args.out)
         except InputError as error:
             print(f"error: {error}", file=sys.stderr)
@@ -83,6 +86,7 @@ def main(argv: list) -> int:
         score = f" {heading['score']:.2f}" if "score" in heading else ""
         dims = ", ".join(f"{d:.2f}" for d in authored.dims)
         print(f"{recon.name:32} {len(recon.positions):8d} {align.details['up_from']:>6} "
+              f"{align.details['tilt_deg']:6.2f} "
               f"{heading['by'] + score:>18}  [{dims}]")
     print(f"\n{len(inputs) - failures} of {len(inputs)} prepared into {args.out}")
     return 1 if failures else 0

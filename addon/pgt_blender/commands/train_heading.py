@@ -4,11 +4,14 @@ no rotation augmentation) and save a checkpoint with its training config.
     pgt-train-heading --out PATH [--seed 0] [--steps 3000] [--points 512]
     .venv/bin/python headless_scripts/train_heading.py --out PATH [--seed 0] [--steps 3000] [--points 512]
         [--chrono DIR] [--gt-database PKL --gt-convention mmdet3d|openpcdet] [--no-samples] [--threads 1]
+        [--scans nuscenes|kitti|...|SENSOR.toml]
     blender -b -P headless_scripts/train_heading.py -- --out PATH [...]
 
 Training sets: the built-in sample vehicles (unless --no-samples), the meshes under
 --chrono (the shipped checkpoint used ../shared/data/chrono_vehicles) and, with --gt-database,
-the objects of an mmdetection3d / OpenPCDet ground-truth database. Same inputs, seed
+the objects of an mmdetection3d / OpenPCDet ground-truth database; with --scans, also
+what that sensor sees of every mesh (heading_classifier.scanned_point_sets: partial
+one-sided views at 10, 20 and 35 m and 8 headings). Same inputs, seed
 and --threads give the same checkpoint bytes. Exit status 1 and a one-line message on
 bad input; nothing is written then. The shipped checkpoint is this script's default
 run with --out addon/pgt_blender/models/heading_pointnet.pt.
@@ -30,9 +33,12 @@ from ..core.errors import InputError
 
 def training_sets(args) -> list:
     """The point sets the arguments name; InputError for a missing or bad input."""
-    sets = [] if args.no_samples else hc.sample_point_sets()
+    meshes = [] if args.no_samples else hc.sample_meshes()
     if args.chrono is not None:
-        sets += hc.mesh_folder_point_sets(args.chrono)
+        meshes += hc.mesh_folder_meshes(args.chrono)
+    sets = [hc.point_set_from_mesh(mesh, name, source) for name, mesh, source in meshes]
+    if args.scans:
+        sets += [view for name, mesh, source in meshes for view in hc.scanned_point_sets(mesh, name, source, args.scans)]
     if args.gt_database is not None:
         database = hc.read_gt_database(args.gt_database, args.gt_convention)
         if not database:
@@ -66,6 +72,8 @@ def main(argv: list) -> int:
     parser.add_argument("--gt-convention", choices=("mmdet3d", "openpcdet"),
                         help="how the database stores points: relative to the box bottom centre (mmdet3d) or centre")
     parser.add_argument("--no-samples", action="store_true", help="leave out the built-in sample vehicles")
+    parser.add_argument("--scans", metavar="SENSOR",
+                        help="also train on this sensor's scans of every mesh (a preset name or a .toml)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (part of what makes bytes repeat)")
     args = parser.parse_args(argv)
     if args.gt_database is not None and args.gt_convention is None:

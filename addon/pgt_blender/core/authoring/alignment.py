@@ -26,6 +26,36 @@ LAPACK sign or ordering):
   (a symmetric shape) the sign closest to the source axis wins. The 180 degree
   heading ambiguity is left to the heading step.
 
+Refinement from the object's own geometry (``refine=True``, what ``prepare`` and the
+Blender panel use): vehicles are built from large flat faces (sides, roof, floor, ends)
+that meet at right angles, so the object frame is the *Manhattan frame* of the surface
+normals. :func:`surface_estimate` fits a plane to each point's ``NORMAL_NEIGHBOURS``
+nearest neighbours (normal, planarity, local noise); :func:`refine_to_planes` then
+rotates a starting frame until the planar normals line up with its axes (each normal
+assigned to the nearest axis inside a cone that narrows from 20 to 5 degrees, the
+rotation solved by weighted Kabsch/SVD, weights planarity squared). The start is the
+prior (up, then the footprint yaw as above), so a prior a few degrees off is corrected
+and the correction is reported as ``tilt_deg``; with no prior the start is
+:func:`dominant_frame`, the most populated normal direction and the most populated one
+perpendicular to it, which needs no PCA and no source axis. Which refined axis is up
+then: x is the longest extent, y the axis across which the object is mirror-symmetric
+(:func:`mirror_error`: left and right of a vehicle match, top and bottom do not), z the
+third, its sign from the third moment as without refinement. The sign of up is not
+reliable from geometry alone (a bus is nearly as heavy at the top as at the bottom):
+without a prior, up is found as an axis and its sign is the documented symmetry. Shapes
+without enough planar structure (less than ``MIN_PLANAR_SHARE`` of the weight assigned
+to an axis: spheres, cylinders) keep the unrefined frame (``refined`` is False).
+
+The refined box is taken from the surface estimate, not the raw points: each point is
+moved towards its neighbourhood plane by at most six times the estimated noise (the
+10th percentile of the neighbourhoods' out-of-plane spread; 0 for a noise-free
+sampling of flat faces, which then moves nothing), so noise inflates the box less
+while thin parts with too few points for a plane stay where they are. A side where a
+wall faces outwards is then the median of the wall's points, not their extreme
+(:func:`_surface_bounds`). What is left: the plane fit pulls a convex end (a tyre's
+contact patch, a handlebar end) inwards by its sagitta over the neighbourhood, about 1
+to 2 % of the height or width at 0.5 % noise (bench/alignment.md).
+
 Robustness: floaters are dropped by a k-nearest-neighbour density test
 (:func:`density_inliers`) before any moment is taken; moments are float64 after
 subtracting the median, so float32 clouds 1e6 m from the origin lose nothing more
@@ -41,6 +71,13 @@ from ..errors import InputError
 ISOTROPY = 0.05
 BOX_TRIM = 0.001
 NEIGHBOURS = 8
+NORMAL_NEIGHBOURS = 48
+REFINE_CONES_DEG = (20.0, 12.0, 8.0, 5.0, 5.0)
+MIN_PLANAR_SHARE = 0.05
+MIRROR_SAMPLE = 4000
+FACING_DEG = 30.0
+SIDE_BAND = 2.0
+WALL_RATIO = 2.0
 
 
 @dataclass
@@ -52,8 +89,14 @@ class Alignment:
     dims:      (3,) float64 box extents (length x, width y, height z) of the inliers
                less the 0.1 % most extreme per side, in source units.
     inliers:   (N,) bool, the points the moments and the box were taken from.
-    up_from:   "prior", "pca" or "source" (see the module notes).
-    yaw_from:  "pca", "fourfold" or "source".
+    up_from:   "prior", "pca" or "source" (see the module notes), "planes" when the
+               refinement chose up without a prior.
+    yaw_from:  "pca", "fourfold" or "source"; "planes" when refined.
+    refined:   True when the frame was refined to the surface planes.
+    tilt_deg:  angle (degrees) between the up before refinement (the prior, else the PCA
+               up) and the refined up: the residual tilt the refinement removed; 0 when
+               not refined.
+    noise:     estimated surface noise (standard deviation, source units); 0 when not refined.
     """
 
     transform: np.ndarray
@@ -61,6 +104,9 @@ class Alignment:
     inliers: np.ndarray
     up_from: str
     yaw_from: str
+    refined: bool = False
+    tilt_deg: float = 0.0
+    noise: float = 0.0
 
 
 def checked_points(positions, weights=None, source="points") -> tuple:
@@ -100,28 +146,37 @@ def density_inliers(points: np.ndarray, neighbours: int = NEIGHBOURS, threshold:
     return (spacing <= limit)[inverse.ravel()]
 
 
-def camera_up(world_from_cameras) -> np.ndarray:
+def camera_up(world_from_cameras, source="cameras") -> np.ndarray:
     """(3,) unit mean up vector of OpenCV cameras (their -y axis), given (C, 4, 4)
-    world_from_camera matrices; photos of an object are mostly taken upright."""
+    world_from_camera matrices; photos of an object are mostly taken upright.
+    InputError(source) when the ups cancel out."""
     ups = -np.asarray(world_from_cameras, np.float64)[:, :3, 1]
     mean = ups.sum(axis=0)
     norm = np.linalg.norm(mean)
     if norm < 1e-9 * len(ups):
-        raise ValueError("camera up vectors cancel out: choose the up axis by hand")
+        raise InputError(source, "camera up vectors cancel out: choose the up axis by hand")
     return mean / norm
 
 
-def align_axes(positions, weights=None, up=None, source="points") -> Alignment:
+def align_axes(positions, weights=None, up=None, source="points", refine: bool = False,
+               faces=None) -> Alignment:
     """Align ``positions`` (N, 3), any float dtype, source frame) to the object frame.
 
     weights: optional (N,) non-negative per-point weights (Gaussian-splat opacity).
     up:      optional (3,) up direction in the source frame; its sign is kept.
+    refine:  refine the frame to the object's surface planes and take the box from the
+             surface estimate (module notes).
+    faces:   optional (F, 3) vertex indices of a mesh: refinement then takes the face
+             normals weighted by face area (exact, whatever the vertex density) and the
+             box the vertices as they are (no density test: a mesh's vertex density
+             varies with its detail, not with floaters).
     """
     points, weights = checked_points(positions, weights, source)
     median = np.median(points, axis=0)
     centred = points - median
     inliers = weights > 0  # zero-weight points (transparent splats) take no part
-    inliers[inliers] = density_inliers(centred[inliers])
+    if not (refine and faces is not None and len(faces)):  # a mesh's vertex density says nothing of floaters
+        inliers[inliers] = density_inliers(centred[inliers])
     kept, kept_weights = centred[inliers], weights[inliers]
     mean = np.average(kept, axis=0, weights=kept_weights)
     kept = kept - mean
@@ -134,22 +189,212 @@ def align_axes(positions, weights=None, up=None, source="points") -> Alignment:
         z, up_from = _minor_axis(kept, kept_weights)
     x, yaw_from = _footprint_axis(kept, kept_weights, z)
     rotation = np.stack([x, np.cross(z, x), z])  # rows: object axes in the source frame
-    low, high = _trimmed_bounds(kept @ rotation.T)
+    box_points, box_normals, box_trim, extra = kept, None, BOX_TRIM, {}
+    is_mesh = faces is not None and len(faces) > 0
+    if refine and (is_mesh or len(kept) > 2 * NORMAL_NEIGHBOURS):
+        surface = mesh_surface(kept, centred - mean, faces, source) if is_mesh else surface_estimate(kept)
+        planar = surface.planarity**2 * (kept_weights if len(surface.planarity) == len(kept) else 1)
+        start = rotation if up is not None else dominant_frame(surface.normals, planar)
+        refined, share = refine_to_planes(start, surface.normals, planar)
+        if share >= MIN_PLANAR_SHARE:
+            if up is None:
+                refined = _label_axes(refined, surface.denoised, kept_weights)
+                up_from = "planes"
+            else:
+                refined = _length_first(refined, surface.denoised, kept_weights)
+            tilt = np.degrees(np.arccos(np.clip(abs(refined[2] @ z), 0, 1)))
+            rotation, box_points, yaw_from = refined, surface.denoised, "planes"
+            box_trim = 0.0 if is_mesh else BOX_TRIM
+            box_normals = None if is_mesh or surface.noise == 0 else surface.normals
+            extra = {"refined": True, "tilt_deg": float(tilt), "noise": surface.noise}
+    if box_normals is None:
+        low, high = _trimmed_bounds(box_points @ rotation.T, box_trim)
+    else:
+        low, high = _surface_bounds(box_points @ rotation.T, box_normals @ rotation.T, extra["noise"])
     centre = (low + high) / 2
     transform = np.eye(4)
     transform[:3, :3] = rotation
     # source point p -> rotation @ (p - median - mean) - centre
     transform[:3, 3] = -rotation @ (median + mean) - centre
-    return Alignment(transform, high - low, inliers, up_from, yaw_from)
+    return Alignment(transform, high - low, inliers, up_from, yaw_from, **extra)
 
 
-def _trimmed_bounds(local: np.ndarray) -> tuple:
-    """Per-axis (low, high) of ``local`` (N, 3) without the ``BOX_TRIM`` share of most
-    extreme points on each side (none below 1 / BOX_TRIM points): floaters that sit
-    next to the surface pass the density test but must not widen the box."""
-    trim = int(BOX_TRIM * len(local))
+@dataclass
+class SurfaceEstimate:
+    """Local planes of a cloud (N points, centred float64, source units).
+
+    normals:   (N, 3) unit normal of the plane through each point's neighbourhood.
+    planarity: (N,) (l2 - l1) / l3 of the neighbourhood's covariance eigenvalues
+               l1 <= l2 <= l3, in [0, 1]: 1 for a flat patch, 0 for a line or a blob.
+    denoised:  (N, 3) points moved towards their plane by at most 6 x ``noise``.
+    noise:     the surface noise, the 10th percentile of sqrt(l1) over the points (flat
+               patches exist on every vehicle; their out-of-plane spread is the noise).
+    """
+
+    normals: np.ndarray
+    planarity: np.ndarray
+    denoised: np.ndarray
+    noise: float
+
+
+def surface_estimate(points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) -> SurfaceEstimate:
+    """Plane fits to the ``neighbours`` nearest points of each of ``points`` (N, 3)
+    float64 (centred), vectorised (one batched eigh)."""
+    from scipy.spatial import cKDTree
+
+    neighbours = min(neighbours, len(points))
+    _, index = cKDTree(points).query(points, k=neighbours, workers=-1)
+    hood = points[index]
+    centres = hood.mean(axis=1)
+    spread = hood - centres[:, None]
+    values, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", spread, spread) / neighbours)
+    values = np.maximum(values, 0)
+    normals = vectors[:, :, 0]
+    planarity = (values[:, 1] - values[:, 0]) / np.maximum(values[:, 2], np.finfo(float).tiny)
+    noise = float(np.percentile(np.sqrt(values[:, 0]), 10))
+    offsets = np.einsum("ni,ni->n", points - centres, normals)
+    denoised = points - np.clip(offsets, -6 * noise, 6 * noise)[:, None] * normals
+    return SurfaceEstimate(normals, planarity, denoised, noise)
+
+
+def mesh_surface(kept: np.ndarray, vertices: np.ndarray, faces, source="points") -> SurfaceEstimate:
+    """The surface of a mesh: unit face normals of ``vertices`` (V, 3) with planarity
+    sqrt(area / largest area) (so the weight, planarity squared, is the relative area),
+    the ``kept`` (N, 3) vertices as they are and noise 0."""
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(source, f"faces must be (F, 3) indices into {len(vertices)} vertices")
+    corners = vertices[faces]
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    used = area > 0
+    normals = cross[used] / area[used, None]
+    return SurfaceEstimate(normals, np.sqrt(area[used] / area.max()), kept, 0.0)
+
+
+def refine_to_planes(rotation: np.ndarray, normals: np.ndarray, weights: np.ndarray,
+                     cones_deg=REFINE_CONES_DEG) -> tuple:
+    """(refined (3, 3) rotation, share): ``rotation`` (rows: object axes in the source
+    frame) turned until the ``normals`` (N, 3) line up with its axes (weighted Kabsch
+    over the normals within each cone of the nearest axis, up to sign); ``share`` is the
+    weight share inside the last cone. Rows keep their meaning (a small turn)."""
+    rows = np.arange(len(normals))
+    total = weights.sum()
+    share = 0.0
+    for cone in cones_deg:
+        along = normals @ rotation.T
+        nearest = np.abs(along).argmax(axis=1)
+        cosine = along[rows, nearest]
+        inside = np.abs(cosine) > np.cos(np.radians(cone))
+        share = float(weights[inside].sum() / total) if total > 0 else 0.0
+        if share == 0:
+            break
+        targets = np.zeros_like(along)
+        targets[rows, nearest] = np.sign(cosine)
+        u, _, vt = np.linalg.svd((targets[inside] * weights[inside, None]).T @ normals[inside])
+        rotation = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    return rotation, share
+
+
+def dominant_frame(normals: np.ndarray, weights: np.ndarray, cone_deg: float = 10.0,
+                   candidates: int = 1500) -> np.ndarray:
+    """(3, 3) rotation whose first row is the most populated normal direction (the
+    largest weight of normals within ``cone_deg``, up to sign, among an evenly spread
+    subset of the normals themselves) and second row the most populated direction
+    perpendicular to it. Deterministic: the subset is every k-th normal."""
+    step = max(1, len(normals) // candidates)
+    pool = normals[::step]
+    cosine = np.cos(np.radians(cone_deg))
+
+    def most_populated(directions):
+        votes = (np.abs(directions @ normals.T) > cosine) @ weights
+        return directions[int(np.argmax(votes))]
+
+    first = most_populated(pool)
+    across = pool - np.outer(pool @ first, first)
+    length = np.linalg.norm(across, axis=1)
+    perpendicular = length > np.cos(np.radians(90 - cone_deg))
+    if not perpendicular.any():
+        return _completed(first, np.eye(3)[int(np.argmin(np.abs(first)))])
+    second = most_populated(across[perpendicular] / length[perpendicular, None])
+    return _completed(first, second)
+
+
+def _completed(first, second) -> np.ndarray:
+    second = second - first * (first @ second)
+    second /= np.linalg.norm(second)
+    return np.stack([first, second, np.cross(first, second)])
+
+
+def mirror_error(points: np.ndarray, axis: np.ndarray) -> float:
+    """Median distance from ``points`` (N, 3) mirrored across the plane normal to
+    ``axis`` (through the middle of their trimmed extent along it) to the nearest original
+    point: about the point spacing for a mirror-symmetric shape, more otherwise."""
+    from scipy.spatial import cKDTree
+
+    (low,), (high,) = _trimmed_bounds((points @ axis)[:, None])
+    middle = (low + high) / 2
+    sample = points[:: max(1, len(points) // MIRROR_SAMPLE)]
+    mirrored = sample - 2 * np.outer(sample @ axis - middle, axis)
+    distances, _ = cKDTree(points).query(mirrored, workers=-1)
+    return float(np.median(distances))
+
+
+def _length_first(rotation, points, weights) -> np.ndarray:
+    """``rotation`` with x on the longer of its two horizontal axes (the footprint's
+    PCA can pick the width of a sparse mesh); x signed as without refinement."""
+    low, high = _trimmed_bounds(points @ rotation[:2].T)
+    if high[1] - low[1] <= high[0] - low[0]:
+        return rotation
+    x = _signed(rotation[1], points, weights, rotation[0])
+    return np.stack([x, np.cross(rotation[2], x), rotation[2]])
+
+
+def _label_axes(rotation, points, weights) -> np.ndarray:
+    """Rows of ``rotation`` reordered and signed: x the longest extent, y the axis of
+    mirror symmetry of the other two, z the remaining one (signs as the unrefined
+    frame's: the longer third-moment tail, else the source axes)."""
+    low, high = _trimmed_bounds(points @ rotation.T)
+    x_row = int(np.argmax(high - low))
+    others = [row for row in range(3) if row != x_row]
+    errors = [mirror_error(points, rotation[row]) for row in others]
+    z_row = others[int(np.argmax(errors))]
+    z = _signed(rotation[z_row], points, weights, np.array([0.0, 0.0, 1.0]))
+    x = _signed(rotation[x_row], points, weights, np.array([1.0, 0.0, 0.0]))
+    return np.stack([x, np.cross(z, x), z])
+
+
+def _trimmed_bounds(local: np.ndarray, share: float = BOX_TRIM) -> tuple:
+    """Per-axis (low, high) of ``local`` (N, 3) without the ``share`` of most extreme
+    points on each side (none below 1 / share points): floaters that sit next to the
+    surface pass the density test but must not widen the box. A refined mesh is not
+    trimmed (it has no floaters; its extremes are thin parts such as mirrors)."""
+    trim = int(share * len(local))
     ordered = np.partition(local, (trim, len(local) - 1 - trim), axis=0)
     return ordered[trim], ordered[len(local) - 1 - trim]
+
+
+def _surface_bounds(local: np.ndarray, normals: np.ndarray, noise: float) -> tuple:
+    """Per-axis (low, high) of a denoised noisy surface ``local`` (N, 3) with its
+    ``normals`` (N, 3), same frame. A side where a wall faces outwards (the points
+    whose normal is within ``FACING_DEG`` of the axis crowd into the outer band,
+    ``SIDE_BAND`` x ``noise`` wide, at least ``WALL_RATIO`` times as many as in the
+    band inside it) is the median of that crowd: denoised points still scatter about
+    a wall, so their extreme lies outside it. Other sides (wheels, rounded ends) keep
+    the trimmed extreme."""
+    low, high = _trimmed_bounds(local)
+    facing = np.abs(normals) > np.cos(np.radians(FACING_DEG))
+    band = SIDE_BAND * noise
+    for axis in range(3):
+        values = local[facing[:, axis], axis]
+        for sign, bounds in ((1, high), (-1, low)):
+            outward = sign * values
+            edge = sign * bounds[axis]
+            outer = outward[outward >= edge - band]
+            inner = np.count_nonzero((outward < edge - band) & (outward >= edge - 2 * band))
+            if len(outer) >= 1 / BOX_TRIM and len(outer) >= WALL_RATIO * inner:
+                bounds[axis] = sign * np.median(outer)
+    return low, high
 
 
 def _weighted_cov(points, weights) -> np.ndarray:

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
+
 
 def quarter_turns(turns: int) -> np.ndarray:
     """(4, 4) rotation by ``turns`` x 90 degrees about +z (counter-clockwise seen from
@@ -26,13 +28,14 @@ def quarter_turns(turns: int) -> np.ndarray:
     return rotation
 
 
-def front_towards(direction) -> np.ndarray:
+def front_towards(direction, source="direction") -> np.ndarray:
     """(4, 4) quarter-turn rotation that makes the box side facing ``direction``
     ((3,) in the object frame, e.g. the 3D cursor location) the front (+x). The
-    direction snaps to the nearest of +x, +y, -x, -y."""
+    direction snaps to the nearest of +x, +y, -x, -y. InputError(source) for a vertical
+    or non-finite direction."""
     x, y = np.asarray(direction, np.float64)[:2]
     if not np.isfinite([x, y]).all() or (x == 0 and y == 0):
-        raise ValueError("the front direction must have a horizontal component")
+        raise InputError(source, "the front direction must have a horizontal component")
     facing = int(np.round(np.arctan2(y, x) / (np.pi / 2))) % 4  # 0: +x, 1: +y, 2: -x, 3: -y
     return quarter_turns(-facing)
 
@@ -59,7 +62,8 @@ def transformed_dims(transform: np.ndarray, dims) -> np.ndarray:
     return np.abs(np.asarray(transform)[:3, :3]) @ np.asarray(dims, np.float64)
 
 
-def automatic_front(points: np.ndarray, dims, method: str = "classifier", checkpoint=None) -> tuple:
+def automatic_front(points: np.ndarray, dims, method: str = "classifier", checkpoint=None,
+                    source="points") -> tuple:
     """(turns, score): 0 quarter turns when the front is already at +x, else 2 (the
     180 degree flip), by ``method``: "baseline" (:func:`profile_front_score`, score in
     [-1, 1], front at +x when >= 0) or "classifier" (front probability, front at +x
@@ -75,9 +79,9 @@ def automatic_front(points: np.ndarray, dims, method: str = "classifier", checkp
     if method == "classifier":
         from .heading_classifier import DEFAULT_CHECKPOINT, front_probability
 
-        probability = front_probability(points, dims, checkpoint or DEFAULT_CHECKPOINT)
+        probability = front_probability(points, dims, checkpoint or DEFAULT_CHECKPOINT, source=source)
         return (0 if probability >= 0.5 else 2), probability
-    raise ValueError(f"unknown heading method '{method}' (have: baseline, classifier)")
+    raise InputError(source, f"unknown heading method '{method}' (have: baseline, classifier)")
 
 
 def best_available_method(checkpoint=None) -> tuple:

@@ -12,8 +12,10 @@ at the box centre) are divided by half the box dims, so the box is [-1, 1]^3, an
 resampled to the checkpoint's fixed point count by a seeded generator.
 
 Training sets (:class:`PointSet`): surface samples of meshes (the built-in sample
-vehicles, Chrono meshes, any closed or open mesh with its front at +x) and objects
-of an mmdetection3d / OpenPCDet ground-truth database. Augmentations besides the
+vehicles, Chrono meshes, any closed or open mesh with its front at +x), scans of the
+same meshes by the project's own LiDAR simulation (:func:`scanned_point_sets`:
+partial, one-sided views at several ranges and headings, what a detector's sampler
+holds), and objects of an mmdetection3d / OpenPCDet ground-truth database. Augmentations besides the
 flip, none of them a rotation: point count (log-uniform, so densities from a far
 LiDAR object to a dense reconstruction), Gaussian jitter and anisotropic scale.
 
@@ -38,6 +40,11 @@ ARCHITECTURE = "PointNet: shared MLP 3-64-128 (ReLU), max-pool -> 128-dim featur
 NO_FRONT = ("sedan_tire.obj",)
 # Surface points drawn once per mesh; training draws its point sets from this pool.
 POOL_POINTS = 16384
+# Scans of each training mesh (scanned_point_sets): straight ahead of the sensor at
+# these ranges, turned to this many evenly spaced headings, so every side is seen.
+SCAN_RANGES_M = (10.0, 20.0, 35.0)
+SCAN_HEADINGS = 8
+SCAN_MIN_POINTS = 16
 
 
 @dataclass(frozen=True)
@@ -85,23 +92,54 @@ def point_set_from_mesh(mesh, name: str, source: str, seed: int = 0) -> PointSet
     return PointSet(name, surface - (low + high) / 2, high - low, source)
 
 
-def sample_point_sets(classes=None) -> list:
-    """Point sets of the built-in sample vehicles (default: the minority classes)."""
-    from ..classes import MINORITY_CLASSES
-    from ..samples import sample_vehicle
+def scanned_point_sets(mesh, name: str, source: str, sensor="nuscenes", ranges=SCAN_RANGES_M,
+                       headings: int = SCAN_HEADINGS) -> list:
+    """What a LiDAR sees of a trimesh ``mesh`` (front at +x, +z up, metres): one point set
+    per (range, heading), the mesh standing on the ground ``range`` m straight ahead of
+    ``sensor`` (a preset name or Sensor) turned by the heading, scanned by the project's
+    ray caster (core/scan, noiseless, one sweep). Points are the returns in the mesh's
+    object frame (origin at its box centre, like :func:`point_set_from_mesh`): partial,
+    one-sided, ring-structured views; ``dims`` the whole mesh's box, as a labelled
+    object's. Views with fewer than ``SCAN_MIN_POINTS`` returns are left out."""
+    from ..scan.raycast import scan_object
+    from ..scan.sensors import sensor_from_name
+    from ..scan.targets import mesh_target
 
+    sensor = sensor_from_name(sensor) if isinstance(sensor, str) else sensor
+    target = mesh_target(mesh.vertices, mesh.faces, name)
+    low, high = mesh.bounds
     sets = []
-    for class_name in classes or MINORITY_CLASSES:
-        vehicle = sample_vehicle(class_name)
-        digest = _sha256(vehicle.vertices.tobytes() + vehicle.faces.tobytes())
-        sets.append(point_set_from_mesh(vehicle.trimesh(), class_name,
-                                        f"sample:{class_name} sha256:{digest}"))
+    for distance in ranges:
+        for turn in range(headings):
+            degrees = 360.0 * turn / headings
+            scan = scan_object(target, sensor, float(distance), 0.0, np.radians(degrees))
+            if len(scan.returns) < SCAN_MIN_POINTS:
+                continue
+            sensor_points = np.column_stack([scan.returns[axis] for axis in "xyz"])
+            object_from_sensor = np.linalg.inv(scan.poses[0])
+            points = sensor_points @ object_from_sensor[:3, :3].T + object_from_sensor[:3, 3]
+            sets.append(PointSet(f"{name}@{distance:g}m/{degrees:g}deg", points - (low + high) / 2, high - low,
+                                 f"{source} scans:{sensor.name}"))
     return sets
 
 
-def mesh_folder_point_sets(directory) -> list:
-    """Point sets of every ``*.obj`` under ``directory`` (sorted, except ``NO_FRONT``),
-    each in metres with X forward, Y left, Z up, e.g. the Chrono vehicle meshes."""
+def sample_meshes(classes=None) -> list:
+    """(name, trimesh, source) of the built-in sample vehicles (default: the minority
+    classes), front at +x, metres."""
+    from ..classes import MINORITY_CLASSES
+    from ..samples import sample_vehicle
+
+    meshes = []
+    for class_name in classes or MINORITY_CLASSES:
+        vehicle = sample_vehicle(class_name)
+        digest = _sha256(vehicle.vertices.tobytes() + vehicle.faces.tobytes())
+        meshes.append((class_name, vehicle.trimesh(), f"sample:{class_name} sha256:{digest}"))
+    return meshes
+
+
+def mesh_folder_meshes(directory) -> list:
+    """(name, trimesh, source) of every ``*.obj`` under ``directory`` (sorted, except
+    ``NO_FRONT``), each in metres with X forward, Y left, Z up, e.g. the Chrono meshes."""
     import trimesh
 
     directory = Path(directory)
@@ -110,7 +148,7 @@ def mesh_folder_point_sets(directory) -> list:
     paths = sorted(p for p in directory.rglob("*.obj") if p.name not in NO_FRONT)
     if not paths:
         raise InputError(directory, "holds no .obj meshes")
-    sets = []
+    meshes = []
     for path in paths:
         try:
             mesh = trimesh.load(path, force="mesh")
@@ -118,8 +156,18 @@ def mesh_folder_point_sets(directory) -> list:
             raise InputError(path, f"cannot read the mesh ({error})") from None
         if len(mesh.faces) == 0:
             raise InputError(path, "the mesh has no faces")
-        sets.append(point_set_from_mesh(mesh, path.stem, f"mesh:{path.name} sha256:{_sha256(path.read_bytes())}"))
-    return sets
+        meshes.append((path.stem, mesh, f"mesh:{path.name} sha256:{_sha256(path.read_bytes())}"))
+    return meshes
+
+
+def sample_point_sets(classes=None) -> list:
+    """Point sets of the built-in sample vehicles (default: the minority classes)."""
+    return [point_set_from_mesh(mesh, name, source) for name, mesh, source in sample_meshes(classes)]
+
+
+def mesh_folder_point_sets(directory) -> list:
+    """Point sets of every mesh of :func:`mesh_folder_meshes`."""
+    return [point_set_from_mesh(mesh, name, source) for name, mesh, source in mesh_folder_meshes(directory)]
 
 
 def read_gt_database(path, convention: str, min_points: int = 5) -> list:
@@ -235,7 +283,8 @@ def load_checkpoint(path=DEFAULT_CHECKPOINT) -> HeadingClassifier:
                                     "train one with headless_scripts/train_heading.py", build)
 
 
-def front_probability(points, dims, checkpoint=DEFAULT_CHECKPOINT, resamplings: int = 4, seed: int = 0) -> float:
+def front_probability(points, dims, checkpoint=DEFAULT_CHECKPOINT, resamplings: int = 4, seed: int = 0,
+                      source="points") -> float:
     """Probability that the front of object-frame ``points`` (N, 3) metres, in a box of
     ``dims`` (3,) metres, is at +x. ``checkpoint``: a path or a :class:`HeadingClassifier`.
 
@@ -249,9 +298,9 @@ def front_probability(points, dims, checkpoint=DEFAULT_CHECKPOINT, resamplings: 
     points = np.asarray(points, np.float64)
     dims = np.asarray(dims, np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0 or not np.isfinite(points).all():
-        raise ValueError(f"points must be a non-empty finite (N, 3) array, not shape {points.shape}")
+        raise InputError(source, f"points must be a non-empty finite (N, 3) array, not shape {points.shape}")
     if dims.shape != (3,) or not (dims > 0).all():
-        raise ValueError(f"dims must be three positive extents, not {dims}")
+        raise InputError(source, f"dims must be three positive extents, not {dims}")
     rng = np.random.default_rng(seed)
     clouds = normalise(np.stack([resample(points, classifier.config["points"], rng)
                                  for _ in range(resamplings)]), dims)

@@ -48,12 +48,9 @@ def up_vector(choice: str, world_from_cameras=(), source="points"):
     PCA minor axis. ``world_from_cameras``: (C, 4, 4) OpenCV camera poses, whose mean
     up "auto" prefers when there are any."""
     if choice not in UP_CHOICES:
-        raise ValueError(f"unknown up '{choice}' (have: {', '.join(UP_CHOICES)})")
+        raise InputError(source, f"unknown up '{choice}' (have: {', '.join(UP_CHOICES)})")
     if choice in ("auto", "cameras") and len(world_from_cameras):
-        try:
-            return camera_up(world_from_cameras)
-        except ValueError as error:
-            raise InputError(source, str(error)) from None
+        return camera_up(world_from_cameras, source)
     if choice == "cameras":
         raise InputError(source, "has no cameras to take the up direction from")
     if choice in ("auto", "pca"):
@@ -63,11 +60,16 @@ def up_vector(choice: str, world_from_cameras=(), source="points"):
     return axis
 
 
-def align_step(positions, weights=None, up=None, source="points") -> Step:
-    """PCA alignment of the current points (see :mod:`.alignment`)."""
-    found = align_axes(positions, weights, up, source)
+def align_step(positions, weights=None, up=None, source="points", refine: bool = True, faces=None) -> Step:
+    """Axis alignment of the current points, refined to the object's surface planes
+    unless ``refine`` is False (see :mod:`.alignment`). Details: where up and yaw came
+    from, the inlier count, whether the frame was refined, the tilt the refinement
+    removed (degrees) and the estimated surface noise (source units). ``faces``: (F, 3)
+    indices of a mesh's triangles, whose normals the refinement then uses."""
+    found = align_axes(positions, weights, up, source, refine, faces)
     return Step("align", found.transform, found.dims,
-                {"up_from": found.up_from, "yaw_from": found.yaw_from, "inliers": int(found.inliers.sum())})
+                {"up_from": found.up_from, "yaw_from": found.yaw_from, "inliers": int(found.inliers.sum()),
+                 "refined": found.refined, "tilt_deg": found.tilt_deg, "noise": found.noise})
 
 
 def turn_step(turns: int, dims) -> Step:
@@ -76,36 +78,36 @@ def turn_step(turns: int, dims) -> Step:
     return Step("heading", rotation, heading.transformed_dims(rotation, dims), {"by": "manual", "turns": turns % 4})
 
 
-def front_step(direction, dims) -> Step:
+def front_step(direction, dims, source="direction") -> Step:
     """Manual heading: the box side facing ``direction`` (object frame) becomes the front."""
-    rotation = heading.front_towards(direction)
+    rotation = heading.front_towards(direction, source)
     return Step("heading", rotation, heading.transformed_dims(rotation, dims), {"by": "manual", "turns": None})
 
 
-def automatic_heading_step(positions, dims, method: str, checkpoint=None) -> Step:
+def automatic_heading_step(positions, dims, method: str, checkpoint=None, source="points") -> Step:
     """Baseline or classifier front/back decision (see :func:`.heading.automatic_front`)."""
-    turns, score = heading.automatic_front(positions, dims, method, checkpoint)
+    turns, score = heading.automatic_front(positions, dims, method, checkpoint, source)
     step = turn_step(turns, dims)
     step.details.update(by=method, score=float(score))
     return step
 
 
 def size_step(dims, mode: str, dataset: str = "nuscenes", class_name: str = "", seed: int = 0,
-              uniform: bool = False, exact=None) -> Step:
+              uniform: bool = False, exact=None, source="size") -> Step:
     """Scale to a sampled class size ("class"), to ``exact`` (l, w, h) metres, or not
     at all ("keep": the source is already metric)."""
     details = {"mode": mode, "dataset": dataset, "class": class_name}
     if mode == "keep":
         return Step("size", np.eye(4), np.asarray(dims, np.float64), details)
     if mode == "class":
-        target = sizing.sample_dims(dataset, class_name, seed, uniform)
+        target = sizing.sample_dims(dataset, class_name, seed, uniform, source=source)
         details.update(seed=seed, uniform=uniform)
     elif mode == "exact":
         target = np.asarray(exact, np.float64)
         details.update(uniform=uniform)
     else:
-        raise ValueError(f"unknown size mode '{mode}' (have: {', '.join(SIZE_MODES)})")
-    scale, new_dims = sizing.scale_to(dims, target, uniform)
+        raise InputError(source, f"unknown size mode '{mode}' (have: {', '.join(SIZE_MODES)})")
+    scale, new_dims = sizing.scale_to(dims, target, uniform, source)
     return Step("size", scale, new_dims, {**details, "target": target.tolist()})
 
 
@@ -151,20 +153,20 @@ class AuthoredObject:
 
 def prepare(recon: Reconstruction, class_name: str, dataset: str = "nuscenes", up: str = "auto",
             heading_method: str = "classifier", size: str = "class", exact=None,
-            uniform: bool = False, seed: int = 0, checkpoint=None) -> AuthoredObject:
+            uniform: bool = False, seed: int = 0, checkpoint=None, refine: bool = True) -> AuthoredObject:
     """Align, head and size ``recon`` in one go; the same steps as the Blender panel."""
     if heading_method not in HEADING_METHODS:
-        raise ValueError(f"unknown heading method '{heading_method}' (have: {', '.join(HEADING_METHODS)})")
+        raise InputError(recon.source, f"unknown heading method '{heading_method}' "
+                                       f"(have: {', '.join(HEADING_METHODS)})")
     authored = AuthoredObject.from_reconstruction(recon)
     weights = recon.attributes.get("opacity")
     poses = np.array([c.world_from_camera for c in recon.cameras]).reshape(-1, 4, 4)
-    authored.apply(align_step(authored.positions, weights, up_vector(up, poses, recon.source), recon.source))
-    try:  # a flat or empty box cannot be headed by the classifier or scaled
-        if heading_method != "none":
-            authored.apply(automatic_heading_step(authored.positions, authored.dims, heading_method, checkpoint))
-        return authored.apply(size_step(authored.dims, size, dataset, class_name, seed, uniform, exact))
-    except ValueError as error:
-        raise InputError(recon.source, str(error)) from None
+    authored.apply(align_step(authored.positions, weights, up_vector(up, poses, recon.source), recon.source, refine,
+                              recon.faces if len(recon.faces) else None))
+    if heading_method != "none":  # a flat or empty box is refused by the classifier and the sizing
+        authored.apply(automatic_heading_step(authored.positions, authored.dims, heading_method, checkpoint,
+                                              recon.source))
+    return authored.apply(size_step(authored.dims, size, dataset, class_name, seed, uniform, exact, recon.source))
 
 
 def write_prepared(authored: AuthoredObject, class_name: str, dataset: str, directory) -> dict:

@@ -9,29 +9,30 @@ datasets that publish no std (KITTI, Lyft).
 import numpy as np
 
 from ..classes import CLASS_SIZES
+from ..errors import InputError
 
 SIZE_NOISE = 0.1
 
 
-def class_dims(dataset: str, class_name: str) -> np.ndarray:
-    """(3,) mean (length, width, height) in metres; ValueError listing what exists."""
+def class_dims(dataset: str, class_name: str, source="size") -> np.ndarray:
+    """(3,) mean (length, width, height) in metres; InputError(source) listing what exists."""
     if dataset not in CLASS_SIZES:
-        raise ValueError(f"unknown dataset '{dataset}' (have: {', '.join(CLASS_SIZES)})")
+        raise InputError(source, f"unknown dataset '{dataset}' (have: {', '.join(CLASS_SIZES)})")
     sizes = CLASS_SIZES[dataset]
     if class_name not in sizes:
-        raise ValueError(f"{dataset} has no class '{class_name}' (have: {', '.join(sizes)})")
+        raise InputError(source, f"{dataset} has no class '{class_name}' (have: {', '.join(sizes)})")
     return np.array(sizes[class_name], np.float64)
 
 
 def sample_dims(dataset: str, class_name: str, seed: int, uniform: bool = False,
-                noise: float = SIZE_NOISE) -> np.ndarray:
+                noise: float = SIZE_NOISE, source="size") -> np.ndarray:
     """(3,) class mean x (1 + e), e ~ N(0, ``noise``) clipped to +-``noise``, one e
     per axis, or one for all three when ``uniform``. Same seed, same size."""
     draws = np.random.default_rng(seed).normal(scale=noise, size=1 if uniform else 3)
-    return class_dims(dataset, class_name) * (1 + np.clip(draws, -noise, noise))
+    return class_dims(dataset, class_name, source) * (1 + np.clip(draws, -noise, noise))
 
 
-def scale_to(dims, target, uniform: bool = False) -> tuple:
+def scale_to(dims, target, uniform: bool = False, source="size") -> tuple:
     """The (4, 4) scale about the origin taking a box of ``dims`` to ``target`` (both
     (3,), dims in the object's current units) and the box it gives.
 
@@ -40,7 +41,7 @@ def scale_to(dims, target, uniform: bool = False) -> tuple:
     matches the target's)."""
     dims, target = np.asarray(dims, np.float64), np.asarray(target, np.float64)
     if (dims <= 0).any() or (target <= 0).any() or not np.isfinite([*dims, *target]).all():
-        raise ValueError(f"cannot scale a box of {dims.tolist()} to {target.tolist()}: sizes must be positive")
+        raise InputError(source, f"cannot scale a box of {dims.tolist()} to {target.tolist()}: sizes must be positive")
     factors = target / dims
     if uniform:
         factors = np.full(3, np.exp(np.log(factors).mean()))
