@@ -177,7 +177,7 @@ class PGT_PG_bank(bpy.types.PropertyGroup):
         ("bvh", "BVH", "Blender's BVHTree: exact, everywhere"),
         ("embree", "Embree", "embreex: several times faster, when installed")])
     seed: IntProperty(name="Seed", default=0, min=0, description="Seed of every draw of the bank")
-    chunk_size: IntProperty(name="Chunk size", default=8, min=1, soft_max=256,
+    chunk_size: IntProperty(name="Chunk size", default=2, min=1, soft_max=256,
                             description="Entries per unit of work: what a background step writes before the "
                                         "interface answers again, and what Resume redoes at most")
     skip_incomplete: BoolProperty(name="Skip incomplete", description="Leave out objects whose class or size is "
