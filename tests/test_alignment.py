@@ -269,13 +269,7 @@ def object_frame_points(name: str, count: int = 20000) -> tuple:
 def check_recovery(name, seed, noise, outliers):
     """Rotate, add noise and floaters, align with the up prior; compare with the truth
     up to FLIP, then align the result again: nothing may change."""
-    points, dims = object_frame_points(name)
-    rng = np.random.default_rng(seed)
-    noisy = points + rng.normal(scale=noise * np.linalg.norm(dims), size=points.shape)
-    floaters = rng.random(len(points)) < outliers
-    noisy[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * dims
-    rotation = random_rotation(rng)
-    source = (noisy @ rotation.T + rng.normal(scale=10, size=3)).astype(np.float32)
+    source, rotation, dims, rng = posed_cloud(name, seed, noise, outliers, offset=10)
     found = align_axes(source, up=rotation[:, 2])
     assert error_degrees(found.transform[:3, :3], rotation.T) < 0.5
     once = aligned(source.astype(np.float64), found).astype(np.float32)
@@ -316,15 +310,16 @@ def up_axis_degrees(found, rotation) -> float:
     return float(np.degrees(np.arccos(min(1.0, abs(found.transform[2, :3] @ rotation[:, 2])))))
 
 
-def posed_cloud(name, seed, noise, outliers):
-    """A sample or Chrono cloud with noise (x box diagonal) and floaters, randomly posed."""
+def posed_cloud(name, seed, noise, outliers, offset=100):
+    """A sample or Chrono cloud with noise (x box diagonal) and floaters, randomly posed
+    (moved by N(0, ``offset``) m)."""
     points, dims = object_frame_points(name)
     rng = np.random.default_rng(seed)
     noisy = points + rng.normal(scale=noise * np.linalg.norm(dims), size=points.shape)
     floaters = rng.random(len(points)) < outliers
     noisy[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * dims
     rotation = random_rotation(rng)
-    return (noisy @ rotation.T + rng.normal(scale=100, size=3)).astype(np.float32), rotation, dims, rng
+    return (noisy @ rotation.T + rng.normal(scale=offset, size=3)).astype(np.float32), rotation, dims, rng
 
 
 def tilted(vector, degrees, rng) -> np.ndarray:
