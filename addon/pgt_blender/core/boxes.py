@@ -16,3 +16,14 @@ def box_frame(points: np.ndarray, centre: np.ndarray, heading: float) -> np.ndar
 def inside_box(points: np.ndarray, box: np.ndarray, tolerance: float = 0.0) -> np.ndarray:
     """(N,) bool: (N, 3) sensor-frame points within ``tolerance`` m of the (>= 7,) box."""
     return np.all(np.abs(box_frame(points, box[:3], box[6])) <= box[3:6] / 2 + tolerance, axis=1)
+
+
+def kitti_camera_to_lidar(camera_boxes: np.ndarray, velodyne_from_rect: np.ndarray) -> np.ndarray:
+    """(N, 7) centre boxes in the velodyne frame of (N, 7) KITTI camera boxes
+    ``x y z l h w ry`` (bottom centre in the rectified camera frame, ry about its -y axis),
+    with ``velodyne_from_rect`` (4, 4) the inverse of R0_rect @ Tr_velo_to_cam:
+    heading = -ry - pi/2."""
+    camera_boxes = np.asarray(camera_boxes, np.float64).reshape(-1, 7)
+    bottoms = np.column_stack([camera_boxes[:, :3], np.ones(len(camera_boxes))]) @ np.asarray(velodyne_from_rect).T
+    length, height, width, ry = camera_boxes[:, 3], camera_boxes[:, 4], camera_boxes[:, 5], camera_boxes[:, 6]
+    return np.column_stack([bottoms[:, :2], bottoms[:, 2] + height / 2, length, width, height, -ry - np.pi / 2])

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..boxes import box_frame
+from ..boxes import box_frame, kitti_camera_to_lidar
 from ..errors import InputError
 from ..files import read_float32_rows
 from ..scan.sensors import INTENSITY_MAX
@@ -108,7 +108,7 @@ def kitti_label_boxes(label_path: Path, calib_path: Path) -> list:
     file. Labels give the bottom centre in the rectified camera frame and ry about its
     -y axis: heading = -ry - pi/2 in the velodyne frame."""
     velodyne_from_rect = np.linalg.inv(_read_calibration(calib_path))
-    boxes = []
+    kinds, camera_boxes = [], []
     for number, line in enumerate(label_path.read_text().splitlines(), 1):
         fields = line.split()
         if not fields or fields[0] in KITTI_SKIPPED:
@@ -117,10 +117,10 @@ def kitti_label_boxes(label_path: Path, calib_path: Path) -> list:
             height, width, length, x, y, z, ry = map(float, fields[8:15])
         except ValueError:
             raise InputError(label_path, f"line {number} is not a KITTI label (15 fields)") from None
-        bottom = velodyne_from_rect @ np.array([x, y, z, 1.0])
-        boxes.append((fields[0], bottom[:3] + [0.0, 0.0, height / 2], np.array([length, width, height]),
-                      -ry - np.pi / 2))
-    return boxes
+        kinds.append(fields[0])
+        camera_boxes.append([x, y, z, length, height, width, ry])
+    boxes = kitti_camera_to_lidar(np.array(camera_boxes).reshape(-1, 7), velodyne_from_rect)
+    return [(kind, box[:3], box[3:6], float(box[6])) for kind, box in zip(kinds, boxes)]
 
 
 def kitti_frames(folder):

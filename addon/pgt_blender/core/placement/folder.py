@@ -1,0 +1,92 @@
+"""The placement folder (``place_objects.py --out DIR``), written and read here.
+
+- ``scan.bin``: the augmented scene, float32 rows in the input scan's columns; the
+  inserted objects' points first, object by object, then the scene's remaining points
+  (what the stock samplers also put first);
+- ``boxes.json``: ``dataset``, ``scan`` (the input), ``frame``, ``columns``,
+  ``box_values`` (x y z dx dy dz heading [vx vy]: centre boxes in the scan's LiDAR
+  frame, m and rad), ``seed``, ``missing`` {class: objects not placed},
+  ``scene_points_removed`` {inside_boxes, shadowed} and ``boxes``: every box, the
+  scene's first, each {``class``, ``box``, ``inserted``, ``ground_height`` (z of the
+  estimated ground under its centre, m), and for inserted ones ``entry`` (its info's
+  ``path``), ``object`` (the bank's ``pgt_object``, when there is one), ``turn_deg``
+  (how far it was turned about the sensor's axis) and ``rows`` [start, stop) in
+  scan.bin};
+- ``birdseye.png`` (birdseye.py).
+
+Each file is written atomically, all three after everything is computed.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..files import atomic_output, read_float32_rows
+from ..scan.sensors import BIN_COLUMNS
+
+FRAME = "the scan's LiDAR frame: metres, z up, the sensor at the origin (KITTI x forward y left, nuScenes x right " \
+        "y forward)"
+SCAN, BOXES, BIRDSEYE = "scan.bin", "boxes.json", "birdseye.png"
+
+
+def boxes_record(placement, scene, seed: int) -> dict:
+    """The boxes.json content of a Placement of a scenes.Scene."""
+    values = ["x", "y", "z", "dx", "dy", "dz", "heading", "vx", "vy"][:placement.boxes.shape[1]]
+    boxes = []
+    inserted_index = 0
+    for box, name, inserted, ground in zip(placement.boxes, placement.names, placement.inserted,
+                                           placement.ground_height):
+        record = {"class": str(name), "box": [float(v) for v in box], "inserted": bool(inserted),
+                  "ground_height": float(ground)}
+        if inserted:
+            info = placement.entries[inserted_index]
+            record.update({"entry": str(info["path"]), "object": info.get("pgt_object"),
+                           "turn_deg": float(np.degrees(placement.turns[inserted_index])),
+                           "rows": [int(v) for v in placement.rows[inserted_index]]})
+            inserted_index += 1
+        boxes.append(record)
+    return {"dataset": scene.dataset, "scan": str(scene.source), "frame": FRAME,
+            "columns": list(BIN_COLUMNS[scene.dataset]), "box_values": values, "seed": seed,
+            "missing": placement.missing,
+            "scene_points_removed": {"inside_boxes": int(placement.scene_in_boxes.sum()),
+                                     "shadowed": int(placement.scene_shadowed.sum())},
+            "boxes": boxes}
+
+
+def write_placement(out, placement, scene, seed: int, birdseye_png: bytes) -> dict:
+    """Write the folder (module docstring) into ``out`` (made when missing); returns the paths."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    contents = {out / SCAN: np.ascontiguousarray(placement.points, np.float32).tobytes(),
+                out / BOXES: json.dumps(boxes_record(placement, scene, seed), indent=1).encode(),
+                out / BIRDSEYE: birdseye_png}
+    for path, data in contents.items():
+        with atomic_output(path) as stream:
+            stream.write(data)
+    return {path.name: path for path in contents}
+
+
+def read_placement(folder) -> tuple:
+    """(points (N, C) float32, record) of a placement folder; InputError naming the file
+    at fault (missing, damaged, rows beyond the scan)."""
+    folder = Path(folder)
+    path = folder / BOXES
+    try:
+        record = json.loads(path.read_text())
+        columns = len(record["columns"])
+        boxes = record["boxes"]
+    except OSError as error:
+        raise InputError(path, f"cannot read the file ({error.strerror or error}): not a placement folder") from None
+    except (ValueError, KeyError, TypeError) as error:
+        raise InputError(path, f"not a placement record ({type(error).__name__}: {error})") from None
+    points = read_float32_rows(folder / SCAN, columns, "point columns")
+    for index, box in enumerate(boxes):
+        values = box.get("box") if isinstance(box, dict) else None
+        if not (isinstance(values, list) and len(values) >= 7 and all(isinstance(v, (int, float)) for v in values)):
+            raise InputError(path, f"box {index} has no 7 or more numbers")
+        rows = box.get("rows")
+        if rows is not None and not (isinstance(rows, list) and len(rows) == 2 and 0 <= rows[0] <= rows[1] <= len(points)):
+            raise InputError(path, f"box {index}: rows {rows!r} are not within the scan's {len(points)} points")
+    return points, record

@@ -1,0 +1,210 @@
+"""Placing database entries into a real scene: the whole step.
+
+For each object asked (class and count, in the order given), cells of the bandit's
+polar grid (bandit.ThompsonCells) are taken in the order of a Thompson draw (or a
+seeded shuffle without one), a batch of ``batch`` cells at a time, each cell used by
+at most one object. In each cell a candidate is made: an entry of the class whose
+range lies in the cell's range band, turned to a random azimuth in the cell (a whole
+number of column steps: entries.column_turn) and lifted onto the ground there. The
+first candidate of the batch that passes every check is placed:
+
+1. **feasible**: its centre and four footprint corners stand where the class may
+   (feasibility.Feasibility.allows);
+2. **clear of the ego**: its footprint stays ``ego_clearance`` m from the sensor;
+3. **no overlap**: its footprint, grown by ``box_margin`` m, overlaps no scene box and
+   no object placed before it;
+4. **nothing standing in it**: no scene return lies inside its volume more than
+   ``standing_tolerance`` m above the ground (a kerb, 0.15 m, is not an obstacle).
+
+After ``tries`` candidates an object that found no place is given up (counted in
+``Placement.missing``). Then the scene's points inside the placed boxes are removed
+(as the stock samplers do), the range-view occlusion runs (occlusion.occlude), and an
+object left with fewer than ``min_points`` points is dropped and the occlusion redone
+without it. Every random draw comes from the ``rng`` given.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..boxes import inside_box
+from ..scan.sensors import Sensor
+from .bandit import ThompsonCells
+from .collision import bev_overlaps, footprint_corners
+from .entries import EntryPool, column_turn, turn_boxes, turn_points
+from .feasibility import Feasibility, scene_feasibility
+from .ground import Ground, estimate_ground
+from .maps import MapRaster
+from .occlusion import occlude
+
+
+@dataclass
+class PlacementConfig:
+    """Settings of ``place_objects`` (the module docstring); distances in metres."""
+
+    sensor: Sensor
+    max_distance: float = 54.0
+    occlusion: bool = True
+    min_points: int = 5
+    box_margin: float = 0.1
+    ego_clearance: float = 2.0
+    standing_tolerance: float = 0.25
+    tries: int = 64
+    batch: int = 16
+    map_bounds_ground: bool = True
+    class_layers: dict | None = None
+
+
+@dataclass
+class Placement:
+    """The augmented scene. ``points`` (K, C) float32: the inserted objects' kept points
+    first, object by object (``rows`` (I, 2) start, stop of each), then the scene's kept
+    points. ``boxes`` (B, 7 or 9) centre boxes, the scene's first, ``names`` (B,),
+    ``inserted`` (B,) bool, ``ground_height`` (B,) ground z under each box centre (m),
+    ``entries`` the info dict each inserted box came from, ``turns`` (I,) rad each was
+    turned by. ``scene_in_boxes`` and ``scene_shadowed`` (N,) bool: scene points removed
+    inside placed boxes and in their shadows. ``missing`` {class: objects not placed}."""
+
+    points: np.ndarray
+    boxes: np.ndarray
+    names: np.ndarray
+    inserted: np.ndarray
+    ground_height: np.ndarray
+    entries: list
+    turns: np.ndarray
+    rows: np.ndarray
+    scene_in_boxes: np.ndarray
+    scene_shadowed: np.ndarray
+    missing: dict = field(default_factory=dict)
+    ground: Ground | None = None
+    feasibility: Feasibility | None = None
+
+
+def place_objects(points: np.ndarray, boxes: np.ndarray, names, pool: EntryPool, counts: dict,
+                  config: PlacementConfig, rng: np.random.Generator, scene_map: MapRaster | None = None,
+                  bandit: ThompsonCells | None = None, source="scan") -> Placement:
+    """Place ``counts`` {class: n} objects of ``pool`` into a scene of (N, C) sensor-frame
+    ``points`` and (M, 7 or 9) centre ``boxes`` named ``names`` (M,). InputError naming
+    ``source`` when the scan has no ground, or the pool's source when it has no entry
+    of a class asked for."""
+    pool.require([name for name, count in counts.items() if count > 0])
+    points = np.asarray(points, np.float32)
+    width = boxes.shape[1] if np.ndim(boxes) == 2 and len(boxes) else _box_width(pool)
+    scene_boxes = np.asarray(boxes, np.float64).reshape(-1, width)
+    ground = estimate_ground(points, radius=config.max_distance + 6.0, source=source)
+    height = ground.height_above(points[:, :3].astype(np.float64))
+    feasibility = scene_feasibility(points, ground, scene_map, radius=config.max_distance,
+                                    map_bounds_ground=config.map_bounds_ground,
+                                    layers_by_class=config.class_layers, height_above=height)
+    obstacles = points[height > config.standing_tolerance, :3].astype(np.float64)
+    bandit = bandit or ThompsonCells(max_range=config.max_distance)
+    order = np.argsort(-bandit.draw(rng), kind="stable")
+    free_cells = np.ones(len(order), bool)  # by position in ``order``
+
+    placed, entries, turns, missing = [], [], [], {}
+    for class_name, count in counts.items():
+        mask = feasibility.map_mask(class_name)
+        for _ in range(count):
+            found = _place_one(pool.classes[class_name], class_name, mask, order, free_cells, bandit, feasibility,
+                               ground, np.vstack([scene_boxes[:, :7]] + [box[None, :7] for box in placed]),
+                               obstacles, config, rng)
+            if found is None:
+                missing[class_name] = missing.get(class_name, 0) + 1
+                continue
+            box, pick, turn = found
+            placed.append(box)
+            entries.append((class_name, pick))
+            turns.append(turn)
+
+    clouds = []
+    for (class_name, pick), box, turn in zip(entries, placed, turns):
+        stored = pool.classes[class_name]
+        clouds.append(turn_points(pool.load(stored.infos[pick]), turn, box[2] - stored.boxes[pick, 2]))
+    entries = [(class_name, pool.classes[class_name].infos[pick]) for class_name, pick in entries]
+    return _compose(points, scene_boxes, np.asarray(names), placed, entries, turns, clouds, ground, feasibility,
+                    config, missing)
+
+
+def _box_width(pool: EntryPool) -> int:
+    for entries in pool.classes.values():
+        if len(entries.boxes):
+            return entries.boxes.shape[1]
+    return 7
+
+
+def _place_one(entries, class_name, mask, order, free_cells, bandit, feasibility, ground, taken, obstacles, config,
+               rng):
+    """(box, entry index, turn) of the first candidate that passes the checks, or None."""
+    tried = 0
+    while tried < config.tries:
+        positions = np.flatnonzero(free_cells)[:config.batch]
+        if not len(positions):
+            return None
+        free_cells[positions] = False  # a cell is offered to one object only
+        tried += len(positions)
+        low, high, start, stop = bandit.bounds(order[positions])
+        spans = np.array([entries.within(a, b) for a, b in zip(low, high)]).reshape(-1, 2)
+        has = spans[:, 1] > spans[:, 0]
+        if not has.any():
+            continue
+        positions, start, stop, spans = positions[has], start[has], stop[has], spans[has]
+        picks = spans[:, 0] + (rng.random(len(spans)) * (spans[:, 1] - spans[:, 0])).astype(np.int64)
+        stored = entries.boxes[picks]
+        target = rng.uniform(start, stop)
+        turn = column_turn(np.arctan2(stored[:, 1], stored[:, 0]), target, config.sensor.columns)
+        candidates = turn_boxes(stored, turn)
+        bottom = ground.height(candidates[:, :2])
+        candidates[:, 2] = bottom + candidates[:, 5] / 2
+        corners = footprint_corners(candidates)
+        spots = np.concatenate([candidates[:, None, :2], corners], axis=1).reshape(-1, 2)
+        ok = feasibility.allows(class_name, spots, mask).reshape(len(candidates), 5).all(axis=1)
+        ok &= _ego_gap(candidates) >= config.ego_clearance
+        ok &= ~bev_overlaps(candidates[:, :7], taken, config.box_margin).any(axis=1)
+        for index in np.flatnonzero(ok):
+            if not inside_box(obstacles, candidates[index]).any():
+                free_cells[positions[index + 1:]] = True  # unused cells of the batch go back
+                return candidates[index], int(picks[index]), float(turn[index])
+    return None
+
+
+def _ego_gap(boxes: np.ndarray) -> np.ndarray:
+    """(N,) m from the sensor (the origin) to each box footprint."""
+    cos, sin = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    along, across = boxes[:, 0] * cos + boxes[:, 1] * sin, -boxes[:, 0] * sin + boxes[:, 1] * cos
+    return np.hypot(np.maximum(np.abs(along) - boxes[:, 3] / 2, 0.0), np.maximum(np.abs(across) - boxes[:, 4] / 2, 0.0))
+
+
+def _compose(points, scene_boxes, names, placed, entries, turns, clouds, ground, feasibility, config, missing):
+    """The Placement: scene points inside placed boxes removed, occlusion, thin objects dropped."""
+    placed = np.array(placed, np.float64).reshape(-1, scene_boxes.shape[1])
+    in_boxes = np.zeros(len(points), bool)
+    for box in placed:
+        in_boxes |= inside_box(points[:, :3].astype(np.float64), box)
+    keep = np.ones(len(placed), bool)
+    while True:
+        chosen = np.flatnonzero(keep)
+        inserted = np.concatenate([clouds[i] for i in chosen]) if len(chosen) else np.zeros((0, points.shape[1]),
+                                                                                           np.float32)
+        owner = np.repeat(np.arange(len(chosen)), [len(clouds[i]) for i in chosen])
+        if config.occlusion and len(inserted):
+            scene_kept, inserted_kept = occlude(config.sensor, points[~in_boxes], inserted, owner)
+        else:
+            scene_kept, inserted_kept = np.ones((~in_boxes).sum(), bool), np.ones(len(inserted), bool)
+        counts = np.bincount(owner[inserted_kept], minlength=len(chosen))
+        thin = chosen[counts < config.min_points]
+        if not len(thin):
+            break
+        keep[thin] = False
+        for i in thin:
+            missing[entries[i][0]] = missing.get(entries[i][0], 0) + 1
+    shadowed = np.zeros(len(points), bool)
+    shadowed[np.flatnonzero(~in_boxes)[~scene_kept]] = True
+    stops = np.cumsum(counts)
+    rows = np.column_stack([stops - counts, stops]).astype(np.int64)
+    out_points = np.concatenate([inserted[inserted_kept], points[~in_boxes][scene_kept]])
+    out_boxes = np.vstack([scene_boxes, placed[keep]]) if len(chosen) else scene_boxes
+    out_names = np.concatenate([names, [entries[i][0] for i in chosen]]).astype(names.dtype if len(names) else str)
+    inserted_mask = np.concatenate([np.zeros(len(scene_boxes), bool), np.ones(len(chosen), bool)])
+    bottoms = ground.height(out_boxes[:, :2]) if len(out_boxes) else np.zeros(0)
+    return Placement(out_points, out_boxes, out_names, inserted_mask, bottoms, [entries[i][1] for i in chosen],
+                     np.array([turns[i] for i in chosen]), rows, in_boxes, shadowed, missing, ground, feasibility)
