@@ -405,3 +405,101 @@ def test_kitti_bbox_and_truncation_match_openpcdets_projection(box, pcdet, tmp_p
     assert truncation == pytest.approx(1 - area(clipped) / area(full), abs=2e-3)
     assert level == kitti_difficulty(bbox[3] - bbox[1], truncation, 0)
     assert (truncation > 0) == (box[1] > 3 or box[0] < 6)  # the cut ones, and the near cyclist's bottom
+
+
+# --- the placement inside the frameworks (user guide: "Placement in training") ----------
+
+
+def placement_blocks() -> tuple:
+    """(OpenPCDet entry keys, mmdet3d step keys, custom_imports) from the user guide."""
+    import yaml
+
+    text = GUIDE.read_text()
+    entry = next(b for b in re.findall(r"```yaml\n(.*?)```", text, re.S) if "NAME: pgt_placement" in b)
+    python = next(b for b in re.findall(r"```python\n(.*?)```", text, re.S) if "type='PGTPlacement'" in b)
+    imports_line, step_line = python.strip().splitlines()
+    custom_imports = eval(imports_line.split("=", 1)[1], {"dict": dict})
+    step = eval(step_line, {"dict": dict, "db_sampler": None})
+    step.pop("db_sampler")
+    return yaml.safe_load(entry)[0], step, custom_imports
+
+
+def check_placed(points: np.ndarray, boxes: np.ndarray, scene_boxes: int, scene_points: np.ndarray) -> None:
+    """A framework's output after the placement: boxes (N, >= 7) centre boxes, the scene's
+    first; points (M, C), the inserted objects' first. No two boxes overlap (OpenPCDet's
+    own bird's-eye IoU), every inserted box lies within 54 m and stands on the scan's
+    ground (bank.ground.fit_ground, where it has enough ground returns), holds points
+    and no scene point, and the inserted points all lie in inserted boxes."""
+    from pgt_blender.core.bank.ground import MIN_GROUND_POINTS, fit_ground
+
+    inserted = boxes[scene_boxes:].astype(np.float64)
+    assert len(inserted), "nothing was placed"
+    iou = openpcdet.bev_iou(inserted, boxes)
+    iou[:, scene_boxes:][np.eye(len(inserted), dtype=bool)] = 0.0
+    assert (iou == 0).all()
+    assert (np.hypot(inserted[:, 0], inserted[:, 1]) <= 54.0).all()
+    gaps = [fit_ground(scene_points[:, :3].astype(np.float64), box[:3], box[3:6], box[6]) for box in inserted]
+    judged = [gap["bottom_gap"] for gap in gaps if gap["points"] >= MIN_GROUND_POINTS]
+    assert judged and np.abs(judged).max() < 0.1
+    xyz = points[:, :3].astype(np.float64)
+    in_inserted = np.array([inside_box(xyz, box, 0.12) for box in inserted])
+    placed_rows = in_inserted.any(axis=0)
+    first_scene_row = np.argmin(placed_rows) if not placed_rows.all() else len(points)
+    assert first_scene_row > 0 and placed_rows[:first_scene_row].all()
+    for box in inserted:
+        assert not inside_box(xyz[first_scene_row:], box).any()
+        assert inside_box(xyz[:first_scene_row], box, 0.12).sum() >= 5
+
+
+def test_openpcdet_places_the_bank_with_the_pgt_placement_augmentor(banks, pcdet, tmp_path, shared_data):
+    """The stock KITTI config with the mixed database, its gt_sampling entry turned into the
+    user guide's pgt_placement entry, built as DataAugmentor builds it, on a real frame."""
+    from pgt_blender.frameworks.openpcdet import register, sampler_class
+
+    root = dataset_root(tmp_path, "openpcdet", "kitti", banks, pcdet)
+    entry, _, _ = placement_blocks()
+    config = openpcdet.gt_sampling(openpcdet.read_config(openpcdet.DATASET_CONFIGS["kitti"]))
+    config.update(openpcdet_change("kitti", "mixed"))
+    config.update(entry)
+    class_names = openpcdet.CLASS_NAMES["kitti"]
+
+    class Augmentor:  # the attributes DataAugmentor.__init__ sets and gt_sampling reads
+        root_path, class_names, logger = root, openpcdet.CLASS_NAMES["kitti"], None
+
+    register(Augmentor)
+    sampler = Augmentor().pgt_placement(config=config)
+    assert isinstance(sampler, sampler_class()) and sampler.pool.classes["Cyclist"].infos
+    scene = scene_of("kitti", class_names)
+    np.random.seed(0)
+    for _ in range(REPEATS):
+        after = sampler(copy.deepcopy(scene))
+        assert "gt_boxes_mask" not in after and after["points"].shape[1] == 4
+        check_placed(after["points"], after["gt_boxes"], int(scene["gt_boxes_mask"].sum()), scene["points"])
+
+
+def test_mmdet3d_places_the_bank_with_the_pgt_placement_transform(banks, pcdet, tmp_path, mmdet3d_python,
+                                                                  shared_data):
+    """mmdetection3d's KITTI config loaded with the user guide's custom_imports, its
+    ObjectSample step replaced by PGTPlacement with the same db_sampler, on a real frame."""
+    import os
+
+    root = dataset_root(tmp_path, "mmdet3d", "kitti", banks, pcdet)
+    scene = scene_of("kitti", openpcdet.CLASS_NAMES["kitti"])
+    keep = scene["gt_boxes_mask"]
+    points_file = tmp_path / "scene.bin"
+    points_file.write_bytes(scene["points"].astype(np.float32).tobytes())
+    _, step, custom_imports = placement_blocks()
+    request = {"config": MMDET3D_CONFIGS["kitti"], "data_root": f"{root}/", "seed": 0, "repeats": REPEATS,
+               "out": str(tmp_path / "placed.npz"), "db_sampler": {"info_path": f"{root}/kitti_dbinfos_mixed.pkl"},
+               "place": {"step": step, "custom_imports": custom_imports},
+               "scene": {"points_file": str(points_file), "boxes": scene["gt_boxes"][keep].tolist(),
+                         "names": scene["gt_names"][keep].tolist()}}
+    (tmp_path / "request.json").write_text(json.dumps(request))
+    environment = {**os.environ, "PYTHONPATH": str(ROOT / "addon")}  # the training environment's import path
+    result = subprocess.run([str(mmdet3d_python), str(ROOT / "tests" / "detectors" / "mmdet3d_sample.py"),
+                             str(tmp_path / "request.json")], capture_output=True, text=True, env=environment)
+    assert result.returncode == 0, result.stderr[-3000:]
+    placed = np.load(tmp_path / "placed.npz")
+    for repeat in range(REPEATS):
+        check_placed(placed[f"points_{repeat}"], placed[f"boxes_{repeat}"], int(placed["scene_boxes"]),
+                     scene["points"])

@@ -303,6 +303,8 @@ def check_placement(scene, placement, pool, sensor, scan_points=None):
     """Every promise of the placement on one scene (see the module docstring of place.py)."""
     inserted = placement.boxes[placement.inserted]
     assert len(inserted) > 0
+    np.testing.assert_array_equal(placement.names[~placement.inserted], scene.names)
+    assert set(placement.names[placement.inserted]) <= set(pool.classes)
     # no box overlaps another, the scene's or an inserted one
     overlaps = bev_overlaps(inserted, placement.boxes)
     overlaps[:, np.flatnonzero(placement.inserted)] &= ~np.eye(len(inserted), dtype=bool)
@@ -313,7 +315,7 @@ def check_placement(scene, placement, pool, sensor, scan_points=None):
         assert placement.feasibility.allows(name, spots).all(), name
     # the box bottom on the estimated ground; never moved in range, turned by whole columns
     bottoms = inserted[:, 2] - inserted[:, 5] / 2
-    np.testing.assert_allclose(bottoms, placement.ground.height(inserted[:, :2]), atol=1e-9)
+    np.testing.assert_allclose(bottoms, placement.ground.under_boxes(inserted), atol=1e-9)
     for box, info, turn in zip(inserted, placement.entries, placement.turns):
         stored = np.asarray(info["box3d_lidar"], np.float64)
         assert np.hypot(*box[:2]) == pytest.approx(np.hypot(*stored[:2]), abs=1e-6)

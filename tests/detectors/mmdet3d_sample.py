@@ -15,6 +15,10 @@ nothing of pgt_blender. The request (JSON):
   ``object_sample_after``;
 - ``scene``: ``points_file`` (float32 .bin, the dataset's columns), ``boxes``
   (gravity-centre LiDAR boxes x y z dx dy dz yaw [vx vy]), ``names``;
+- ``place`` (optional): keys of a step that replaces ObjectSample and takes its
+  ``db_sampler`` (a PGTPlacement step), with ``custom_imports``: the config is then
+  loaded as a child config naming the stock one as ``_base_`` and adding those
+  ``custom_imports``, so mmengine imports the step's module as in training;
 - ``seed``, ``repeats``: numpy's global seed (the sampler shuffles with it) and how
   many times the scene is sampled (the sampler's state carries over, as in training);
 - ``out``: an .npz to write.
@@ -42,7 +46,12 @@ def main(request_path: str) -> int:
     from mmdet3d.structures import LiDARInstance3DBoxes
     from mmengine.config import Config
     request = json.loads(Path(request_path).read_text())
-    config = Config.fromfile(str(Path(mmdet3d.__file__).parent / ".mim" / "configs" / request["config"]))
+    stock = Path(mmdet3d.__file__).parent / ".mim" / "configs" / request["config"]
+    if "place" in request:
+        child = Path(request["out"]).with_suffix(".config.py")
+        child.write_text(f"_base_ = [{str(stock)!r}]\ncustom_imports = {request['place']['custom_imports']!r}\n")
+        stock = child
+    config = Config.fromfile(str(stock))
     pipeline = copy.deepcopy(config.train_pipeline)
     types = [step["type"] for step in pipeline]
     data_root = request["data_root"]
@@ -54,6 +63,8 @@ def main(request_path: str) -> int:
                                                     "class_names": config.class_names})
         pipeline.insert(types.index(request["object_sample_after"]) + 1, step)
     loading = [TRANSFORMS.build(s) for s in pipeline if s["type"] in ("LoadPointsFromFile", "LoadPointsFromMultiSweeps")]
+    if "place" in request:
+        step = {**request["place"]["step"], "db_sampler": step["db_sampler"]}
     object_sample = TRANSFORMS.build(step)
     classes = list(object_sample.db_sampler.cat2label)
 

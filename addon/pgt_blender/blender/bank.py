@@ -25,7 +25,7 @@ from ..core.gt_database import load_infos
 from ..core.reconstruction import Reconstruction
 from ..core.scan.sensors import BIN_COLUMNS, INTENSITY_MAX
 from .authoring import current_dims, is_reconstruction, status
-from .objects import remove_datablocks
+from .objects import box_empty, remove_datablocks
 from .scanning import mesh_triangles, mesh_vertices, point_colors, points_object, ramp
 
 
@@ -135,10 +135,7 @@ def preview_bank(scene: bpy.types.Scene, folder, count: int) -> list:
         returns["intensity"] = rows[:, 3]
         name = Path(info["path"]).stem
         points = points_object(name, returns, ramp(np.clip(rows[:, 3] / INTENSITY_MAX[dataset], 0.0, 1.0)), made)
-        cube = bpy.data.objects.new(f"{name} box", None)
-        made.append(cube)
-        cube.empty_display_type = "CUBE"
-        cube.location, cube.rotation_euler, cube.scale = box[:3], (0.0, 0.0, box[6]), box[3:6] / 2
+        cube = box_empty(f"{name} box", box, made)
         for obj in (points, cube):
             collection.objects.link(obj)
     return [obj for obj in made if isinstance(obj, bpy.types.Object) and obj.type == "MESH"]

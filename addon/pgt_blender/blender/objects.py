@@ -55,6 +55,15 @@ def add_reconstruction(scene: bpy.types.Scene, recon: Reconstruction, with_camer
         raise
 
 
+def box_empty(name: str, box: np.ndarray, made: list) -> bpy.types.Object:
+    """A cube empty drawing a (>= 7,) centre box x y z dx dy dz heading (sensor frame)."""
+    cube = bpy.data.objects.new(name, None)
+    made.append(cube)
+    cube.empty_display_type = "CUBE"
+    cube.location, cube.rotation_euler, cube.scale = box[:3], (0.0, 0.0, box[6]), np.asarray(box[3:6]) / 2
+    return cube
+
+
 def remove_datablocks(datablocks) -> None:
     """Remove objects, meshes, cameras and node groups (objects first, so data has no users)."""
     for block in sorted(datablocks, key=lambda b: not isinstance(b, bpy.types.Object)):

@@ -15,7 +15,7 @@ from ..core.classes import MINORITY_CLASSES
 from ..core.errors import InputError
 from ..core.files import atomic_output
 from ..core.importing import SUPPORTED, find_reconstructions, load_reconstruction
-from . import authoring, bank, intensity, objects, properties, scanning
+from . import authoring, bank, intensity, objects, placement, properties, scanning
 
 
 @contextmanager
@@ -158,6 +158,35 @@ class IMPORT_SCENE_OT_pgt_folder(bpy.types.Operator):
             obj.select_set(True)
         context.view_layer.objects.active = made[0]
         self.report({"INFO"}, f"Imported {len(made)} reconstructions from {folder}")
+        return {"FINISHED"}
+
+
+class IMPORT_SCENE_OT_pgt_placed_scene(bpy.types.Operator):
+    """Load a placement folder (place_objects.py --out): the scene's points, each inserted object's points and every box"""
+
+    bl_idname = "import_scene.pgt_placed_scene"
+    bl_label = "Import Placed Scene"
+    bl_options = {"REGISTER", "UNDO"}
+
+    directory: StringProperty(name="Placement folder", subtype="DIR_PATH", options=properties.PATH_OPTIONS,
+                              description="Folder with scan.bin and boxes.json, as place_objects.py writes it")
+    filter_folder: BoolProperty(default=True, options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        if not self.directory:
+            self.report({"ERROR"}, f"{self.bl_label}: no placement folder chosen")
+            return {"CANCELLED"}
+        try:
+            shown = placement.load_placement(context.scene, bpy.path.abspath(self.directory))
+        except InputError as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        inserted = sum(1 for obj in shown if obj.type == "MESH") - 1
+        self.report({"INFO"}, f"Loaded {inserted} placed objects and the scene into '{placement.COLLECTION}'")
         return {"FINISHED"}
 
 
@@ -638,7 +667,8 @@ class SCENE_OT_pgt_preview_bank(bpy.types.Operator):
 AUTHORING = (OBJECT_OT_pgt_align, OBJECT_OT_pgt_turn, OBJECT_OT_pgt_front_from_cursor,
              OBJECT_OT_pgt_auto_heading, OBJECT_OT_pgt_set_size)
 IMPORTERS = (IMPORT_SCENE_OT_pgt_colmap, IMPORT_SCENE_OT_pgt_gaussian_splat,
-             IMPORT_SCENE_OT_pgt_point_cloud, IMPORT_SCENE_OT_pgt_mesh, IMPORT_SCENE_OT_pgt_folder)
+             IMPORT_SCENE_OT_pgt_point_cloud, IMPORT_SCENE_OT_pgt_mesh, IMPORT_SCENE_OT_pgt_folder,
+             IMPORT_SCENE_OT_pgt_placed_scene)
 BANK = (SCENE_OT_pgt_export_bank, SCENE_OT_pgt_stop_bank, SCENE_OT_pgt_save_bank_config,
         SCENE_OT_pgt_open_bank_report, SCENE_OT_pgt_preview_bank)
 classes = (IMPORTERS + (OBJECT_OT_pgt_add_sample,) + AUTHORING + (OBJECT_OT_pgt_author_selected, OBJECT_OT_pgt_scan,

@@ -8,7 +8,7 @@
   frame, m and rad), ``seed``, ``missing`` {class: objects not placed},
   ``scene_points_removed`` {inside_boxes, shadowed} and ``boxes``: every box, the
   scene's first, each {``class``, ``box``, ``inserted``, ``ground_height`` (z of the
-  estimated ground under its centre, m), and for inserted ones ``entry`` (its info's
+  estimated ground it stands on: the mean under its centre and corners, m), and for inserted ones ``entry`` (its info's
   ``path``), ``object`` (the bank's ``pgt_object``, when there is one), ``turn_deg``
   (how far it was turned about the sensor's axis) and ``rows`` [start, stop) in
   scan.bin};

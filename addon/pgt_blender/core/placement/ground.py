@@ -79,6 +79,16 @@ class Ground:
         iy, ix, _ = self._cells(xy)
         return self.measured[iy, ix]
 
+    def under_boxes(self, boxes: np.ndarray) -> np.ndarray:
+        """(N,) the height (m) an object in each of (N, >= 7) centre boxes stands on: the mean
+        ground height under its centre and four footprint corners (a long truck spans
+        several cells of a crowned or graded road)."""
+        from .collision import footprint_corners
+
+        boxes = np.asarray(boxes, np.float64).reshape(-1, np.shape(boxes)[-1])
+        spots = np.concatenate([boxes[:, None, :2], footprint_corners(boxes)], axis=1)
+        return self.height(spots.reshape(-1, 2)).reshape(len(boxes), 5).mean(axis=1)
+
     def height_above(self, points: np.ndarray) -> np.ndarray:
         """(N,) height (m) of (N, >= 3) points above the ground under them."""
         return points[:, 2] - self.height(points[:, :2])

@@ -5,8 +5,8 @@ polar grid (bandit.ThompsonCells) are taken in the order of a Thompson draw (or 
 seeded shuffle without one), a batch of ``batch`` cells at a time, each cell used by
 at most one object. In each cell a candidate is made: an entry of the class whose
 range lies in the cell's range band, turned to a random azimuth in the cell (a whole
-number of column steps: entries.column_turn) and lifted onto the ground there. The
-first candidate of the batch that passes every check is placed:
+number of column steps: entries.column_turn) and lifted onto the ground there (its
+bottom at the mean ground height under its centre and corners). The first candidate of the batch that passes every check is placed:
 
 1. **feasible**: its centre and four footprint corners stand where the class may
    (feasibility.Feasibility.allows);
@@ -60,7 +60,8 @@ class Placement:
     """The augmented scene. ``points`` (K, C) float32: the inserted objects' kept points
     first, object by object (``rows`` (I, 2) start, stop of each), then the scene's kept
     points. ``boxes`` (B, 7 or 9) centre boxes, the scene's first, ``names`` (B,),
-    ``inserted`` (B,) bool, ``ground_height`` (B,) ground z under each box centre (m),
+    ``inserted`` (B,) bool, ``ground_height`` (B,) the ground z each box stands on (m,
+Ground.under_boxes),
     ``entries`` the info dict each inserted box came from, ``turns`` (I,) rad each was
     turned by. ``scene_in_boxes`` and ``scene_shadowed`` (N,) bool: scene points removed
     inside placed boxes and in their shadows. ``missing`` {class: objects not placed}."""
@@ -153,8 +154,7 @@ def _place_one(entries, class_name, mask, order, free_cells, bandit, feasibility
         target = rng.uniform(start, stop)
         turn = column_turn(np.arctan2(stored[:, 1], stored[:, 0]), target, config.sensor.columns)
         candidates = turn_boxes(stored, turn)
-        bottom = ground.height(candidates[:, :2])
-        candidates[:, 2] = bottom + candidates[:, 5] / 2
+        candidates[:, 2] = ground.under_boxes(candidates) + candidates[:, 5] / 2
         corners = footprint_corners(candidates)
         spots = np.concatenate([candidates[:, None, :2], corners], axis=1).reshape(-1, 2)
         ok = feasibility.allows(class_name, spots, mask).reshape(len(candidates), 5).all(axis=1)
@@ -203,8 +203,8 @@ def _compose(points, scene_boxes, names, placed, entries, turns, clouds, ground,
     rows = np.column_stack([stops - counts, stops]).astype(np.int64)
     out_points = np.concatenate([inserted[inserted_kept], points[~in_boxes][scene_kept]])
     out_boxes = np.vstack([scene_boxes, placed[keep]]) if len(chosen) else scene_boxes
-    out_names = np.concatenate([names, [entries[i][0] for i in chosen]]).astype(names.dtype if len(names) else str)
+    out_names = np.array([*names.tolist(), *(entries[i][0] for i in chosen)], str)
     inserted_mask = np.concatenate([np.zeros(len(scene_boxes), bool), np.ones(len(chosen), bool)])
-    bottoms = ground.height(out_boxes[:, :2]) if len(out_boxes) else np.zeros(0)
+    bottoms = ground.under_boxes(out_boxes) if len(out_boxes) else np.zeros(0)
     return Placement(out_points, out_boxes, out_names, inserted_mask, bottoms, [entries[i][1] for i in chosen],
                      np.array([turns[i] for i in chosen]), rows, in_boxes, shadowed, missing, ground, feasibility)
