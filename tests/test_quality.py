@@ -238,6 +238,12 @@ def test_score_bank_command_writes_json_and_caches_its_encoder(banks, real, tmp_
                check=True)
     assert cached.stat().st_mtime_ns == stamp  # reused, not retrained
     assert (tmp_path / "again.json").read_bytes() == out.read_bytes()  # same inputs and seed, same bytes
+    # the paper's dense reference, feature-free only: the densest real object a class, no encoder
+    run_script("score_bank.py", "--bank", bank, "--real", real, "--reference", "dense", "--limit", 1, "--no-learned",
+               "--json", tmp_path / "dense.json", "--no-progress", check=True)
+    dense = json.loads((tmp_path / "dense.json").read_text())
+    assert dense["encoder"] is None and {v["real_objects"] for v in dense["classes"].values()} == {1}
+    assert dense["classes"]["Car"]["w1_points"] != car["w1_points"]  # one car of two: another distance
 
 
 @pytest.mark.parametrize("case", ["no bank", "missing real", "crafted real", "bad encoder"])
