@@ -1,5 +1,9 @@
 """The .blend route of the bank: objects authored in Blender give the same bank as the
-same objects prepared headless (prepare_objects.py's folder)."""
+same objects prepared headless (prepare_objects.py's folder); the Bank section's report
+beside a real database, with the bank's quality score against it."""
+
+import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -7,6 +11,7 @@ import pytest
 from pgt_blender.core.authoring.prepare import prepare, write_prepared
 from pgt_blender.core.bank.inputs import prepared_objects
 from pgt_blender.core.importing import load_reconstruction
+from pgt_blender.core.quality.reference import kitti_scan_database
 from pgt_blender.core.samples import write_sample
 
 from .test_bank import CHRONO_TRUCK, SMALL, bank_bytes, run_export, write_config
@@ -24,14 +29,15 @@ def sources(tmp_path_factory, shared_data) -> dict:
     return {"sample": sample, "chrono": shared_data / "chrono_vehicles" / CHRONO_TRUCK}
 
 
-def author_in_blender(scene, sources) -> None:
+def author_in_blender(scene, sources, dataset: str = "nuscenes") -> None:
     """The Align / Heading / Size operators, with the settings prepare() is given below."""
     settings = scene.pgt_authoring
     for key, up, heading, size in (("sample", "pca", "baseline", "class"), ("chrono", "+z", None, "keep")):
         obj = blender_objects.add_reconstruction(scene, load_reconstruction(sources[key]))
         bpy.context.view_layer.objects.active = obj
         settings.up, settings.heading_method, settings.size_mode = up, heading or "baseline", size
-        settings.dataset, settings.class_name, settings.seed = "nuscenes", "bicycle" if key == "sample" else "truck", 4
+        bicycle = "cyclist" if dataset == "kitti" else "bicycle"  # the dataset's class of a bicycle
+        settings.dataset, settings.class_name, settings.seed = dataset, bicycle if key == "sample" else "truck", 4
         assert bpy.ops.object.pgt_align() == {"FINISHED"}
         if heading:
             assert bpy.ops.object.pgt_auto_heading() == {"FINISHED"}
@@ -76,3 +82,47 @@ def test_a_bad_blend_file_is_named(tmp_path):
     result = run_export("--blend", broken, "--out", tmp_path / "bank", check=False)
     assert result.returncode == 1 and f"{broken}: not a readable .blend file" in result.stderr
     assert not (tmp_path / "bank").exists()
+
+
+def test_the_bank_report_scores_the_bank_against_the_real_database(scene, sources, shared_data, tmp_path):
+    """The Bank section's Real database: a bad one refuses the export before anything is
+    written; a good one puts its statistics and the quality table in the export's
+    report; set after the export, Open Report writes the report anew against it."""
+    author_in_blender(scene, sources, "kitti")
+    settings = scene.pgt_bank
+    settings.dataset, settings.mmdet3d, settings.output = "kitti", False, str(tmp_path / "bank")
+    settings.heading_step, settings.grid_step = math.radians(180.0), 25.0
+    settings.real_database = str(tmp_path / "absent.pkl")
+    with pytest.raises(RuntimeError, match="absent.pkl"):
+        bpy.ops.scene.pgt_export_bank()
+    assert not (tmp_path / "bank").exists()
+
+    # the shared mmdet3d database: one Pedestrian, a class the bank lacks (nothing to score)
+    settings.real_database = str(shared_data / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl")
+    settings.real_convention = "mmdet3d"
+    assert bpy.ops.scene.pgt_export_bank() == {"FINISHED"}
+    report = tmp_path / "bank" / "report.md"
+    text = report.read_text()
+    assert "(kitti, entries: 1)" in text and "## Quality score against the real database" in text
+    assert "| Pedestrian | real | 377 (1) |" in text
+
+    settings.real_database = str(tmp_path / "absent.pkl")
+    with pytest.raises(RuntimeError, match="absent.pkl"):
+        bpy.ops.scene.pgt_open_bank_report()
+    assert report.read_text() == text  # a bad database leaves the report as it was
+
+    # the KITTI scans' objects (openpcdet convention): Cyclist and Truck are scored
+    settings.real_database = str(kitti_scan_database(shared_data / "kitti_scans", tmp_path / "real"))
+    settings.real_convention = "openpcdet"
+    assert bpy.ops.scene.pgt_open_bank_report() == {"FINISHED"}
+    opened = bpy.data.texts["report.md"].as_string()
+    assert opened == report.read_text() and "(kitti, entries: 6)" in opened
+    quality = opened.split("## Quality score against the real database")[1].split("##")[0]
+    rows = {line.split(" | ")[0].strip("| "): line.split(" | ") for line in quality.splitlines()
+            if line.startswith("| ") and not line.startswith("| class")}
+    assert sorted(rows) == ["Cyclist", "Truck"] and all(row[2] == "1" for row in rows.values())
+    assert all(cell.strip(" |") != "–" for row in rows.values() for cell in row[4:])  # every feature-free metric
+
+    settings.real_database = ""
+    assert bpy.ops.scene.pgt_open_bank_report() == {"FINISHED"}
+    assert bpy.data.texts["report.md"].as_string() == opened  # opened as it is

@@ -1,5 +1,7 @@
 """The Bank section: a scene's authored objects as the bank's inputs, the export run
-chunk by chunk, and a preview of a finished bank in the viewport.
+chunk by chunk, the bank report (beside a real database, with the bank's quality score
+against it, when the section names one), and a preview of a finished bank in the
+viewport.
 
 Gathering the inputs (core/bank/inputs.py) is done in bulk. An object's mesh data is its object frame (authoring wrote it so); its box is the last
 authoring step's dims. Meshes give their triangles, point objects their points; colors
@@ -18,7 +20,7 @@ from ..core.bank.config import (DATASET_CONSTANT_INTENSITY, DATASET_GRIDS, FORMA
                                 load_config)
 from ..core.bank.folder import read_manifest
 from ..core.bank.inputs import BankObject, checked_objects, incomplete_reason
-from ..core.bank.report import write_report
+from ..core.bank.report import real_reference, write_report
 from ..core.errors import InputError
 from ..core.files import read_float32_rows
 from ..core.gt_database import load_infos
@@ -67,13 +69,36 @@ def bank_config(settings, checkpoint: str = "") -> BankConfig:
                       engine=settings.engine, intensity_checkpoint=checkpoint if learned else "")
 
 
+def real_database(settings):
+    """(absolute path, convention) of the Bank section's Real database, or None."""
+    return (bpy.path.abspath(settings.real_database), settings.real_convention) if settings.real_database else None
+
+
+def write_bank_report(out, real=None, reference=None) -> Path:
+    """Write the report of the bank in ``out``; with ``real`` (real_database's pair),
+    beside that database's statistics (``reference``: report.real_reference, read here
+    when not given) and with the bank's quality score against it (score_bank.py's table;
+    the Fréchet distance only where torch imports, its encoder cached in the bank's
+    .work folder). Returns report.md's path; InputError, with no report file written,
+    for a bad bank or database."""
+    if real is None:
+        return write_report(out)[0]
+    from ..core.quality.score import quality_available, score_bank
+
+    path, convention = real
+    if reference is None:
+        reference = real_reference(path, read_manifest(out)["config"])
+    return write_report(out, reference, score_bank(out, path, convention, learned=quality_available()))[0]
+
+
 class BankRun:
     """One bank export of ``scene``'s authored objects driven chunk by chunk, so that a
     modal operator keeps Blender responsive: ``step`` writes the next chunk (its
     ``chunk_size`` entries, well under a second on the built-in samples), ``finish``
     assembles the bank and writes its report. Stopping between steps leaves a folder
     that an export with "Resume" continues to the same bytes (core/bank/folder.py).
-    InputError for what cannot make a bank, before anything is written."""
+    InputError for what cannot make a bank, or a Real database that cannot be read,
+    before anything is written."""
 
     def __init__(self, scene: bpy.types.Scene, settings, checkpoint: str = ""):
         if not settings.output:
@@ -82,6 +107,8 @@ class BankRun:
         config = bank_config(settings, checkpoint)
         source = bpy.data.filepath or scene.name
         checked = checked_objects(objects, incomplete, settings.skip_incomplete, source)
+        self.real = real_database(settings)
+        self.reference = real_reference(self.real[0], config.to_dict()) if self.real else None
         self.out = Path(bpy.path.abspath(settings.output))
         self.plan = export.plan_bank(checked, config, self.out, resume=settings.existing == "RESUME",
                                      overwrite=settings.existing == "OVERWRITE")
@@ -97,9 +124,10 @@ class BankRun:
         return True
 
     def finish(self) -> Path:
-        """Assemble the info pickles and the manifest, write the report; its path."""
+        """Assemble the info pickles and the manifest, write the report (write_bank_report);
+        its path."""
         export.assemble(self.out)
-        return write_report(self.out)[0]
+        return write_bank_report(self.out, self.real, self.reference)
 
     def stop(self) -> None:
         self._chunks.close()

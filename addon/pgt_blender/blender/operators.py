@@ -621,16 +621,25 @@ class SCENE_OT_pgt_save_bank_config(bpy.types.Operator, ExportHelper):
 
 
 class SCENE_OT_pgt_open_bank_report(bpy.types.Operator):
-    """Open the bank's report.md as a text (shown in a Text Editor area when there is one)"""
+    """Open the bank's report.md as a text (shown in a Text Editor area when there is one); with a Real database set, the report is first written anew beside it, with the bank's quality score"""
 
     bl_idname = "scene.pgt_open_bank_report"
     bl_label = "Open Report"
 
     def execute(self, context):
-        path = Path(bpy.path.abspath(context.scene.pgt_bank.output)) / "report.md"
+        settings = context.scene.pgt_bank
+        out = Path(bpy.path.abspath(settings.output))
+        path = out / "report.md"
         if not path.is_file():
             self.report({"ERROR"}, f"{path}: no report yet: export the bank first")
             return {"CANCELLED"}
+        real = bank.real_database(settings)
+        if real is not None:  # set after the export, or changed since: the report follows it
+            try:
+                bank.write_bank_report(out, real)
+            except InputError as error:
+                self.report({"ERROR"}, str(error))
+                return {"CANCELLED"}
         old = bpy.data.texts.get(path.name)
         if old is not None:
             bpy.data.texts.remove(old)

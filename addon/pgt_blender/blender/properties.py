@@ -184,6 +184,14 @@ class PGT_PG_bank(bpy.types.PropertyGroup):
                                                                       "not set instead of refusing to export")
     output: StringProperty(name="Output folder", subtype="DIR_PATH", options=PATH_OPTIONS,
                            description="Folder the bank is written to (OpenPCDet and mmdetection3d layouts inside)")
+    real_database: StringProperty(name="Real database", subtype="FILE_PATH", options=PATH_OPTIONS,
+                                  description="A real ground-truth info pickle (*_dbinfos_*.pkl): the bank report "
+                                              "sets its statistics beside the bank's and scores the bank against it "
+                                              "per class (score_bank.py's quality table)")
+    real_convention: EnumProperty(name="Real points", default="openpcdet", description="How the real database "
+                                  "stores each object's points", items=[
+        ("openpcdet", "About the box centre", "OpenPCDet's ground-truth database"),
+        ("mmdet3d", "About the box bottom", "mmdetection3d's ground-truth database")])
     existing: EnumProperty(name="If it exists", default="REFUSE", description="What to do with a non-empty output "
                            "folder", items=[
         ("REFUSE", "Refuse", "Stop with an error: nothing is overwritten"),

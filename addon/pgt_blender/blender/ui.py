@@ -190,6 +190,10 @@ class VIEW3D_PT_pgt_bank(_PGTPanel, bpy.types.Panel):
         layout.prop(settings, "output")
         layout.prop(settings, "existing")
         layout.prop(settings, "skip_incomplete")
+        layout.prop(settings, "real_database")
+        real = layout.row()  # only read with a database set
+        real.enabled = bool(settings.real_database)
+        real.prop(settings, "real_convention")
         if settings.running:
             layout.progress(factor=settings.progress, text=f"{100 * settings.progress:.0f} %")
             layout.operator("scene.pgt_stop_bank", icon="CANCEL")

@@ -6,7 +6,8 @@
 
 Prints a table per class: objects compared, the Fréchet distance of the quality
 encoder's features with its 95 % bootstrap interval, MMD-CD, coverage, 1-NN accuracy,
-W1 of points per entry against distance and W1 of intensity. Without --encoder, an
+W1 of points per entry against distance, W1 of intensity, W1 of how the points fill
+their box and W1 of the box bottoms' grade (where the boxes stand). Without --encoder, an
 encoder is trained on the real database (torch, CPU; about 10 s) and cached in the
 bank's .work folder. --json writes {"classes": {class: {metric: value}}, ...}. The
 same inputs and --seed give the same numbers. Exit status 1 and a one-line message on

@@ -345,8 +345,9 @@ _COLUMN_NOTES = (
 _QUALITY_NOTE = ("Per class matched by name (docs/formats.md, \"Quality score\"): objects compared, the Fréchet "
                  "distance of the quality encoder's features with its 95 % bootstrap interval (– without torch), "
                  "MMD-CD and COV (Chamfer on box-normalised 64-point objects), 1-NNA (0.5 = indistinguishable), "
-                 "W1 of log points scaled to 10 m and W1 of intensity over the dataset's maximum. Lower is better "
-                 "except COV.")
+                 "W1 of log points scaled to 10 m, W1 of intensity over the dataset's maximum, W1 fill (how the "
+                 "points fill their box per axis, box half-sides) and W1 grade (the box bottom's elevation angle "
+                 "from the sensor's foot, degrees). Lower is better except COV.")
 
 
 # Figure
@@ -409,14 +410,18 @@ def _plot_coverage(figure, axes, bank: dict) -> None:
 
 
 def _plot_quality(axes, quality: dict) -> None:
-    """Per class: the feature-free distances as bars (lower is better; COV as 1 - COV so
-    every bar reads the same way), the Fréchet distance with its interval on a twin axis."""
+    """Per class: the feature-free distances as bars (lower is better; COV as 1 - COV and
+    1-NNA as 2 |1-NNA - 0.5| so every bar reads the same way, 0 at best), the Fréchet
+    distance with its interval on a twin axis."""
     names = list(quality["classes"])
-    keys = (("mmd", "MMD-CD"), ("coverage", "1 - COV"), ("w1_points", "W1 points"), ("w1_intensity", "W1 intensity"))
+    keys = (("mmd", "MMD-CD", None), ("coverage", "1 - COV", lambda v: 1 - v),
+            ("one_nn_accuracy", "2 |1-NNA - 0.5|", lambda v: 2 * abs(v - 0.5)), ("w1_points", "W1 points", None),
+            ("w1_intensity", "W1 intensity", None), ("w1_fill", "W1 fill", None),
+            ("w1_grade", "W1 grade (deg)", None))
     width = 0.8 / (len(keys) + 1)
-    for index, (key, label) in enumerate(keys):
+    for index, (key, label, reading) in enumerate(keys):
         values = [quality["classes"][name][key] for name in names]
-        values = [1 - value for value in values] if key == "coverage" else values
+        values = [reading(value) for value in values] if reading else values
         axes.bar(np.arange(len(names)) + index * width, values, width, label=label)
     frechet = [quality["classes"][name]["frechet"] for name in names]
     if names and all(value is not None for value in frechet):

@@ -17,7 +17,15 @@ box-normalised SET_POINTS-point objects (unit: half a box side):
   the points-per-entry-against-distance curves even where the two sets sit at
   different distances (natural-log units: 0.1 is about 10 % more or fewer points);
 - w1_intensity: Wasserstein-1 between every point's intensity over the dataset's
-  maximum, from the INTENSITY_BINS histograms (unit: the dataset's full scale).
+  maximum, from the INTENSITY_BINS histograms (unit: the dataset's full scale);
+- w1_fill: how the objects fill their boxes: the mean over the three box axes of the
+  Wasserstein-1 between the per-object fills (half the range of its box-normalised
+  points along the axis; unit: box half-sides, i.e. the share of the box side). Boxes
+  larger than their objects lower every fill (20 % too large: at most 1/1.2);
+- w1_grade: where the boxes stand: Wasserstein-1 between the box bottoms' elevation
+  angles seen from the foot of the sensor (degrees, sets.ClassSet.grade). Boxes all on
+  one flat plane give 0 for every entry, while real ones spread with the road's grade;
+  boxes grown about their centre sink below the ground.
 
 Learned (the paper's FID): frechet(f, g) = |mu_f - mu_g|^2 + Tr(S_f + S_g - 2 (S_f S_g)^1/2)
 of the encoder's features (encoder.py), with a percentile bootstrap interval.
@@ -76,6 +84,16 @@ def w1_points(bank, real) -> float:
     """W1 of scaled_log_points between two ClassSets."""
     return float(wasserstein_distance(scaled_log_points(bank.points, bank.distance),
                                       scaled_log_points(real.points, real.distance)))
+
+
+def w1_fill(bank, real) -> float:
+    """Mean over the box axes of the W1 between two ClassSets' fills (box half-sides)."""
+    return float(np.mean([wasserstein_distance(bank.fill[:, axis], real.fill[:, axis]) for axis in range(3)]))
+
+
+def w1_grade(bank, real) -> float:
+    """W1 between two ClassSets' box-bottom grades (degrees)."""
+    return float(wasserstein_distance(bank.grade, real.grade))
 
 
 def w1_histograms(a: np.ndarray, b: np.ndarray) -> float:

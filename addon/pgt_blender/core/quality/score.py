@@ -3,7 +3,7 @@ name: scores(bank, real) -> {class: {metric: value}} (metrics.py for each metric
 
 Each class's entry: bank_objects and real_objects (the objects compared), frechet with
 frechet_low and frechet_high (its bootstrap interval; None without an encoder), mmd,
-coverage, one_nn_accuracy, w1_points, w1_intensity. Classes of only one side are left
+coverage, one_nn_accuracy, w1_points, w1_intensity, w1_fill, w1_grade. Classes of only one side are left
 out (``unmatched`` lists them). Every draw is seeded: the same inputs and seed give the
 same numbers.
 """
@@ -24,7 +24,7 @@ MAX_OBJECTS = 600
 
 ENCODER_CACHE = "quality_encoder.pt"  # under the bank's OUT/.work when no --encoder is given
 METRICS = ("bank_objects", "real_objects", "frechet", "frechet_low", "frechet_high", "mmd", "coverage",
-           "one_nn_accuracy", "w1_points", "w1_intensity")
+           "one_nn_accuracy", "w1_points", "w1_intensity", "w1_fill", "w1_grade")
 
 
 def encoder_key(real_pickle, convention: str, reference: str, limit, seed: int) -> str:
@@ -83,7 +83,8 @@ def class_scores(bank_set, real_set, encoder, seed: int = 0) -> dict:
              "frechet_high": None, "mmd": mmd, "coverage": coverage,
              "one_nn_accuracy": metrics.one_nn_accuracy(bank_set.xyz, real_set.xyz, seed),
              "w1_points": metrics.w1_points(bank_set, real_set),
-             "w1_intensity": metrics.w1_histograms(bank_set.histogram, real_set.histogram)}
+             "w1_intensity": metrics.w1_histograms(bank_set.histogram, real_set.histogram),
+             "w1_fill": metrics.w1_fill(bank_set, real_set), "w1_grade": metrics.w1_grade(bank_set, real_set)}
     if encoder is not None:
         bank_features, real_features = encoder.features(bank_set), encoder.features(real_set)
         found["frechet"] = metrics.frechet(bank_features, real_features)
@@ -106,9 +107,9 @@ def _value(value, digits: int = 3) -> str:
 
 def table_rows(scores: dict) -> tuple:
     """(header, rows) of the per-class table: objects, Fréchet [interval], MMD, COV,
-    1-NNA, W1 points, W1 intensity."""
+    1-NNA, W1 points, W1 intensity, W1 fill, W1 grade."""
     header = ["class", "bank", "real", "Fréchet [95 % interval]", "MMD-CD", "COV", "1-NNA", "W1 points",
-              "W1 intensity"]
+              "W1 intensity", "W1 fill", "W1 grade (°)"]
     rows = []
     for name, found in scores["classes"].items():
         frechet = _value(found["frechet"])
@@ -116,5 +117,5 @@ def table_rows(scores: dict) -> tuple:
             frechet += f" [{_value(found['frechet_low'])}, {_value(found['frechet_high'])}]"
         rows.append([name, str(found["bank_objects"]), str(found["real_objects"]), frechet, _value(found["mmd"]),
                      _value(found["coverage"], 2), _value(found["one_nn_accuracy"], 2), _value(found["w1_points"]),
-                     _value(found["w1_intensity"])])
+                     _value(found["w1_intensity"]), _value(found["w1_fill"]), _value(found["w1_grade"])])
     return header, rows

@@ -5,7 +5,9 @@ points per object, never a database's files.
 Every object is *box-normalised*: its points in its box frame (origin at the box
 centre, +x its heading, +z up) divided by half its box dims, so the box is [-1, 1]^3;
 then SET_POINTS of them are drawn (without replacement when it has that many, else
-with), from a Generator seeded by (seed, object's rank in its class).
+with), from a Generator seeded by (seed, object's rank in its class). Two statistics
+use all of an object's points or only its box: how much of the box its points fill
+(``fill``) and where the box stands against the dataset's flat ground (``grade``).
 """
 
 from dataclasses import dataclass
@@ -16,7 +18,7 @@ import numpy as np
 from ..bank.folder import INTENSITY_BINS, MANIFEST, info_path_root, read_manifest
 from ..errors import InputError
 from ..gt_database import CONVENTIONS, iter_objects
-from ..scan.sensors import INTENSITY_MAX
+from ..scan.sensors import INTENSITY_MAX, sensor_from_name
 
 SET_POINTS = 64  # points per object, as the paper's FID
 REFERENCE_GROUPS = 32  # the paper's real-reference sampling: point-count groups
@@ -33,6 +35,13 @@ class ClassSet:
     points:     (n,) int64 points per object (all of its points, not the drawn ones).
     distance:   (n,) float64 m, box-centre distance from the sensor, hypot(x, y).
     histogram:  (INTENSITY_BINS,) int64 counts of every point's intensity over [0, 1].
+    fill:       (n, 3) float64 box units, per box axis (x along the heading, y, z) half
+                the range of all of the object's box-normalised points: 1 when they span
+                the box side, less when the box is larger than what was hit.
+    grade:      (n,) float64 degrees, the box bottom's elevation angle from the foot
+                of the sensor: atan2(bottom z + mounting_height, distance), the
+                dataset's preset mounting height (0 on flat ground at -mounting_height;
+                road grade spreads it, see bank/ground.py).
     """
 
     xyz: np.ndarray
@@ -40,6 +49,8 @@ class ClassSet:
     points: np.ndarray
     distance: np.ndarray
     histogram: np.ndarray
+    fill: np.ndarray
+    grade: np.ndarray
 
     def __len__(self) -> int:
         return len(self.points)
@@ -80,24 +91,32 @@ def database_sets(info_pickle, convention: str, dataset: str, root=None, referen
         return range(len(counts))
 
     maximum = INTENSITY_MAX[dataset]
+    mounting_height = sensor_from_name(dataset).mounting_height
     columns = {}  # class -> lists of per-object arrays
     for obj in iter_objects(info_pickle, convention, min_points, root, choose):
         if obj.features.shape[1] < 1:
             raise InputError(info_pickle, f"{obj.name} has no intensity column (3 columns per point)")
         found = columns.setdefault(obj.class_name, {"xyz": [], "intensity": [], "points": [], "distance": [],
-                                                    "histogram": np.zeros(INTENSITY_BINS, np.int64)})
+                                                    "histogram": np.zeros(INTENSITY_BINS, np.int64), "fill": [],
+                                                    "grade": []})
         intensity = np.clip(obj.features[:, 0] / maximum, 0.0, 1.0).astype(np.float32)
+        normalised = obj.points / (obj.dims / 2)
         draw = np.random.default_rng([seed, len(found["points"])])
         pick = draw.choice(len(obj.points), SET_POINTS, replace=len(obj.points) < SET_POINTS)
-        found["xyz"].append((obj.points[pick] / (obj.dims / 2)).astype(np.float32))
+        distance = float(np.hypot(*obj.centre[:2]))
+        found["xyz"].append(normalised[pick].astype(np.float32))
         found["intensity"].append(intensity[pick])
         found["points"].append(len(obj.points))
-        found["distance"].append(float(np.hypot(*obj.centre[:2])))
+        found["distance"].append(distance)
         found["histogram"] += np.histogram(intensity, INTENSITY_BINS, (0.0, 1.0))[0]
+        found["fill"].append(np.ptp(normalised, axis=0) / 2)
+        bottom = obj.centre[2] - obj.dims[2] / 2 + mounting_height
+        found["grade"].append(float(np.degrees(np.arctan2(bottom, distance))))
         if progress is not None:
             progress(1)
     return {name: ClassSet(np.stack(found["xyz"]), np.stack(found["intensity"]),
-                           np.array(found["points"], np.int64), np.array(found["distance"]), found["histogram"])
+                           np.array(found["points"], np.int64), np.array(found["distance"]), found["histogram"],
+                           np.array(found["fill"]), np.array(found["grade"]))
             for name, found in sorted(columns.items())}
 
 
