@@ -176,6 +176,38 @@ def cut_velodyne(folder, inputs):
     return ["fit_ground.py", kitti], scan_file, "bytes are not whole rows of 4 float32 values"
 
 
+def place(change, problem, named):
+    """place_objects.py on a copy of KITTI frame 000001 with the real mmdet3d KITTI
+    database (one pedestrian) as the bank, after ``change(folder, shared data, kitti copy)
+    -> extra args``."""
+    def build(folder, inputs):
+        kitti = Path(shutil.copytree(inputs["kitti"], folder / "kitti"))
+        extra = change(folder, inputs["kitti"].parent, kitti)
+        command = ["place_objects.py", "--scan", kitti / "velodyne" / "000001.bin", "--info",
+                   kitti / "label_2" / "000001.txt", "--bank", inputs["infos"], "--convention", "mmdet3d",
+                   "--out", folder / "placed", *extra]
+        return command, named(folder, kitti, inputs), problem
+    return build
+
+
+def scan_of_one_object(folder, shared, kitti):
+    """A ground-truth database file given as the scan (the pedestrian's 377 returns about
+    its box bottom, the origin): nothing lies below the sensor."""
+    shutil.copy(shared / "mmdet3d_kitti_gtdb" / "kitti_gt_database" / "0_Pedestrian_0.bin",
+                kitti / "velodyne" / "000001.bin")
+    return ["--objects", "Pedestrian=1"]
+
+
+def map_elsewhere(folder, shared, kitti):
+    image = np.zeros((100, 100, 3), np.float32)
+    image[:, :50] = [0.5, 0.5, 0.5]
+    import matplotlib.image
+
+    matplotlib.image.imsave(folder / "map.png", image)
+    (folder / "legend.json").write_text('{"road": [128, 128, 128]}')
+    return ["--map", folder / "map.png", "--map-pose", "1000", "1000", "0.1", "--map-legend", folder / "legend.json"]
+
+
 SMALL_GRID = {"grid": {"headings_deg": [0, 0, 1], "x": [10, 10, 1], "y": [0, 0, 1]}}
 CASES = {
     # reading reconstructions
@@ -242,6 +274,14 @@ CASES = {
         lambda record: json.dumps({**record, "class": "semi"}).encode()),
     "export_bank --real crafted": crafted_pickle("export_bank.py", "--real",
                                                  ("--objects", "prepared", "--workers", "1")),
+    # placement into real scenes
+    "place_objects on a scan without ground": place(scan_of_one_object, "no ground found",
+                                                    lambda folder, kitti, inputs: kitti / "velodyne" / "000001.bin"),
+    "place_objects with a map that does not cover the scene": place(
+        map_elsewhere, "the map image does not cover the scene", lambda folder, kitti, inputs: folder / "map.png"),
+    "place_objects asking for a class the bank lacks": place(
+        lambda folder, shared, kitti: ["--objects", "Car=2"], "no 'Car' entry within 54 m",
+        lambda folder, kitti, inputs: inputs["infos"]),
     # real scans
     "velodyne file padded by two bytes": cut_velodyne,
     "fit_sensor on a folder without scans": lambda folder, inputs: (["fit_sensor.py", folder], folder,

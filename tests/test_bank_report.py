@@ -162,6 +162,21 @@ def test_write_report(bank_copy):
     assert not list(bank_copy.glob(".*.partial"))
 
 
+def test_without_matplotlib_the_report_has_its_text_and_no_figure(bank_copy):
+    """Blender's own Python has no matplotlib: report.md is written and says so, no PNG."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['matplotlib'] = None; from pgt_blender.core.bank.report import write_report; "
+            f"print(write_report({str(bank_copy)!r}))")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().endswith(", None)")
+    text = (bank_copy / REPORT_MD).read_text()
+    assert "No figure: matplotlib is not installed here." in text and REPORT_PNG not in text
+    assert not (bank_copy / REPORT_PNG).exists()
+
+
 def test_write_report_beside_a_real_database(bank_copy, shared_data):
     real = shared_data / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl"
     text = write_report(bank_copy, real_reference(real, manifest(bank_copy)["config"]))[0].read_text()

@@ -5,6 +5,7 @@ nuScenes sample with its mmdetection3d info)."""
 
 import json
 import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -437,3 +438,22 @@ def test_place_objects_command_writes_the_scene_boxes_and_picture(shared_data, b
         assert inside_box(points[start:stop, :3].astype(np.float64), np.array(box["box"]), 0.12).all()
         assert box["entry"].startswith("pgt_gt_database/") and box["object"]
     assert (tmp_path / "a" / "birdseye.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_without_matplotlib_the_placement_has_no_picture(shared_data, banks, tmp_path):
+    """As under ``blender -b -P`` (Blender's Python has no matplotlib): the scene and its
+    boxes are written, the picture is not, and the command says so."""
+    import subprocess
+    import sys
+
+    frame = shared_data / "kitti_scans"
+    code = ("import sys, runpy; sys.modules['matplotlib'] = None; sys.argv = sys.argv[1:]; "
+            "runpy.run_path(sys.argv[0], run_name='__main__')")
+    script = str(Path(__file__).resolve().parents[1] / "headless_scripts" / "place_objects.py")
+    result = subprocess.run([sys.executable, "-c", code, script, "--scan", str(frame / "velodyne" / "000002.bin"),
+                             "--info", str(frame / "label_2" / "000002.txt"), "--bank", str(banks["kitti"]),
+                             "--objects", "Cyclist=2", "--out", str(tmp_path)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert "no birdseye.png (matplotlib is not installed)" in result.stdout
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["boxes.json", "scan.bin"]
+

@@ -147,12 +147,9 @@ def quality_score(args) -> dict:
 
 def finish(args, manifest: dict, reference, seconds: float, poses: int = 0) -> int:
     """Write the bank report (beside ``reference`` when given) and print the headline numbers."""
-    try:
-        from ..core.bank.report import write_report
+    from ..core.bank.report import write_report
 
-        report = f"report: {write_report(args.out, reference, quality_score(args) if reference else None)[0]}"
-    except ImportError as error:  # matplotlib is not in Blender's own Python
-        report = f"no report ({error.name} is not installed)"
+    report = f"report: {write_report(args.out, reference, quality_score(args) if reference else None)[0]}"
     counts = ", ".join(f"{name} {count:,}" for name, count in manifest["counts"].items())
     dropped = sum(manifest["dropped_below_min_points"].values())
     rate = f" ({poses / seconds:,.0f} poses/s)" if seconds and poses else ""

@@ -87,14 +87,19 @@ def main(argv: list) -> int:
     placement = place_objects(scene.points, scene.boxes, scene.names, pool, counts, config,
                               np.random.default_rng(args.seed), scene_map, bandit, source=args.scan)
     title = f"{args.scan.name}: {int(placement.inserted.sum())} objects placed (seed {args.seed})"
-    paths = write_placement(args.out, placement, scene, args.seed, birdseye_png(scene.points, placement, title))
+    try:
+        picture = birdseye_png(scene.points, placement, title)
+    except ImportError:  # matplotlib is not in Blender's own Python
+        picture = None
+    paths = write_placement(args.out, placement, scene, args.seed, picture)
 
     placed = placement.names[placement.inserted]
     rows = [[name, count, int((placed == name).sum()), placement.missing.get(name, 0)] for name, count in counts.items()]
     print(cli.markdown_table(["class", "asked", "placed", "not placed"], rows))
     print(f"\nscene: {len(scene.points)} points, {len(scene.boxes)} boxes; removed {int(placement.scene_in_boxes.sum())} "
           f"inside placed boxes and {int(placement.scene_shadowed.sum())} in their shadows")
-    print(f"wrote {paths['scan.bin']} ({len(placement.points)} points), {paths['boxes.json']}, {paths['birdseye.png']}")
+    picture = paths.get("birdseye.png", "no birdseye.png (matplotlib is not installed)")
+    print(f"wrote {paths['scan.bin']} ({len(placement.points)} points), {paths['boxes.json']}, {picture}")
     return 0
 
 

@@ -220,15 +220,21 @@ def write_report(out, reference: dict | None = None, quality: dict | None = None
     ``quality`` (quality.score.score_bank: a table and a plot) when given. Every statistic is
     computed before anything is written and each file is written atomically, so bad
     input (InputError) leaves no report file. The same bank gives the same bytes.
-    Returns (md path, png path)."""
+    Without matplotlib (Blender's own Python) there is no figure: report.md says so.
+    Returns (md path, png path or None)."""
     out = Path(out)
     bank = bank_statistics(out)
-    outputs = {out / REPORT_MD: _markdown(bank, reference, quality).encode(),
-               out / REPORT_PNG: _figure_png(bank, reference, quality)}
+    try:
+        figure = _figure_png(bank, reference, quality)
+    except ImportError:
+        figure = None
+    outputs = {out / REPORT_MD: _markdown(bank, reference, quality, figure is not None).encode()}
+    if figure is not None:
+        outputs[out / REPORT_PNG] = figure
     for path, data in outputs.items():
         with atomic_output(path) as stream:
             stream.write(data)
-    return out / REPORT_MD, out / REPORT_PNG
+    return out / REPORT_MD, out / REPORT_PNG if figure is not None else None
 
 
 # Markdown
@@ -263,7 +269,7 @@ def _class_names(bank: dict, real) -> list:
     return sorted(set(bank["classes"]) | set(real["classes"] if real else ()))
 
 
-def _markdown(bank: dict, real, quality=None) -> str:
+def _markdown(bank: dict, real, quality=None, figure: bool = True) -> str:
     """The report's Markdown text (no timestamp, no absolute path: the same statistics
     give the same bytes)."""
     names = _class_names(bank, real)
@@ -273,7 +279,8 @@ def _markdown(bank: dict, real, quality=None) -> str:
         entries = sum(stats["kept"] for stats in real["classes"].values())
         lines.append(f"Real database: `{Path(real['source']).name}` ({real['dataset']}, entries: {entries:,}), "
                      "classes matched by name.")
-    lines += ["", f"![bank report]({REPORT_PNG})", "", "## Entries", ""]
+    lines += ["", f"![bank report]({REPORT_PNG})" if figure else "(No figure: matplotlib is not installed here.)",
+              "", "## Entries", ""]
     lines += _table(["class", "bank kept", "bank dropped"] + (["real"] if real else []),
                     [_count_row(name, bank, real) for name in names] + [_count_row(None, bank, real)])
     lines += ["", "## Points per entry", ""]

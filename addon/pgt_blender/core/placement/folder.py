@@ -12,7 +12,8 @@
   ``path``), ``object`` (the bank's ``pgt_object``, when there is one), ``turn_deg``
   (how far it was turned about the sensor's axis) and ``rows`` [start, stop) in
   scan.bin};
-- ``birdseye.png`` (birdseye.py).
+- ``birdseye.png`` (birdseye.py; not written without matplotlib, as in Blender's own
+  Python).
 
 Each file is written atomically, all three after everything is computed.
 """
@@ -55,13 +56,15 @@ def boxes_record(placement, scene, seed: int) -> dict:
             "boxes": boxes}
 
 
-def write_placement(out, placement, scene, seed: int, birdseye_png: bytes) -> dict:
-    """Write the folder (module docstring) into ``out`` (made when missing); returns the paths."""
+def write_placement(out, placement, scene, seed: int, birdseye_png: bytes | None) -> dict:
+    """Write the folder (module docstring) into ``out`` (made when missing; no picture
+    when ``birdseye_png`` is None); returns the paths written by name."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     contents = {out / SCAN: np.ascontiguousarray(placement.points, np.float32).tobytes(),
-                out / BOXES: json.dumps(boxes_record(placement, scene, seed), indent=1).encode(),
-                out / BIRDSEYE: birdseye_png}
+                out / BOXES: json.dumps(boxes_record(placement, scene, seed), indent=1).encode()}
+    if birdseye_png is not None:
+        contents[out / BIRDSEYE] = birdseye_png
     for path, data in contents.items():
         with atomic_output(path) as stream:
             stream.write(data)

@@ -101,7 +101,7 @@ def estimate_ground(points: np.ndarray, radius: float = 80.0, cell: float = 2.0,
     InputError naming ``source`` when no cell holds ground."""
     from scipy import ndimage
 
-    xyz = np.asarray(points, np.float64)[:, :3]
+    xyz = np.asarray(points[:, :3], np.float64)
     size = int(np.ceil(2 * radius / cell))
     origin = np.array([-radius, -radius])
     index = np.floor((xyz[:, :2] - origin) / cell).astype(np.int64)

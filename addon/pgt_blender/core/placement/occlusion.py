@@ -26,28 +26,48 @@ def occlude(sensor: Sensor, scene: np.ndarray, inserted: np.ndarray, owner: np.n
     """(N,) bool scene points kept and (M,) bool inserted points kept, for (N, >= 3)
     scene and (M, >= 3) inserted sensor-frame points; ``owner`` (M,) int the inserted
     object each inserted point belongs to."""
-    scene_cells, scene_range = cells_of_points(sensor, np.asarray(scene, np.float64)[:, :3])
     inserted_cells, inserted_range = cells_of_points(sensor, np.asarray(inserted, np.float64)[:, :3])
-    count = sensor.beams * sensor.columns
-    in_scene, in_inserted = scene_cells >= 0, inserted_cells >= 0
-    nearest_inserted = _nearest(count, inserted_cells[in_inserted], inserted_range[in_inserted])
-    scene_kept = ~in_scene | (scene_range <= nearest_inserted[np.maximum(scene_cells, 0)])
-    remaining = in_scene & scene_kept
-    nearest_scene = _nearest(count, scene_cells[remaining], scene_range[remaining])
-    inserted_kept = ~in_inserted | (inserted_range <= nearest_scene[np.maximum(inserted_cells, 0)])
+    valid = np.flatnonzero(inserted_cells >= 0)
+    cells, slot = np.unique(inserted_cells[valid], return_inverse=True)  # the cells inserted points fall in
+    scene = np.asarray(scene[:, :3], np.float64)
+    near = _in_columns(sensor, scene, cells % sensor.columns)
+    scene_cells, scene_range = cells_of_points(sensor, scene[near])
+    position = np.minimum(np.searchsorted(cells, scene_cells), max(len(cells) - 1, 0))
+    shared = (scene_cells >= 0) & (cells[position] == scene_cells) if len(cells) else np.zeros(len(near), bool)
+    near, position, scene_range = near[shared], position[shared], scene_range[shared]
+    nearest_inserted = _nearest(len(cells), slot, inserted_range[valid])
+    shadowed = scene_range > nearest_inserted[position]
+    scene_kept = np.ones(len(scene), bool)
+    scene_kept[near[shadowed]] = False
+    nearest_scene = _nearest(len(cells), position[~shadowed], scene_range[~shadowed])
     # the nearest inserted point per cell, and whose: other objects' farther points are hidden
-    order = np.lexsort((inserted_range[in_inserted], inserted_cells[in_inserted]))
-    cells = inserted_cells[in_inserted][order]
-    first = np.concatenate([[True], cells[1:] != cells[:-1]]) if len(cells) else np.zeros(0, bool)
-    nearest_owner = np.full(count, -1, np.int64)
-    nearest_owner[cells[first]] = np.asarray(owner)[in_inserted][order][first]
-    cell_of = np.maximum(inserted_cells, 0)
-    behind_other = in_inserted & (nearest_owner[cell_of] != owner) & (inserted_range > nearest_inserted[cell_of])
-    return scene_kept, inserted_kept & ~behind_other
+    order = np.lexsort((inserted_range[valid], slot))
+    first = order[np.concatenate([[True], slot[order][1:] != slot[order][:-1]])] if len(order) else order
+    nearest_owner = np.empty(len(cells), np.int64)
+    nearest_owner[slot[first]] = np.asarray(owner)[valid][first]
+    hidden = (inserted_range[valid] > nearest_scene[slot]) | \
+        ((nearest_owner[slot] != np.asarray(owner)[valid]) & (inserted_range[valid] > nearest_inserted[slot]))
+    inserted_kept = np.ones(len(inserted_cells), bool)
+    inserted_kept[valid[hidden]] = False
+    return scene_kept, inserted_kept
 
 
-def _nearest(count: int, cells: np.ndarray, ranges: np.ndarray) -> np.ndarray:
-    """(count,) the smallest range per cell (inf where none)."""
+def _nearest(count: int, slots: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+    """(count,) the smallest range per slot (inf where none)."""
     nearest = np.full(count, np.inf)
-    np.minimum.at(nearest, cells, ranges)
+    np.minimum.at(nearest, slots, ranges)
     return nearest
+
+
+def _in_columns(sensor: Sensor, points: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """(N,) indices of the (N, 3) points whose azimuth falls in one of ``columns``, or
+    within the beams' largest azimuth offset plus a column of one: only those can share
+    a cell with points in those columns."""
+    touched = np.zeros(sensor.columns, bool)
+    touched[columns] = True
+    reach = int(np.ceil(np.abs(sensor.azimuth_offsets_deg).max(initial=0.0) / sensor.azimuth_step_deg)) + 1
+    touched = np.logical_or.reduce([np.roll(touched, shift) for shift in range(-reach, reach + 1)])
+    azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+    column = np.floor(sensor.direction * (azimuth - sensor.start_azimuth_deg) / sensor.azimuth_step_deg)
+    return np.flatnonzero(touched[column.astype(np.int64) % sensor.columns])
+

@@ -23,6 +23,7 @@ object left with fewer than ``min_points`` points is dropped and the occlusion r
 without it. Every random draw comes from the ``rng`` given.
 """
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -64,7 +65,9 @@ class Placement:
 Ground.under_boxes),
     ``entries`` the info dict each inserted box came from, ``turns`` (I,) rad each was
     turned by. ``scene_in_boxes`` and ``scene_shadowed`` (N,) bool: scene points removed
-    inside placed boxes and in their shadows. ``missing`` {class: objects not placed}."""
+    inside placed boxes and in their shadows. ``missing`` {class: objects not placed}.
+    ``seconds`` {stage: s}: ground, feasibility, candidates, entries (reading and turning
+    the chosen ones), compose (removal, occlusion, the output arrays)."""
 
     points: np.ndarray
     boxes: np.ndarray
@@ -79,6 +82,7 @@ Ground.under_boxes),
     missing: dict = field(default_factory=dict)
     ground: Ground | None = None
     feasibility: Feasibility | None = None
+    seconds: dict = field(default_factory=dict)
 
 
 def place_objects(points: np.ndarray, boxes: np.ndarray, names, pool: EntryPool, counts: dict,
@@ -89,14 +93,17 @@ def place_objects(points: np.ndarray, boxes: np.ndarray, names, pool: EntryPool,
     ``source`` when the scan has no ground, or the pool's source when it has no entry
     of a class asked for."""
     pool.require([name for name, count in counts.items() if count > 0])
+    clock = _Clock()
     points = np.asarray(points, np.float32)
     width = boxes.shape[1] if np.ndim(boxes) == 2 and len(boxes) else _box_width(pool)
     scene_boxes = np.asarray(boxes, np.float64).reshape(-1, width)
     ground = estimate_ground(points, radius=config.max_distance + 6.0, source=source)
     height = ground.height_above(points[:, :3].astype(np.float64))
+    clock.lap("ground")
     feasibility = scene_feasibility(points, ground, scene_map, radius=config.max_distance,
                                     map_bounds_ground=config.map_bounds_ground,
                                     layers_by_class=config.class_layers, height_above=height)
+    clock.lap("feasibility")
     obstacles = points[height > config.standing_tolerance, :3].astype(np.float64)
     bandit = bandit or ThompsonCells(max_range=config.max_distance)
     order = np.argsort(-bandit.draw(rng), kind="stable")
@@ -117,13 +124,30 @@ def place_objects(points: np.ndarray, boxes: np.ndarray, names, pool: EntryPool,
             entries.append((class_name, pick))
             turns.append(turn)
 
+    clock.lap("candidates")
     clouds = []
     for (class_name, pick), box, turn in zip(entries, placed, turns):
         stored = pool.classes[class_name]
         clouds.append(turn_points(pool.load(stored.infos[pick]), turn, box[2] - stored.boxes[pick, 2]))
     entries = [(class_name, pool.classes[class_name].infos[pick]) for class_name, pick in entries]
-    return _compose(points, scene_boxes, np.asarray(names), placed, entries, turns, clouds, ground, feasibility,
-                    config, missing)
+    clock.lap("entries")
+    placement = _compose(points, scene_boxes, np.asarray(names), placed, entries, turns, clouds, ground, feasibility,
+                         config, missing)
+    clock.lap("compose")
+    placement.seconds = clock.laps
+    return placement
+
+
+class _Clock:
+    """Seconds per stage: ``lap(name)`` books the time since the previous lap."""
+
+    def __init__(self):
+        self.laps, self._last = {}, time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps[name] = now - self._last
+        self._last = now
 
 
 def _box_width(pool: EntryPool) -> int:
@@ -177,9 +201,10 @@ def _ego_gap(boxes: np.ndarray) -> np.ndarray:
 def _compose(points, scene_boxes, names, placed, entries, turns, clouds, ground, feasibility, config, missing):
     """The Placement: scene points inside placed boxes removed, occlusion, thin objects dropped."""
     placed = np.array(placed, np.float64).reshape(-1, scene_boxes.shape[1])
+    xyz = points[:, :3].astype(np.float64)
     in_boxes = np.zeros(len(points), bool)
     for box in placed:
-        in_boxes |= inside_box(points[:, :3].astype(np.float64), box)
+        in_boxes |= inside_box(xyz, box)
     keep = np.ones(len(placed), bool)
     while True:
         chosen = np.flatnonzero(keep)
