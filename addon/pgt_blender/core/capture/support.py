@@ -1,0 +1,135 @@
+"""Foreground without masks: remove the support plane (table, turntable, the ground under
+a real vehicle) and keep the connected object at the centre of the camera orbit.
+
+1. **Orbit centre**: the point nearest (least squares) to every camera's optical axis;
+   the median element when there are no cameras or the axes are near parallel (a
+   forward-facing capture).
+2. **Up**: the mean of the cameras' up axes (-y of the OpenCV camera: photos are taken
+   upright), when they agree (mean length >= 0.5).
+3. **Support plane**: RANSAC (seeded) over planes through three elements; a candidate
+   must tilt at most 45 degrees from up (when known) and have the orbit centre above it
+   (the object stands on its support, not under it). The plane with the most elements
+   within ``tolerance`` wins and is refit by least squares to those; it is used when it
+   holds at least 5 % of the elements. Its elements and everything below it go.
+4. **Object**: what is left is linked into connected components (elements closer than
+   ``link`` element spacings, a cKDTree radius graph); the component with the element
+   nearest the orbit centre, among those holding at least 1 % of what is left, is kept.
+"""
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+_HYPOTHESES = 512
+_RANSAC_SAMPLE = 20_000
+_MAX_TILT_DEG = 45.0
+_MIN_PLANE_SHARE = 0.05
+_MIN_COMPONENT_SHARE = 0.01
+
+
+def orbit_centre(cameras: list) -> np.ndarray | None:
+    """(3,) least-squares meeting point of the cameras' optical axes, or None (fewer than
+    two cameras, or axes too close to parallel to meet)."""
+    if len(cameras) < 2:
+        return None
+    centres = np.array([view.centre for view in cameras])
+    axes = np.array([view.world_from_camera[:3, 2] for view in cameras])
+    projectors = np.eye(3) - axes[:, :, None] * axes[:, None, :]  # onto the plane across each axis
+    system = projectors.sum(axis=0)
+    if np.linalg.cond(system) > 1e4:
+        return None
+    return np.linalg.solve(system, np.einsum("nij,nj->i", projectors, centres))
+
+
+def camera_up(cameras: list) -> np.ndarray | None:
+    """(3,) unit mean of the cameras' up axes (-y), or None when they disagree."""
+    if not cameras:
+        return None
+    mean = -np.mean([view.world_from_camera[:3, 1] for view in cameras], axis=0)
+    length = np.linalg.norm(mean)
+    return mean / length if length >= 0.5 else None
+
+
+def fit_support_plane(positions: np.ndarray, tolerance: float, rng: np.random.Generator,
+                      up: np.ndarray | None = None, centre: np.ndarray | None = None) -> dict | None:
+    """The support plane as {"normal": (3,) unit, pointing to the object's side,
+    "offset": d with normal . x = d on the plane, "elements": count within
+    ``tolerance``}, or None when no admissible plane holds 5 % of the elements."""
+    points = positions.astype(np.float64)
+    sample = points if len(points) <= _RANSAC_SAMPLE else points[rng.choice(len(points), _RANSAC_SAMPLE, replace=False)]
+    triples = sample[rng.integers(0, len(sample), (_HYPOTHESES, 3))]
+    normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
+    lengths = np.linalg.norm(normals, axis=1)
+    usable = lengths > 0
+    normals, triples = normals[usable] / lengths[usable, None], triples[usable]
+    if up is not None:
+        normals *= np.where(normals @ up < 0, -1.0, 1.0)[:, None]
+    offsets = np.einsum("hj,hj->h", normals, triples[:, 0])
+    if centre is not None:  # orient towards the object, which stands above its support
+        side = normals @ centre - offsets
+        normals, offsets = np.where(side[:, None] < 0, -normals, normals), np.where(side < 0, -offsets, offsets)
+    admissible = np.ones(len(normals), bool)
+    if up is not None:
+        admissible &= normals @ up >= np.cos(np.radians(_MAX_TILT_DEG))
+    if centre is not None:
+        admissible &= normals @ centre - offsets > tolerance
+    if not admissible.any():
+        return None
+    normals, offsets = normals[admissible], offsets[admissible]
+    counts = (np.abs(sample @ normals.T - offsets) <= tolerance).sum(axis=0)
+    best = int(np.argmax(counts))
+    normal, offset = normals[best], offsets[best]
+    near = np.abs(points @ normal - offset) <= tolerance
+    if near.sum() >= 3:  # least-squares refit to the plane's elements, same orientation
+        middle = points[near].mean(axis=0)
+        refit = np.linalg.svd(points[near] - middle, full_matrices=False)[2][2]
+        normal = refit if refit @ normal >= 0 else -refit
+        offset = float(normal @ middle)
+    elements = int((np.abs(points @ normal - offset) <= tolerance).sum())
+    if elements < _MIN_PLANE_SHARE * len(points):
+        return None
+    return {"normal": normal, "offset": float(offset), "elements": elements}
+
+
+def central_component(positions: np.ndarray, candidates: np.ndarray, centre: np.ndarray, link: float) -> np.ndarray:
+    """(N,) bool: the connected component (elements of ``candidates`` closer than
+    ``link``) with the element nearest ``centre`` among components holding at least 1 %
+    of the candidates."""
+    keep = np.zeros(len(positions), bool)
+    index = np.flatnonzero(candidates)
+    if not len(index):
+        return keep
+    points = positions[index]
+    pairs = cKDTree(points).query_pairs(link, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(points),) * 2)
+    _, labels = connected_components(graph, directed=False)
+    sizes = np.bincount(labels)
+    distance = np.linalg.norm(points - centre, axis=1)
+    eligible = sizes[labels] >= max(1, _MIN_COMPONENT_SHARE * len(points))
+    nearest = np.argmin(np.where(eligible, distance, np.inf))
+    keep[index[labels == labels[nearest]]] = True
+    return keep
+
+
+def plane_foreground(positions: np.ndarray, cameras: list, spacing: float, rng: np.random.Generator,
+                     tolerance: float = 3.0, link: float = 2.0) -> tuple:
+    """(keep (N,) bool, report dict): steps 1-4 above; ``tolerance`` (plane thickness)
+    and ``link`` in element spacings."""
+    centre = orbit_centre(cameras)
+    centre_from = "camera axes" if centre is not None else "median element"
+    if centre is None:
+        centre = np.median(positions, axis=0).astype(np.float64)
+    up = camera_up(cameras)
+    plane = fit_support_plane(positions, tolerance * spacing, rng, up, centre)
+    above = np.ones(len(positions), bool)
+    if plane is not None:
+        above = positions.astype(np.float64) @ plane["normal"] - plane["offset"] > tolerance * spacing
+    keep = central_component(positions, above, centre, link * spacing)
+    report = {"centre": [round(float(c), 6) for c in centre], "centre_from": centre_from,
+              "up": None if up is None else [round(float(c), 6) for c in up],
+              "plane": None if plane is None else {"normal": [round(float(c), 6) for c in plane["normal"]],
+                                                   "offset": round(plane["offset"], 6),
+                                                   "elements": plane["elements"]},
+              "removed_with_plane": int((~above).sum()), "kept": int(keep.sum())}
+    return keep, report
