@@ -34,8 +34,8 @@ FOREGROUND_MODES = ("none", "masks", "plane")
 class CaptureOptions:
     """``view_color``: Algorithm 1; ``foreground``: "none", "masks" (``masks``: the
     folder, ``mask_share``: the share of seeing views an element must be inside the mask
-    in) or "plane" (``plane_tolerance``: the support plane's half thickness, in element
-    spacings); ``seed`` for every random draw (spacing sample, RANSAC)."""
+    in) or "plane" (``plane_tolerance``: the most the support plane's half thickness can
+    be, in element spacings); ``seed`` for every random draw (spacing sample, RANSAC)."""
 
     view_color: bool = False
     foreground: str = "none"

@@ -4,13 +4,16 @@ a real vehicle) and keep the connected object at the centre of the camera orbit.
 1. **Orbit centre**: the point nearest (least squares) to every camera's optical axis;
    the median element when there are no cameras or the axes are near parallel (a
    forward-facing capture).
-2. **Up**: the mean of the cameras' up axes (-y of the OpenCV camera: photos are taken
-   upright), when they agree (mean length >= 0.5).
+2. **Up**: the direction square to every camera's x axis (photos are taken without
+   roll, so their x axes are level), or the mean of their up axes (``camera_up``).
 3. **Support plane**: RANSAC (seeded) over planes through three elements; a candidate
    must tilt at most 45 degrees from up (when known) and have the orbit centre above it
    (the object stands on its support, not under it). The plane with the most elements
-   within ``tolerance`` wins and is refit by least squares to those; it is used when it
-   holds at least 5 % of the elements. Its elements and everything below it go.
+   within ``tolerance`` wins (it must hold at least 5 % of the elements) and is refit by
+   least squares to the elements within its thickness, 3 robust standard deviations
+   (1.4826 x the median absolute distance) of its elements from it, at least half an
+   element spacing and at most ``tolerance``. The elements within that thickness and
+   everything below go, so an object standing on the plane loses only a thin slice.
 4. **Object**: what is left is linked into connected components (elements closer than
    ``link`` element spacings, a cKDTree radius graph); the component with the element
    nearest the orbit centre, among those holding at least 1 % of what is left, is kept.
@@ -23,7 +26,7 @@ from scipy.spatial import cKDTree
 
 _HYPOTHESES = 512
 _RANSAC_SAMPLE = 20_000
-_MAX_TILT_DEG = 45.0
+_MAX_TILT_DEG = 25.0
 _MIN_PLANE_SHARE = 0.05
 _MIN_COMPONENT_SHARE = 0.01
 
@@ -43,19 +46,33 @@ def orbit_centre(cameras: list) -> np.ndarray | None:
 
 
 def camera_up(cameras: list) -> np.ndarray | None:
-    """(3,) unit mean of the cameras' up axes (-y), or None when they disagree."""
+    """(3,) unit up of the capture, or None when the cameras do not tell. Photos are
+    taken without roll, so every camera's x axis is level: up is the direction most
+    nearly perpendicular to all of them (the smallest eigenvector of the sum of their
+    outer products), turned to agree with the mean of the cameras' up axes (-y). When
+    the x axes do not pin it down (all nearly parallel: every photo from one side), the
+    mean up axis itself, if the cameras agree on it (mean length >= 0.5)."""
     if not cameras:
         return None
-    mean = -np.mean([view.world_from_camera[:3, 1] for view in cameras], axis=0)
-    length = np.linalg.norm(mean)
-    return mean / length if length >= 0.5 else None
+    rotations = np.array([view.world_from_camera[:3, :3] for view in cameras])
+    mean_up = -rotations[:, :, 1].mean(axis=0)
+    values, vectors = np.linalg.eigh(np.einsum("ni,nj->ij", rotations[:, :, 0], rotations[:, :, 0]))
+    if values[1] > 4 * values[0] and values[1] > 0.05 * len(cameras):
+        up = vectors[:, 0]
+        return up if up @ mean_up >= 0 else -up
+    length = np.linalg.norm(mean_up)
+    return mean_up / length if length >= 0.5 else None
 
 
-def fit_support_plane(positions: np.ndarray, tolerance: float, rng: np.random.Generator,
+def fit_support_plane(positions: np.ndarray, tolerance: float, floor: float, rng: np.random.Generator,
                       up: np.ndarray | None = None, centre: np.ndarray | None = None) -> dict | None:
     """The support plane as {"normal": (3,) unit, pointing to the object's side,
     "offset": d with normal . x = d on the plane, "elements": count within
-    ``tolerance``}, or None when no admissible plane holds 5 % of the elements."""
+    ``tolerance``, "thickness": 3 x 1.4826 x the median absolute distance of the
+    elements within it, clipped to [``floor``, ``tolerance``]}, or None when no
+    admissible plane holds 5 % of the elements. The RANSAC winner is refit twice by
+    least squares to the elements within its thickness (a refit that leaves the
+    admissible tilt is not taken)."""
     points = positions.astype(np.float64)
     sample = points if len(points) <= _RANSAC_SAMPLE else points[rng.choice(len(points), _RANSAC_SAMPLE, replace=False)]
     triples = sample[rng.integers(0, len(sample), (_HYPOTHESES, 3))]
@@ -63,33 +80,44 @@ def fit_support_plane(positions: np.ndarray, tolerance: float, rng: np.random.Ge
     lengths = np.linalg.norm(normals, axis=1)
     usable = lengths > 0
     normals, triples = normals[usable] / lengths[usable, None], triples[usable]
-    if up is not None:
-        normals *= np.where(normals @ up < 0, -1.0, 1.0)[:, None]
     offsets = np.einsum("hj,hj->h", normals, triples[:, 0])
     if centre is not None:  # orient towards the object, which stands above its support
-        side = normals @ centre - offsets
-        normals, offsets = np.where(side[:, None] < 0, -normals, normals), np.where(side < 0, -offsets, offsets)
-    admissible = np.ones(len(normals), bool)
-    if up is not None:
-        admissible &= normals @ up >= np.cos(np.radians(_MAX_TILT_DEG))
-    if centre is not None:
-        admissible &= normals @ centre - offsets > tolerance
+        flip = np.where(normals @ centre - offsets < 0, -1.0, 1.0)
+    elif up is not None:
+        flip = np.where(normals @ up < 0, -1.0, 1.0)
+    else:
+        flip = np.ones(len(normals))
+    normals, offsets = normals * flip[:, None], offsets * flip
+    admissible = _admissible(normals, offsets, tolerance, up, centre)
     if not admissible.any():
         return None
     normals, offsets = normals[admissible], offsets[admissible]
     counts = (np.abs(sample @ normals.T - offsets) <= tolerance).sum(axis=0)
     best = int(np.argmax(counts))
-    normal, offset = normals[best], offsets[best]
-    near = np.abs(points @ normal - offset) <= tolerance
-    if near.sum() >= 3:  # least-squares refit to the plane's elements, same orientation
-        middle = points[near].mean(axis=0)
-        refit = np.linalg.svd(points[near] - middle, full_matrices=False)[2][2]
-        normal = refit if refit @ normal >= 0 else -refit
-        offset = float(normal @ middle)
-    elements = int((np.abs(points @ normal - offset) <= tolerance).sum())
-    if elements < _MIN_PLANE_SHARE * len(points):
+    normal, offset, band = normals[best], float(offsets[best]), tolerance
+    if (np.abs(points @ normal - offset) <= tolerance).sum() < _MIN_PLANE_SHARE * len(points):
         return None
-    return {"normal": normal, "offset": float(offset), "elements": elements}
+    for _ in range(2):
+        near = np.abs(points @ normal - offset) <= band
+        if near.sum() >= 3:
+            middle = points[near].mean(axis=0)
+            refit = np.linalg.svd(points[near] - middle, full_matrices=False)[2][2]
+            refit = refit if refit @ normal >= 0 else -refit
+            if _admissible(refit[None], np.array([refit @ middle]), tolerance, up, centre)[0]:
+                normal, offset = refit, float(refit @ middle)
+        distance = np.abs(points @ normal - offset)
+        band = float(np.clip(3 * 1.4826 * np.median(distance[distance <= tolerance]), floor, tolerance))
+    return {"normal": normal, "offset": offset, "elements": int((distance <= tolerance).sum()), "thickness": band}
+
+
+def _admissible(normals, offsets, tolerance, up, centre) -> np.ndarray:
+    """Planes tilted at most 45 degrees from ``up`` with ``centre`` above them (each when known)."""
+    admissible = np.ones(len(normals), bool)
+    if up is not None:
+        admissible &= normals @ up >= np.cos(np.radians(_MAX_TILT_DEG))
+    if centre is not None:
+        admissible &= normals @ centre - offsets > tolerance
+    return admissible
 
 
 def central_component(positions: np.ndarray, candidates: np.ndarray, centre: np.ndarray, link: float) -> np.ndarray:
@@ -113,23 +141,24 @@ def central_component(positions: np.ndarray, candidates: np.ndarray, centre: np.
 
 
 def plane_foreground(positions: np.ndarray, cameras: list, spacing: float, rng: np.random.Generator,
-                     tolerance: float = 3.0, link: float = 2.0) -> tuple:
-    """(keep (N,) bool, report dict): steps 1-4 above; ``tolerance`` (plane thickness)
-    and ``link`` in element spacings."""
+                     tolerance: float = 3.0, link: float = 3.0) -> tuple:
+    """(keep (N,) bool, report dict): steps 1-4 above; ``tolerance`` (the plane search's
+    band, the most its thickness can be) and ``link`` in element spacings."""
     centre = orbit_centre(cameras)
     centre_from = "camera axes" if centre is not None else "median element"
     if centre is None:
         centre = np.median(positions, axis=0).astype(np.float64)
     up = camera_up(cameras)
-    plane = fit_support_plane(positions, tolerance * spacing, rng, up, centre)
+    plane = fit_support_plane(positions, tolerance * spacing, 0.5 * spacing, rng, up, centre)
     above = np.ones(len(positions), bool)
     if plane is not None:
-        above = positions.astype(np.float64) @ plane["normal"] - plane["offset"] > tolerance * spacing
+        above = positions.astype(np.float64) @ plane["normal"] - plane["offset"] > plane["thickness"]
     keep = central_component(positions, above, centre, link * spacing)
     report = {"centre": [round(float(c), 6) for c in centre], "centre_from": centre_from,
               "up": None if up is None else [round(float(c), 6) for c in up],
               "plane": None if plane is None else {"normal": [round(float(c), 6) for c in plane["normal"]],
                                                    "offset": round(plane["offset"], 6),
-                                                   "elements": plane["elements"]},
+                                                   "elements": plane["elements"],
+                                                   "thickness": round(plane["thickness"], 9)},
               "removed_with_plane": int((~above).sum()), "kept": int(keep.sum())}
     return keep, report
