@@ -41,7 +41,7 @@ class CaptureOptions:
     foreground: str = "none"
     masks: Path | None = None
     mask_share: float = 0.5
-    plane_tolerance: float = 3.0
+    plane_tolerance: float = 4.0
     seed: int = 0
     visibility: VisibilitySettings = field(default_factory=VisibilitySettings)
 

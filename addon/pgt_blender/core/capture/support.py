@@ -3,13 +3,15 @@ a real vehicle) and keep the connected object at the centre of the camera orbit.
 
 1. **Orbit centre**: the point nearest (least squares) to every camera's optical axis;
    the median element when there are no cameras or the axes are near parallel (a
-   forward-facing capture).
+   forward-facing capture). Only a centre from the cameras constrains the plane.
 2. **Up**: the direction square to every camera's x axis (photos are taken without
    roll, so their x axes are level), or the mean of their up axes (``camera_up``).
 3. **Support plane**: RANSAC (seeded) over planes through three elements; a candidate
-   must tilt at most 45 degrees from up (when known) and have the orbit centre above it
-   (the object stands on its support, not under it). The plane with the most elements
-   within ``tolerance`` wins (it must hold at least 5 % of the elements) and is refit by
+   must tilt at most 25 degrees from up (when known) and have the orbit centre above it
+   (the object stands on its support, not under it); without either, its normal points
+   to the side most elements off it lie on. The plane with the most elements
+   within ``tolerance`` wins (it must hold at least 5 % of the elements and be flat, see
+   ``fit_support_plane``) and is refit by
    least squares to the elements within its thickness, 3 robust standard deviations
    (1.4826 x the median absolute distance) of its elements from it, at least half an
    element spacing and at most ``tolerance``. The elements within that thickness and
@@ -28,6 +30,7 @@ _HYPOTHESES = 512
 _RANSAC_SAMPLE = 20_000
 _MAX_TILT_DEG = 25.0
 _MIN_PLANE_SHARE = 0.05
+_MAX_SPREAD = 0.75
 _MIN_COMPONENT_SHARE = 0.01
 
 
@@ -70,7 +73,9 @@ def fit_support_plane(positions: np.ndarray, tolerance: float, floor: float, rng
     "offset": d with normal . x = d on the plane, "elements": count within
     ``tolerance``, "thickness": 3 x 1.4826 x the median absolute distance of the
     elements within it, clipped to [``floor``, ``tolerance``]}, or None when no
-    admissible plane holds 5 % of the elements. The RANSAC winner is refit twice by
+    admissible plane holds 5 % of the elements or its elements are not flat (their
+    3 x 1.4826 x median distance exceeds 0.75 ``tolerance``: a band cut through a
+    curved surface spreads evenly, about 2.2 ``tolerance``). The RANSAC winner is refit twice by
     least squares to the elements within its thickness (a refit that leaves the
     admissible tilt is not taken)."""
     points = positions.astype(np.float64)
@@ -85,8 +90,9 @@ def fit_support_plane(positions: np.ndarray, tolerance: float, floor: float, rng
         flip = np.where(normals @ centre - offsets < 0, -1.0, 1.0)
     elif up is not None:
         flip = np.where(normals @ up < 0, -1.0, 1.0)
-    else:
-        flip = np.ones(len(normals))
+    else:  # towards the side most elements off the plane are on
+        signed = sample @ normals.T - offsets
+        flip = np.where((signed > tolerance).sum(axis=0) < (signed < -tolerance).sum(axis=0), -1.0, 1.0)
     normals, offsets = normals * flip[:, None], offsets * flip
     admissible = _admissible(normals, offsets, tolerance, up, centre)
     if not admissible.any():
@@ -106,12 +112,15 @@ def fit_support_plane(positions: np.ndarray, tolerance: float, floor: float, rng
             if _admissible(refit[None], np.array([refit @ middle]), tolerance, up, centre)[0]:
                 normal, offset = refit, float(refit @ middle)
         distance = np.abs(points @ normal - offset)
-        band = float(np.clip(3 * 1.4826 * np.median(distance[distance <= tolerance]), floor, tolerance))
+        spread = 3 * 1.4826 * float(np.median(distance[distance <= tolerance]))
+        band = float(np.clip(spread, floor, tolerance))
+    if spread > _MAX_SPREAD * tolerance:  # elements spread evenly over the band: a curved surface cut, not a plane
+        return None
     return {"normal": normal, "offset": offset, "elements": int((distance <= tolerance).sum()), "thickness": band}
 
 
 def _admissible(normals, offsets, tolerance, up, centre) -> np.ndarray:
-    """Planes tilted at most 45 degrees from ``up`` with ``centre`` above them (each when known)."""
+    """Planes tilted at most 25 degrees from ``up`` with ``centre`` above them (each when known)."""
     admissible = np.ones(len(normals), bool)
     if up is not None:
         admissible &= normals @ up >= np.cos(np.radians(_MAX_TILT_DEG))
@@ -141,15 +150,14 @@ def central_component(positions: np.ndarray, candidates: np.ndarray, centre: np.
 
 
 def plane_foreground(positions: np.ndarray, cameras: list, spacing: float, rng: np.random.Generator,
-                     tolerance: float = 3.0, link: float = 3.0) -> tuple:
+                     tolerance: float = 4.0, link: float = 3.0) -> tuple:
     """(keep (N,) bool, report dict): steps 1-4 above; ``tolerance`` (the plane search's
     band, the most its thickness can be) and ``link`` in element spacings."""
-    centre = orbit_centre(cameras)
-    centre_from = "camera axes" if centre is not None else "median element"
-    if centre is None:
-        centre = np.median(positions, axis=0).astype(np.float64)
+    orbit = orbit_centre(cameras)
+    centre = orbit if orbit is not None else np.median(positions, axis=0).astype(np.float64)
+    centre_from = "camera axes" if orbit is not None else "median element"
     up = camera_up(cameras)
-    plane = fit_support_plane(positions, tolerance * spacing, 0.5 * spacing, rng, up, centre)
+    plane = fit_support_plane(positions, tolerance * spacing, 0.5 * spacing, rng, up, orbit)
     above = np.ones(len(positions), bool)
     if plane is not None:
         above = positions.astype(np.float64) @ plane["normal"] - plane["offset"] > plane["thickness"]
