@@ -392,3 +392,13 @@ def test_statue_foreground_without_masks(statue):
     assert report["plane"] is None and report["removed_with_plane"] == 0
     assert 0.95 * len(full.positions) < report["kept"] == len(recon.positions) < len(full.positions)
     assert (recon.positions @ up).max() >= np.percentile(full.positions @ up, 99)  # the torch stays
+
+
+def test_capture_needs_cameras_and_points(donut, tmp_path):
+    with pytest.raises(InputError, match=f"^{donut}: has no cameras: view color and mask foreground need"):
+        load_reconstruction(donut, capture=VIEW_COLOR)
+    from pgt_blender.core.samples import sample_vehicle
+
+    sample_vehicle("bus").trimesh().export(tmp_path / "bus.obj")
+    with pytest.raises(InputError, match="not on a mesh"):
+        load_reconstruction(tmp_path / "bus.obj", capture=CaptureOptions(foreground="plane"))
