@@ -203,7 +203,7 @@ class IMPORT_SCENE_OT_pgt_mesh(ImportHelper, _ImportReconstruction, bpy.types.Op
 
 
 class IMPORT_SCENE_OT_pgt_folder(bpy.types.Operator):
-    """Import every reconstruction in a folder (files and COLMAP model folders); one bad file imports none"""
+    """Import every reconstruction in a folder (files, 3DGS output folders, COLMAP model folders); one bad file imports none"""
 
     bl_idname = "import_scene.pgt_folder"
     bl_label = "Import Folder"

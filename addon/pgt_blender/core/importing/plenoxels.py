@@ -13,14 +13,14 @@ The layout read, from svox2/svox2.py ``SparseGrid.save`` / ``load``:
 | ``background_links``, ``background_data`` | | the multi-sphere background model: not part of the object, ignored |
 
 Cell (i, j, k) holds its data at its centre, ``center + radius * (2 (index + 0.5) /
-resolution - 1)`` (``SparseGrid.grid2world``). The SH basis, constants and colour rule
+resolution - 1)`` (``SparseGrid.grid2world``). The SH basis, constants and color rule
 are 3DGS's (``sh.py``; svox2/utils.py ``eval_sh_bases`` for K = 1, 4, 9, 16).
 
 Each cell with relu(sigma) > 0 becomes a point (cells of zero density are empty space
 to the renderer) with ``density`` (sigma, per source unit), ``opacity`` = 1 - exp(-sigma
 x side), the share of light one cell side of this density stops (side: the mean of the
 cell's three side lengths), its coefficients as ``f_dc_*`` / ``f_rest_*`` in the 3DGS
-layout, and the DC colour.
+layout, and the DC color.
 """
 
 import zipfile
