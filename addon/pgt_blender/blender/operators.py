@@ -130,6 +130,8 @@ class _CameraFile:
     cameras_file: StringProperty(name="Cameras", subtype="FILE_PATH", options=properties.PATH_OPTIONS,
                                  description="Training cameras in the input's frame (3DGS cameras.json or a COLMAP "
                                              "model folder); empty: the run's own or a cameras.json beside the file")
+    with_cameras: BoolProperty(name="Add Cameras", default=False,
+                               description="Also add the training cameras to the scene, children of the points")
 
     def cameras_path(self):
         return bpy.path.abspath(self.cameras_file) if self.cameras_file else None
@@ -166,8 +168,6 @@ class IMPORT_SCENE_OT_pgt_gaussian_splat(ImportHelper, _CaptureSettings, _Camera
     source_kind = "gaussian_splat"
     filename_ext = ".ply"
     filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
-    with_cameras: BoolProperty(name="Cameras", default=False,
-                               description="Add the training cameras (a 3DGS run's cameras.json) as cameras")
 
 
 class IMPORT_SCENE_OT_pgt_plenoxels(ImportHelper, _CaptureSettings, _CameraFile, _ImportReconstruction,
@@ -179,8 +179,6 @@ class IMPORT_SCENE_OT_pgt_plenoxels(ImportHelper, _CaptureSettings, _CameraFile,
     source_kind = "plenoxels"
     filename_ext = ".npz"
     filter_glob: StringProperty(default="*.npz", options={"HIDDEN"})
-    with_cameras: BoolProperty(name="Cameras", default=False,
-                               description="Add the training cameras (Cameras field or a cameras.json beside the file)")
 
 
 class IMPORT_SCENE_OT_pgt_point_cloud(ImportHelper, _ImportReconstruction, bpy.types.Operator):

@@ -70,10 +70,11 @@ def apply_capture(recon: Reconstruction, options: CaptureOptions) -> Reconstruct
     spacing = element_spacing(recon.positions, rng)
     report = {"spacing": round(spacing, 9), "cameras": len(recon.cameras)}
     keep = np.ones(len(recon.positions), bool)
-    mask_files = match_masks(options.masks, _projectable(recon)) if options.foreground == "masks" else None
-    if options.view_color or mask_files is not None:
+    if options.view_color or options.foreground == "masks":
+        cameras = _projectable(recon)
+        mask_files = match_masks(options.masks, cameras) if options.foreground == "masks" else None
         started = time.perf_counter()
-        color, votes = _view_pass(recon, options, spacing, mask_files)
+        color, votes = _view_pass(recon, cameras, options, spacing, mask_files)
         seconds = time.perf_counter() - started
         if color is not None:
             report["view_color"] = _apply_view_color(recon, color, seconds)
@@ -106,9 +107,8 @@ def _projectable(recon: Reconstruction) -> list:
     return recon.cameras
 
 
-def _view_pass(recon: Reconstruction, options: CaptureOptions, spacing: float, mask_files):
-    """One pass over the views feeding the color sums and the mask votes."""
-    cameras = _projectable(recon)
+def _view_pass(recon: Reconstruction, cameras: list, options: CaptureOptions, spacing: float, mask_files):
+    """One pass over ``cameras`` feeding the color sums and the mask votes."""
     color = votes = None
     if options.view_color:
         try:

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..importing.cameras import write_cameras_json
 from ..importing.ply import write_ply
-from ..importing.sh import coefficient_attributes
+from ..importing.sh import coefficient_attributes, dc_colors
 from ..reconstruction import CameraView
 
 
@@ -121,9 +121,8 @@ def splatfacto_columns(columns: dict, rgb: bool = False) -> dict:
     opacity, scale_*, rot_*)."""
     out = {name: columns[name] for name in ("x", "y", "z", "nx", "ny", "nz")}
     if rgb:
-        dc = np.column_stack([columns[f"f_dc_{c}"] for c in range(3)])
-        out.update(zip(("red", "green", "blue"), (np.clip(0.5 + 0.28209479177387814 * dc, 0, 1) * 255)
-                       .astype(np.uint8).T))
+        dc = np.stack([columns[f"f_dc_{c}"] for c in range(3)], axis=1)[:, :, None]
+        out.update(zip(("red", "green", "blue"), (dc_colors(dc) * 255).astype(np.uint8).T))
     else:
         out.update({name: values for name, values in columns.items() if name.startswith(("f_dc_", "f_rest_"))})
     out.update({name: columns[name] for name in ("opacity", "scale_0", "scale_1", "scale_2",

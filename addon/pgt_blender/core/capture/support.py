@@ -9,13 +9,13 @@ a real vehicle) and keep the connected object at the centre of the camera orbit.
 3. **Support plane**: RANSAC (seeded) over planes through three elements; a candidate
    must tilt at most 25 degrees from up (when known) and have the orbit centre above it
    (the object stands on its support, not under it); without either, its normal points
-   to the side most elements off it lie on. The plane with the most elements
-   within ``tolerance`` wins (it must hold at least 5 % of the elements and be flat, see
-   ``fit_support_plane``) and is refit by
-   least squares to the elements within its thickness, 3 robust standard deviations
-   (1.4826 x the median absolute distance) of its elements from it, at least half an
-   element spacing and at most ``tolerance``. The elements within that thickness and
-   everything below go, so an object standing on the plane loses only a thin slice.
+   to the side most elements off it lie on. The plane with the most elements within
+   ``tolerance`` wins; it must hold at least 5 % of the elements and be flat (see
+   ``fit_support_plane``). It is refit by least squares to the elements within its
+   thickness: 3 robust standard deviations (1.4826 x the median absolute distance) of
+   its elements from it, at least half an element spacing and at most ``tolerance``.
+   The elements within that thickness and everything below go, so an object standing
+   on the plane loses only a thin slice.
 4. **Object**: what is left is linked into connected components (elements closer than
    ``link`` element spacings, a cKDTree radius graph); the component with the element
    nearest the orbit centre, among those holding at least 1 % of what is left, is kept.

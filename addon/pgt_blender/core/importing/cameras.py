@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..files import atomic_output
 from ..reconstruction import CameraView
 
 _KEYS = ("img_name", "width", "height", "position", "rotation", "fx", "fy")
@@ -74,8 +75,6 @@ def _camera(path: Path, index: int, entry) -> CameraView:
 
 def write_cameras_json(path, cameras: list) -> None:
     """Write ``cameras`` (PINHOLE, principal point at the centre) in the 3DGS layout."""
-    from ..files import atomic_output
-
     entries = [{"id": index, "img_name": Path(view.name).stem, "width": view.width, "height": view.height,
                 "position": view.world_from_camera[:3, 3].tolist(),
                 "rotation": view.world_from_camera[:3, :3].tolist(), "fx": view.fx, "fy": view.fy}
