@@ -402,3 +402,31 @@ def test_capture_needs_cameras_and_points(donut, tmp_path):
     sample_vehicle("bus").trimesh().export(tmp_path / "bus.obj")
     with pytest.raises(InputError, match="not on a mesh"):
         load_reconstruction(tmp_path / "bus.obj", capture=CaptureOptions(foreground="plane"))
+
+
+def test_splatfacto_export_with_its_run_transform_sees_through_the_colmap_cameras(statue, tmp_path):
+    """A splatfacto export lives in nerfstudio's frame, s (R x + t) of the COLMAP world
+    (the run's dataparser_transforms.json); the COLMAP cameras given with it are moved
+    the same way, so each camera sees every point at the pixel COLMAP saw it."""
+    original = load_reconstruction(statue)
+    rotation = samples.look_at((1, 2, 3), (0, 0, 0), "r").world_from_camera[:3, :3]
+    translation, scale = np.array([0.3, -1.2, 2.0]), 0.37
+    moved = (scale * (original.positions @ rotation.T + translation)).astype(np.float32)
+    count = len(moved)
+    columns = samples.splat_columns(moved, np.zeros((count, 3, 16), np.float32), np.full(count, 0.5),
+                                    np.full((count, 3), 0.01))
+    write_ply(tmp_path / "splat.ply", samples.splatfacto_columns(columns))
+    (tmp_path / "dataparser_transforms.json").write_text(json.dumps(
+        {"transform": np.column_stack([rotation, translation]).tolist(), "scale": scale}))
+    recon = load_reconstruction(tmp_path / "splat.ply", cameras=statue)
+
+    def pixels(view, points):
+        transform = view.camera_from_world()
+        local = points @ transform[:3, :3].T + transform[:3, 3]
+        return view.project(local[local[:, 2] > 0])[0]
+
+    for before, after in zip(original.cameras[::7], recon.cameras[::7]):
+        np.testing.assert_allclose(pixels(after, recon.positions), pixels(before, original.positions), atol=2e-2)
+    (tmp_path / "dataparser_transforms.json").write_text('{"transform": [[2, 0, 0, 0]], "scale": 1}')
+    with pytest.raises(InputError, match="dataparser_transforms.json: not a nerfstudio dataparser transform"):
+        load_reconstruction(tmp_path / "splat.ply", cameras=statue)

@@ -20,6 +20,7 @@ from ..reconstruction import Reconstruction
 from .cameras import load_cameras
 from .colmap import load_colmap
 from .mesh import MESH_SUFFIXES, load_mesh
+from .nerfstudio import DATAPARSER_TRANSFORMS, to_model_frame
 from .plenoxels import load_plenoxels
 from .ply import read_header
 from .points import is_gaussian_splat, load_gaussian_splat, load_point_ply
@@ -56,8 +57,10 @@ def load_reconstruction(path, kind: str = "auto", with_cameras: bool = True, cam
     Gaussian splats refuses a plain point PLY); ``"auto"`` detects it.
 
     ``cameras`` (a 3DGS cameras.json or a COLMAP model folder, in the same frame as the
-    elements) gives the training views; without it a splat or Plenoxels input takes its
-    run's cameras (``splat_run.py``) or a ``cameras.json`` beside the file. ``capture``
+    elements) gives the training views; a COLMAP model given to a splat file with a
+    nerfstudio ``dataparser_transforms.json`` beside it is moved into the splats' frame
+    (``nerfstudio.py``). Without it a splat or Plenoxels input takes its run's cameras
+    (``splat_run.py``) or a ``cameras.json`` beside the file. ``capture``
     (``core.capture.CaptureOptions``) runs view-agnostic color and foreground extraction
     on what was read. ``with_cameras`` False leaves the cameras out of the result (they
     are still read when ``capture`` needs them)."""
@@ -69,6 +72,9 @@ def load_reconstruction(path, kind: str = "auto", with_cameras: bool = True, cam
     recon = _read(path, detected, needs_cameras and cameras is None)
     if cameras is not None:
         recon.cameras = load_cameras(cameras)
+        transform = path.parent / DATAPARSER_TRANSFORMS
+        if Path(cameras).is_dir() and detected == "gaussian_splat" and path.is_file() and transform.is_file():
+            recon.cameras = to_model_frame(recon.cameras, transform)
     if capture is not None:
         from ..capture import apply_capture  # the capture steps import this package's readers
 
