@@ -13,7 +13,6 @@ Reconstruction: ``colors`` (view color where hit), attributes ``view_hit`` (bool
 ``capture`` report.
 """
 
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -60,8 +59,9 @@ class CaptureOptions:
 
 
 def apply_capture(recon: Reconstruction, options: CaptureOptions) -> Reconstruction:
-    """``recon`` after view color and foreground extraction (module docstring); InputError
-    naming its source when it is a mesh, or has no usable cameras for what was asked."""
+    """``recon`` after view color (its colors and attributes changed in place) and
+    foreground extraction (a subset of it), see the module docstring; InputError naming
+    its source when it is a mesh, or has no usable cameras for what was asked."""
     if not options.needs_cameras:
         return recon
     if len(recon.faces):
@@ -73,11 +73,9 @@ def apply_capture(recon: Reconstruction, options: CaptureOptions) -> Reconstruct
     if options.view_color or options.foreground == "masks":
         cameras = _projectable(recon)
         mask_files = match_masks(options.masks, cameras) if options.foreground == "masks" else None
-        started = time.perf_counter()
         color, votes = _view_pass(recon, cameras, options, spacing, mask_files)
-        seconds = time.perf_counter() - started
         if color is not None:
-            report["view_color"] = _apply_view_color(recon, color, seconds)
+            report["view_color"] = _apply_view_color(recon, color)
         if votes is not None:
             shares = votes.shares()
             keep = shares >= options.mask_share
@@ -125,7 +123,7 @@ def _view_pass(recon: Reconstruction, cameras: list, options: CaptureOptions, sp
     return color, votes
 
 
-def _apply_view_color(recon: Reconstruction, color: ViewColorSums, seconds: float) -> dict:
+def _apply_view_color(recon: Reconstruction, color: ViewColorSums) -> dict:
     if recon.colors is None:
         recon.colors = np.ones((len(recon.positions), 4), np.float32)
     recon.colors[:, :3] = color.colors(recon.colors[:, :3])
@@ -133,5 +131,5 @@ def _apply_view_color(recon: Reconstruction, color: ViewColorSums, seconds: floa
     recon.attributes["view_hit"] = hit
     recon.attributes["view_count"] = color.counts
     return {"sh_degree": color.degree, "hit": int(hit.sum()), "never_hit": int((~hit).sum()),
-            "hit_share": round(float(hit.mean()), 6), "mean_views_per_hit_element":
-                round(float(color.counts[hit].mean()), 3) if hit.any() else 0.0, "seconds": round(seconds, 3)}
+            "hit_share": round(float(hit.mean()), 6),
+            "mean_views_per_hit_element": round(float(color.counts[hit].mean()), 3) if hit.any() else 0.0}
