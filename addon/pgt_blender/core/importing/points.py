@@ -10,8 +10,9 @@ from .ply import PlyHeader, read_vertices
 from .sh import SH_C0
 from .source import checked_positions, sha256_of_files
 
-SPLAT_FIELDS = ("opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
 _DC = ("f_dc_0", "f_dc_1", "f_dc_2")
+_SHAPE = ("opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
+SPLAT_FIELDS = _DC + _SHAPE  # what a 3DGS PLY has besides x y z (and f_rest_* for SH degree 1-3)
 _XYZ = ("x", "y", "z")
 _RGB = ("red", "green", "blue")
 _NORMAL = ("nx", "ny", "nz")
@@ -26,7 +27,7 @@ def is_gaussian_splat(path: Path, header: PlyHeader) -> bool:
     vertex = header.element("vertex")
     names = {name for name, _ in vertex.properties} if vertex else set()
     color = _DC if any(name in names for name in _DC) or not set(_RGB) <= names else _RGB
-    required = SPLAT_FIELDS + color
+    required = _SHAPE + color
     present = [name for name in required if name in names]
     if len(present) < len(required) and any(name.startswith(("f_dc_", "rot_")) for name in present):
         _require(path, names, required, "a whole Gaussian-splat PLY")
@@ -74,20 +75,20 @@ def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
     data = read_vertices(path, header)
     names = set(data)
     color = _DC if set(_DC) <= names else _RGB
-    _require(path, names, _XYZ + SPLAT_FIELDS + color, "a Gaussian-splat PLY")
+    _require(path, names, _XYZ + _SHAPE + color, "a Gaussian-splat PLY")
     rest = sorted((n for n in names if n.startswith("f_rest_")), key=lambda n: int(n[7:]))
     if len(rest) not in (0, 9, 24, 45) or rest != [f"f_rest_{i}" for i in range(len(rest))]:
         raise InputError(
             path, f"{len(rest)} f_rest_* fields; spherical harmonics of degree 1, 2 or 3 "
             "need 9, 24 or 45 numbered from f_rest_0"
         )
-    _require_finite(path, data, SPLAT_FIELDS + color + tuple(rest), "splats")
+    _require_finite(path, data, color + _SHAPE + tuple(rest), "splats")
     rotation = _stack(data, ("rot_0", "rot_1", "rot_2", "rot_3")).astype(np.float64)
     length = np.linalg.norm(rotation, axis=1)
     if not (length > 0).all():
         raise InputError(path, f"{int((length <= 0).sum())} splats have a zero-length rotation quaternion")
     empty_normals = _NORMAL if set(_NORMAL) <= names and not any(data[n].any() for n in _NORMAL) else ()
-    consumed = _XYZ + SPLAT_FIELDS + empty_normals + (_RGB if color == _RGB else ())
+    consumed = _XYZ + _SHAPE + empty_normals + (_RGB if color == _RGB else ())
     attributes = _leftover_attributes(path, data, consumed, ("opacity", "scale", "rotation"))
     attributes["opacity"] = (1.0 / (1.0 + np.exp(-data["opacity"].astype(np.float64)))).astype(np.float32)
     attributes["scale"] = np.exp(_stack(data, ("scale_0", "scale_1", "scale_2")).astype(np.float64)).astype(np.float32)
