@@ -83,6 +83,37 @@ def colmap_points_cut_in_half(folder, inputs):
     return ["import_reconstruction.py", model, "--out", folder / "scene.blend"], points, "claims 1,816 points but only"
 
 
+def capture_run(folder, damage, problem, named, *options):
+    """import_reconstruction.py of a small 3DGS output folder (8 orbit views, ball masks
+    as .npy) after ``damage(run, masks)``; the error names ``named(run, masks)``."""
+    from pgt_blender.core.capture import samples
+
+    positions = samples.fibonacci_sphere(500).astype(np.float32)
+    cameras = samples.orbit_cameras(8, 4.0, 20.0)
+    run = folder / "run"
+    samples.write_3dgs_run(run, samples.splat_columns(positions, np.zeros((500, 3, 4), np.float32),
+                                                      np.full(500, 0.9), np.full((500, 3), 0.01)), cameras)
+    masks = folder / "masks"
+    masks.mkdir()
+    for view, mask in zip(cameras, samples.ball_masks(cameras, (0, 0, 0), 1.0)):
+        np.save(masks / view.name.replace(".png", ".npy"), mask)
+    damage(run, masks)
+    return (["import_reconstruction.py", run, *[masks if o == "MASKS" else o for o in options],
+             "--out", folder / "scene.blend"], named(run, masks), problem)
+
+
+def plenoxels(change, problem):
+    """import_reconstruction.py of a 4^3 svox2 checkpoint with ``change(arrays)`` applied."""
+    def build(folder, _):
+        arrays = {"links": np.arange(64, dtype=np.int32).reshape(4, 4, 4), "density_data": np.ones((64, 1), np.float32),
+                  "sh_data": np.zeros((64, 27), np.float16), "radius": np.ones(3, np.float32),
+                  "center": np.zeros(3, np.float32), "basis_type": np.array(1)}
+        change(arrays)
+        np.savez(folder / "grid.npz", **arrays)
+        return ["import_reconstruction.py", folder / "grid.npz", "--out", folder / "scene.blend"], folder / "grid.npz", problem
+    return build
+
+
 def import_out_is_a_folder(folder, inputs):
     (folder / "scene").mkdir()
     return ["import_reconstruction.py", inputs["statue"], "--out", folder / "scene"], folder / "scene", "is a folder"
@@ -229,6 +260,26 @@ CASES = {
                                              "have NaN or Inf values in scale_1"),
     "splat without opacity": import_columns(lambda c: c.pop("opacity"), "missing vertex properties opacity"),
     "COLMAP points3D.bin cut in half": colmap_points_cut_in_half,
+    "3DGS cameras.json cut short": lambda folder, inputs: capture_run(
+        folder, lambda run, masks: (run / "cameras.json").write_text('[{"id": 0, "img_name": "view_000", "wid'),
+        "not a readable cameras.json (JSONDecodeError", lambda run, masks: run / "cameras.json"),
+    "3DGS camera with a sheared rotation": lambda folder, inputs: capture_run(
+        folder, lambda run, masks: (run / "cameras.json").write_text(json.dumps(
+            [{"img_name": "a", "width": 8, "height": 8, "fx": 5, "fy": 5, "position": [0, 0, 0],
+              "rotation": [[1, 0.5, 0], [0, 1, 0], [0, 0, 1]]}])),
+        "camera 0: rotation is not a rotation matrix", lambda run, masks: run / "cameras.json"),
+    "masks folder missing an image's mask": lambda folder, inputs: capture_run(
+        folder, lambda run, masks: (masks / "view_005.npy").unlink(), "no mask for 1 of 8 images (view_005)",
+        lambda run, masks: masks, "--foreground", "masks", "--masks", "MASKS"),
+    "mask of another aspect ratio": lambda folder, inputs: capture_run(
+        folder, lambda run, masks: np.save(masks / "view_002.npy", np.ones((10, 10), bool)),
+        "is 10x10 pixels but its image view_002 is 320x240", lambda run, masks: masks / "view_002.npy",
+        "--foreground", "masks", "--masks", "MASKS"),
+    "Plenoxels checkpoint without sh_data": plenoxels(lambda a: a.pop("sh_data"), "no sh_data"),
+    "Plenoxels links out of range": plenoxels(lambda a: a["links"].__setitem__((1, 2, 3), 64),
+                                              "links out of range: 1 cells point outside the 64 data rows"),
+    "Plenoxels learned basis": plenoxels(lambda a: a.__setitem__("basis_type", np.array(4)),
+                                         "basis_type 4 (a learned 3D-texture basis)"),
     "import --out is a folder": import_out_is_a_folder,
     # scanning
     "scan of a missing object": scan(lambda f, i: ["--object", f / "missing.obj"], "no such file",

@@ -88,6 +88,61 @@ def test_gaussian_splat_operator(scene, donut):
     np.testing.assert_array_equal(attribute_values(mesh, "opacity", 1), recon.attributes["opacity"])
 
 
+def capture_run(folder, views=8):
+    """A 3DGS output folder of the table scene (SH degree 1), its cameras and ball masks (.npy)."""
+    from pgt_blender.core.capture import samples
+
+    scene_data = samples.table_scene(np.random.default_rng(0), 3000, 3000, 500)
+    cameras = samples.orbit_cameras(views, 4.0, 30.0, target=scene_data["ball_centre"])
+    count = len(scene_data["positions"])
+    coefficients = np.random.default_rng(1).uniform(-0.2, 0.2, (count, 3, 4)).astype(np.float32)
+    samples.write_3dgs_run(folder / "run", samples.splat_columns(scene_data["positions"], coefficients,
+                                                                 np.full(count, 0.9), np.full((count, 3), 0.01)), cameras)
+    masks = folder / "masks"
+    masks.mkdir()
+    for view, mask in zip(cameras, samples.ball_masks(cameras, scene_data["ball_centre"], 0.5)):
+        np.save(masks / view.name.replace(".png", ".npy"), mask)
+    return folder / "run" / "point_cloud" / "iteration_30000" / "point_cloud.ply", masks
+
+
+def test_gaussian_splat_operator_with_view_color_and_masks(scene, tmp_path):
+    """The operator's capture settings give the core's result: view colors, the view_hit
+    BOOLEAN attribute, only the foreground, the training cameras, the report."""
+    import json
+
+    from pgt_blender.core.capture import CaptureOptions
+
+    ply, masks = capture_run(tmp_path)
+    assert bpy.ops.import_scene.pgt_gaussian_splat(filepath=str(ply), view_color=True, foreground="masks",
+                                                   masks_directory=str(masks), with_cameras=True) == {"FINISHED"}
+    obj = bpy.context.active_object
+    recon = load_reconstruction(ply, capture=CaptureOptions(view_color=True, foreground="masks", masks=masks))
+    assert obj.name == "run" and len(obj.data.vertices) == len(recon.positions) < 6500
+    assert obj.data.attributes["view_hit"].data_type == "BOOLEAN"
+    hit = np.zeros(len(recon.positions), bool)
+    obj.data.attributes["view_hit"].data.foreach_get("value", hit)
+    np.testing.assert_array_equal(hit, recon.attributes["view_hit"])
+    np.testing.assert_allclose(attribute_values(obj.data, "Col", 4), recon.colors, atol=1 / 255)
+    assert sum(child.type == "CAMERA" for child in obj.children) == 8
+    report = json.loads(obj["pgt_capture"])
+    assert report["foreground"] == recon.capture["foreground"]
+    assert report["view_color"]["hit"] == recon.capture["view_color"]["hit"] >= hit.sum()  # counted before the cut
+
+
+def test_plenoxels_operator(scene, tmp_path):
+    from pgt_blender.core.capture import samples
+
+    links = np.arange(27, dtype=np.int32).reshape(3, 3, 3)
+    samples.write_svox2(tmp_path / "grid.npz", links, np.linspace(-2, 20, 27), np.zeros((27, 27)), [1, 2, 3], [0, 0, 1])
+    assert bpy.ops.import_scene.pgt_plenoxels(filepath=str(tmp_path / "grid.npz")) == {"FINISHED"}
+    obj = bpy.context.active_object
+    recon = load_reconstruction(tmp_path / "grid.npz")
+    assert obj.pgt.source_kind == "plenoxels" and len(obj.data.vertices) == len(recon.positions) == 24
+    np.testing.assert_array_equal(attribute_values(obj.data, "position", 3), recon.positions)
+    np.testing.assert_array_equal(attribute_values(obj.data, "density", 1), recon.attributes["density"])
+    np.testing.assert_array_equal(attribute_values(obj.data, "opacity", 1), recon.attributes["opacity"])
+
+
 def test_point_cloud_operator_keeps_normals(scene, tmp_path):
     xyz = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)
     path = tmp_path / "cloud.ply"
@@ -155,7 +210,20 @@ def broken_inputs(tmp_path, statue, donut):
         write_ply(clashes[name], {axis: np.zeros(2, np.float32) for axis in ("x", "y", "z", name)})
     no_opacity = tmp_path / "no_opacity.ply"
     write_ply(no_opacity, {name: values[:5] for name, values in read_vertices(donut).items() if name != "opacity"})
+    splats, masks = capture_run(tmp_path)
+    (masks / "view_003.npy").unlink()
+    no_links = tmp_path / "no_links.npz"
+    np.savez(no_links, density_data=np.zeros((1, 1)), sh_data=np.zeros((1, 3)))
+    bad_cameras = tmp_path / "cameras.json"
+    bad_cameras.write_text('[{"img_name": "a", "width": 10}]')
     return [
+        ("pgt_gaussian_splat", {"filepath": str(splats), "foreground": "masks", "masks_directory": str(masks)},
+         masks, "no mask for 1 of 8 images (view_003)"),
+        ("pgt_gaussian_splat", {"filepath": str(splats), "foreground": "masks"}, splats,
+         "Foreground Masks needs a masks folder"),
+        ("pgt_gaussian_splat", {"filepath": str(splats), "view_color": True, "cameras_file": str(bad_cameras)},
+         bad_cameras, "camera 0 has no height, position, rotation, fx, fy"),
+        ("pgt_plenoxels", {"filepath": str(no_links)}, no_links, "no links"),
         *[("pgt_point_cloud", {"filepath": str(path)}, path, f"property '{name}' has the name")
           for name, path in clashes.items()],
         ("pgt_gaussian_splat", {"filepath": str(no_opacity)}, no_opacity, "missing vertex properties opacity"),
@@ -202,7 +270,7 @@ def test_menu_panel_and_properties_registered(registered):
 
     assert menu_import in bpy.types.TOPBAR_MT_file_import._dyn_ui_initialize()
     assert hasattr(bpy.types, "VIEW3D_PT_pgt_import")
-    for name in ("pgt_colmap", "pgt_gaussian_splat", "pgt_point_cloud", "pgt_mesh"):
+    for name in ("pgt_colmap", "pgt_gaussian_splat", "pgt_plenoxels", "pgt_point_cloud", "pgt_mesh"):
         assert hasattr(bpy.ops.import_scene, name)
     assert {"source_path", "source_kind", "source_sha256", "class_name", "object_from_source"} <= set(
         bpy.types.Object.bl_rna.properties["pgt"].fixed_type.properties.keys())
@@ -221,7 +289,7 @@ def test_register_unregister_twice(registered):
 def test_importers_without_a_file_say_so(scene):
     """Run with nothing picked (a script, or Redo), each importer names what is missing."""
     before = datablock_counts(bpy)
-    for name, missing in (("pgt_colmap", "model folder"), ("pgt_gaussian_splat", "file"),
+    for name, missing in (("pgt_colmap", "model folder"), ("pgt_gaussian_splat", "file"), ("pgt_plenoxels", "file"),
                           ("pgt_point_cloud", "file"), ("pgt_mesh", "file")):
         with pytest.raises(RuntimeError, match=f"Import .*: no {missing} chosen$"):
             getattr(bpy.ops.import_scene, name)()

@@ -42,7 +42,7 @@ def test_bundled_wheels_are_the_runtime_dependencies(extension_zip):
 
     names = zipfile.ZipFile(extension_zip).namelist()
     wheels = sorted(Path(n).name.split("-")[0] for n in names if n.endswith(".whl"))
-    assert wheels == ["embreex", "manifold3d", "pycolmap", "pyyaml", "scipy", "trimesh"]  # numpy comes with Blender
+    assert wheels == ["embreex", "manifold3d", "pillow", "pycolmap", "pyyaml", "scipy", "trimesh"]  # numpy comes with Blender
     assert "blender_manifest.toml" in names and "__init__.py" in names
     assert "models/heading_pointnet.pt" in names  # the shipped heading classifier
     assert not any("__pycache__" in n for n in names)

@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pgt_blender.core.bank.export import CHUNK_STAGES
@@ -33,6 +34,46 @@ def test_import_splat_json(donut):
     summary = last_json_line(result.stdout)
     assert summary["points"] == 45624 and summary["kind"] == "gaussian_splat"
     assert {"opacity", "scale", "rotation"} <= set(summary["attributes"])
+
+
+def test_import_capture_kinds_from_the_command_line(tmp_path):
+    """A 3DGS output folder with view color and mask foreground, a splatfacto PLY and a
+    Plenoxels checkpoint with plane foreground: each imports and reports its capture."""
+    from pgt_blender.core.capture import samples
+    from pgt_blender.core.importing.cameras import write_cameras_json
+    from pgt_blender.core.importing.ply import write_ply
+
+    scene = samples.table_scene(np.random.default_rng(0), 3000, 3000, 500)
+    cameras = samples.orbit_cameras(8, 4.0, 30.0, target=scene["ball_centre"])
+    count = len(scene["positions"])
+    columns = samples.splat_columns(scene["positions"], np.zeros((count, 3, 16), np.float32), np.full(count, 0.9),
+                                    np.full((count, 3), 0.01))
+    run = tmp_path / "run"
+    samples.write_3dgs_run(run, columns, cameras)
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    for view, mask in zip(cameras, samples.ball_masks(cameras, scene["ball_centre"], 0.5)):
+        np.save(masks / view.name.replace(".png", ".npy"), mask)
+    result = run_script("import_reconstruction.py", run, "--view-color", "--foreground", "masks", "--masks", masks,
+                        "--json")
+    assert result.returncode == 0, result.stderr
+    summary = last_json_line(result.stdout)
+    assert summary["kind"] == "gaussian_splat" and summary["object"] == "run" and summary["cameras"] == 8
+    assert {"view_hit", "view_count"} <= set(summary["attributes"])
+    assert summary["points"] == summary["capture"]["foreground"]["kept"] < count
+    write_ply(tmp_path / "splat.ply", samples.splatfacto_columns(columns))
+    summary = last_json_line(run_script("import_reconstruction.py", tmp_path / "splat.ply", "--json").stdout)
+    assert summary["points"] == count and "nx" not in summary["attributes"]
+    links = np.arange(64, dtype=np.int32).reshape(4, 4, 4)
+    samples.write_svox2(tmp_path / "grid.npz", links, np.linspace(-1, 10, 64), np.zeros((64, 12)), [1, 1, 1],
+                        [0, 0, 0])
+    write_cameras_json(tmp_path / "cameras.json", cameras)
+    result = run_script("import_reconstruction.py", tmp_path / "grid.npz", "--foreground", "plane", "--json",
+                        "--cameras", tmp_path / "cameras.json", "--no-cameras")
+    assert result.returncode == 0, result.stderr
+    summary = last_json_line(result.stdout)
+    assert summary["kind"] == "plenoxels" and summary["cameras"] == 0 and summary["capture"]["cameras"] == 8
+    assert {"density", "opacity", "f_dc_0", "f_rest_8"} <= set(summary["attributes"])
 
 
 COMMANDS = sorted(p.stem for p in (ROOT / "addon" / "pgt_blender" / "commands").glob("[!_]*.py"))

@@ -16,7 +16,7 @@ from ..core.reconstruction import CameraView, Reconstruction
 _BLENDER_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 _SENSOR_WIDTH_MM = 36.0
 _ATTRIBUTE_TYPES = {  # (dtype kind, columns) -> (Blender type, foreach_set field)
-    ("f", 1): ("FLOAT", "value"), ("i", 1): ("INT", "value"),
+    ("f", 1): ("FLOAT", "value"), ("i", 1): ("INT", "value"), ("b", 1): ("BOOLEAN", "value"),
     ("f", 2): ("FLOAT2", "vector"), ("f", 3): ("FLOAT_VECTOR", "vector"),
     ("f", 4): ("QUATERNION", "value"),
 }

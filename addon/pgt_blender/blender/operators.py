@@ -1,16 +1,18 @@
 """Operators: each reads with the core, then builds Blender data with ``objects``."""
 
+import json
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
 
 import bpy
 import numpy as np
-from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from ..core.authoring import prepare
 from ..core.bank.config import config_toml
+from ..core.capture import CaptureOptions
 from ..core.classes import MINORITY_CLASSES
 from ..core.errors import InputError
 from ..core.files import atomic_output
@@ -53,25 +55,89 @@ class _ImportReconstruction:
     def input_path(self) -> str:
         return self.filepath
 
+    def capture_options(self) -> CaptureOptions | None:
+        """What the capture settings ask for (``_CaptureSettings``), None without them."""
+        return None
+
+    def cameras_path(self):
+        return None
+
     def execute(self, context):
         if not self.input_path():  # run without the file browser (a script, Redo with nothing picked)
             self.report({"ERROR"}, f"{self.bl_label}: no {self.input_noun} chosen")
             return {"CANCELLED"}
         try:
-            recon = load_reconstruction(self.input_path(), kind=self.source_kind,
-                                        with_cameras=self.with_cameras)
+            capture = self.capture_options()
+            recon = load_reconstruction(self.input_path(), kind=self.source_kind, with_cameras=self.with_cameras,
+                                        cameras=self.cameras_path(), capture=capture)
             obj = objects.add_reconstruction(context.scene, recon, self.with_cameras, context.collection)
         except InputError as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         _select_only(context, obj)
         summary = recon.summary()
+        if recon.capture:
+            obj["pgt_capture"] = json.dumps(recon.capture)
         self.report({"INFO"}, f"Imported {obj.name}: {summary['points']} points, "
-                              f"{summary['faces']} faces, {len(obj.children)} cameras")
+                              f"{summary['faces']} faces, {len(obj.children)} cameras{_capture_note(recon.capture)}")
         return {"FINISHED"}
 
 
-class IMPORT_SCENE_OT_pgt_colmap(_ImportReconstruction, bpy.types.Operator):
+def _capture_note(report: dict) -> str:
+    """The capture report in a few words for the status bar."""
+    note = ""
+    if "view_color" in report:
+        color = report["view_color"]
+        note += f"; view color: {color['hit_share']:.0%} hit in {report['cameras']} views"
+    if "foreground" in report:
+        note += f"; foreground: kept {report['foreground']['kept']} of {report['foreground']['elements']}"
+    return note
+
+
+class _CaptureSettings:
+    """Capture options of the importers whose inputs come with training cameras."""
+
+    view_color: BoolProperty(
+        name="View-Agnostic Color", default=False,
+        description="Replace each splat's or voxel's color by its mean spherical-harmonic color over the training "
+                    "views whose rays hit it; never hit: DC color, view_hit attribute False")
+    foreground: EnumProperty(
+        name="Foreground", default="none", description="Keep only the captured object",
+        items=[("none", "Everything", "Keep every element"),
+               ("masks", "Masks", "Keep elements inside the per-image masks in enough of the views that see them"),
+               ("plane", "Remove Support Plane",
+                "Remove the support plane (table, turntable, ground) and keep the connected object at the centre "
+                "of the camera orbit")])
+    masks_directory: StringProperty(name="Masks", subtype="DIR_PATH", options=properties.PATH_OPTIONS,
+                                    description="Folder of per-image masks named after the images (IMG_1.png for "
+                                                "IMG_1.jpg): white or opaque is the object")
+    mask_share: FloatProperty(name="Mask Share", default=0.5, min=0.0, max=1.0, subtype="FACTOR",
+                              description="Share of the views seeing an element that must put it inside the mask")
+    seed: IntProperty(name="Seed", default=0, min=0, description="Seed of the foreground's random draws")
+
+    def capture_options(self) -> CaptureOptions | None:
+        if self.foreground == "masks" and not self.masks_directory:
+            raise InputError(self.input_path(), "Foreground Masks needs a masks folder")
+        options = CaptureOptions(view_color=self.view_color, foreground=self.foreground,
+                                 masks=bpy.path.abspath(self.masks_directory) if self.masks_directory else None,
+                                 mask_share=self.mask_share, seed=self.seed)
+        return options if options.needs_cameras else None
+
+
+class _CameraFile:
+    """The training cameras of a splat or Plenoxels file, when they are not beside it."""
+
+    cameras_file: StringProperty(name="Cameras", subtype="FILE_PATH", options=properties.PATH_OPTIONS,
+                                 description="Training cameras in the input's frame (3DGS cameras.json or a COLMAP "
+                                             "model folder); empty: the run's own or a cameras.json beside the file")
+    with_cameras: BoolProperty(name="Add Cameras", default=False,
+                               description="Also add the training cameras to the scene, children of the points")
+
+    def cameras_path(self):
+        return bpy.path.abspath(self.cameras_file) if self.cameras_file else None
+
+
+class IMPORT_SCENE_OT_pgt_colmap(_CaptureSettings, _ImportReconstruction, bpy.types.Operator):
     """Import a COLMAP sparse model folder (points with color, track length and error)"""
 
     bl_idname = "import_scene.pgt_colmap"
@@ -93,14 +159,26 @@ class IMPORT_SCENE_OT_pgt_colmap(_ImportReconstruction, bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
 
-class IMPORT_SCENE_OT_pgt_gaussian_splat(ImportHelper, _ImportReconstruction, bpy.types.Operator):
-    """Import a 3D Gaussian Splatting PLY (opacity, scale and rotation as attributes)"""
+class IMPORT_SCENE_OT_pgt_gaussian_splat(ImportHelper, _CaptureSettings, _CameraFile, _ImportReconstruction,
+                                         bpy.types.Operator):
+    """Import a Gaussian-splat PLY: 3DGS (point_cloud.ply of an output folder, with its cameras) or nerfstudio splatfacto"""
 
     bl_idname = "import_scene.pgt_gaussian_splat"
     bl_label = "Import Gaussian Splats"
     source_kind = "gaussian_splat"
     filename_ext = ".ply"
     filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
+
+
+class IMPORT_SCENE_OT_pgt_plenoxels(ImportHelper, _CaptureSettings, _CameraFile, _ImportReconstruction,
+                                    bpy.types.Operator):
+    """Import a Plenoxels (svox2) checkpoint .npz: occupied voxels as points with density, opacity and SH color"""
+
+    bl_idname = "import_scene.pgt_plenoxels"
+    bl_label = "Import Plenoxels Grid"
+    source_kind = "plenoxels"
+    filename_ext = ".npz"
+    filter_glob: StringProperty(default="*.npz", options={"HIDDEN"})
 
 
 class IMPORT_SCENE_OT_pgt_point_cloud(ImportHelper, _ImportReconstruction, bpy.types.Operator):
@@ -123,7 +201,7 @@ class IMPORT_SCENE_OT_pgt_mesh(ImportHelper, _ImportReconstruction, bpy.types.Op
 
 
 class IMPORT_SCENE_OT_pgt_folder(bpy.types.Operator):
-    """Import every reconstruction in a folder (files and COLMAP model folders); one bad file imports none"""
+    """Import every reconstruction in a folder (files, 3DGS output folders, COLMAP model folders); one bad file imports none"""
 
     bl_idname = "import_scene.pgt_folder"
     bl_label = "Import Folder"
@@ -675,7 +753,7 @@ class SCENE_OT_pgt_preview_bank(bpy.types.Operator):
 
 AUTHORING = (OBJECT_OT_pgt_align, OBJECT_OT_pgt_turn, OBJECT_OT_pgt_front_from_cursor,
              OBJECT_OT_pgt_auto_heading, OBJECT_OT_pgt_set_size)
-IMPORTERS = (IMPORT_SCENE_OT_pgt_colmap, IMPORT_SCENE_OT_pgt_gaussian_splat,
+IMPORTERS = (IMPORT_SCENE_OT_pgt_colmap, IMPORT_SCENE_OT_pgt_gaussian_splat, IMPORT_SCENE_OT_pgt_plenoxels,
              IMPORT_SCENE_OT_pgt_point_cloud, IMPORT_SCENE_OT_pgt_mesh, IMPORT_SCENE_OT_pgt_folder,
              IMPORT_SCENE_OT_pgt_placed_scene)
 BANK = (SCENE_OT_pgt_export_bank, SCENE_OT_pgt_stop_bank, SCENE_OT_pgt_save_bank_config,

@@ -15,7 +15,7 @@ from ..core.reconstruction import SOURCE_KINDS
 from ..core.scan.sensors import PRESETS
 
 _KIND_LABELS = {
-    "colmap": "COLMAP model", "gaussian_splat": "Gaussian splats",
+    "colmap": "COLMAP model", "gaussian_splat": "Gaussian splats", "plenoxels": "Plenoxels grid",
     "point_ply": "Point cloud", "mesh": "Mesh",
 }
 _IDENTITY = ((1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1))

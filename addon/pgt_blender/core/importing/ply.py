@@ -197,10 +197,11 @@ def _read_ascii_vertices(path, header, vertex):
 
 def write_ply(path: Path, columns: dict, binary: bool = True) -> None:
     """Write a point PLY with one scalar property per entry of ``columns``
-    (name -> (N,) array; its dtype picks the PLY type). Written to a temporary file
-    and renamed, so a failed write leaves no partial file."""
+    (name -> (N,) array; its dtype picks the PLY type, bool is written as uchar 0/1).
+    Written to a temporary file and renamed, so a failed write leaves no partial file."""
     path = Path(path)
     arrays = {name: np.asarray(values) for name, values in columns.items()}
+    arrays = {name: a.astype(np.uint8) if a.dtype == bool else a for name, a in arrays.items()}
     count = len(next(iter(arrays.values())))
     dtype = np.dtype([(name, "<" + a.dtype.str[1:]) for name, a in arrays.items()])
     lines = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0",

@@ -7,26 +7,31 @@ import numpy as np
 from ..errors import InputError
 from ..reconstruction import Reconstruction
 from .ply import PlyHeader, read_vertices
+from .sh import SH_C0
 from .source import checked_positions, sha256_of_files
 
-SH_C0 = 0.28209479177387814  # zeroth real spherical-harmonic basis, 1 / (2 sqrt(pi))
-SPLAT_FIELDS = ("f_dc_0", "f_dc_1", "f_dc_2", "opacity",
-                "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
+_DC = ("f_dc_0", "f_dc_1", "f_dc_2")
+_SHAPE = ("opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
+SPLAT_FIELDS = _DC + _SHAPE  # what a 3DGS PLY has besides x y z (and f_rest_* for SH degree 1-3)
 _XYZ = ("x", "y", "z")
 _RGB = ("red", "green", "blue")
 _NORMAL = ("nx", "ny", "nz")
 
 
 def is_gaussian_splat(path: Path, header: PlyHeader) -> bool:
-    """True when the vertex element carries the 3DGS fields (f_dc, opacity, scale, rot);
-    InputError when it carries some of them (f_dc_* or rot_*, which no plain point cloud
-    has) but not all: a damaged or cut-down splat file, not a point cloud."""
+    """True when the vertex element carries the splat fields (opacity, scale, rot) and a
+    color: 3DGS's ``f_dc_*`` or, as nerfstudio's splatfacto export writes with
+    ``--ply-color-mode rgb``, ``red green blue``. InputError when it carries some of
+    them (f_dc_* or rot_*, which no plain point cloud has) but not all: a damaged or
+    cut-down splat file, not a point cloud."""
     vertex = header.element("vertex")
     names = {name for name, _ in vertex.properties} if vertex else set()
-    present = [name for name in SPLAT_FIELDS if name in names]
-    if present and len(present) < len(SPLAT_FIELDS) and any(name.startswith(("f_dc_", "rot_")) for name in present):
-        _require(path, names, SPLAT_FIELDS, "a whole Gaussian-splat PLY")
-    return len(present) == len(SPLAT_FIELDS)
+    color = _DC if any(name in names for name in _DC) or not set(_RGB) <= names else _RGB
+    required = _SHAPE + color
+    present = [name for name in required if name in names]
+    if len(present) < len(required) and any(name.startswith(("f_dc_", "rot_")) for name in present):
+        _require(path, names, required, "a whole Gaussian-splat PLY")
+    return len(present) == len(required)
 
 
 def load_point_ply(path: Path, header: PlyHeader) -> Reconstruction:
@@ -56,34 +61,43 @@ def load_point_ply(path: Path, header: PlyHeader) -> Reconstruction:
 
 
 def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
-    """A 3D Gaussian Splatting PLY with 3DGS's activations applied:
+    """A Gaussian-splat PLY (3DGS ``point_cloud.ply``, nerfstudio splatfacto
+    ``splat.ply``) with 3DGS's activations applied:
 
-    - color = clip(0.5 + SH_C0 * f_dc, 0, 1) (the view-independent DC term);
+    - color = clip(0.5 + SH_C0 * f_dc, 0, 1) (the view-independent DC term), or the
+      ``red green blue`` of a splatfacto rgb export (uchar / 255, or float as is);
     - ``opacity`` = sigmoid(stored logit), in (0, 1);
     - ``scale`` (N, 3) = exp(stored log-scale), in source units;
     - ``rotation`` (N, 4) = stored quaternion (w, x, y, z) normalised to unit length;
-    - ``f_dc_*``, ``f_rest_*`` (SH degree 0..3) and any other field kept raw.
+    - ``f_dc_*``, ``f_rest_*`` (SH degree 0..3, layout in ``sh.py``) and any other field
+      kept raw, except normals that are all zero (splatfacto writes nx = ny = nz = 0).
     """
     data = read_vertices(path, header)
     names = set(data)
-    _require(path, names, _XYZ + SPLAT_FIELDS, "a Gaussian-splat PLY")
+    color = _DC if set(_DC) <= names else _RGB
+    _require(path, names, _XYZ + _SHAPE + color, "a Gaussian-splat PLY")
     rest = sorted((n for n in names if n.startswith("f_rest_")), key=lambda n: int(n[7:]))
     if len(rest) not in (0, 9, 24, 45) or rest != [f"f_rest_{i}" for i in range(len(rest))]:
         raise InputError(
             path, f"{len(rest)} f_rest_* fields; spherical harmonics of degree 1, 2 or 3 "
             "need 9, 24 or 45 numbered from f_rest_0"
         )
-    _require_finite(path, data, SPLAT_FIELDS + tuple(rest), "splats")
+    _require_finite(path, data, color + _SHAPE + tuple(rest), "splats")
     rotation = _stack(data, ("rot_0", "rot_1", "rot_2", "rot_3")).astype(np.float64)
     length = np.linalg.norm(rotation, axis=1)
     if not (length > 0).all():
         raise InputError(path, f"{int((length <= 0).sum())} splats have a zero-length rotation quaternion")
-    attributes = _leftover_attributes(path, data, _XYZ + SPLAT_FIELDS[3:], ("opacity", "scale", "rotation"))
+    empty_normals = _NORMAL if set(_NORMAL) <= names and not any(data[n].any() for n in _NORMAL) else ()
+    consumed = _XYZ + _SHAPE + empty_normals + (_RGB if color == _RGB else ())
+    attributes = _leftover_attributes(path, data, consumed, ("opacity", "scale", "rotation"))
     attributes["opacity"] = (1.0 / (1.0 + np.exp(-data["opacity"].astype(np.float64)))).astype(np.float32)
     attributes["scale"] = np.exp(_stack(data, ("scale_0", "scale_1", "scale_2")).astype(np.float64)).astype(np.float32)
     attributes["rotation"] = (rotation / length[:, None]).astype(np.float32)
     colors = np.ones((len(data["x"]), 4), np.float32)
-    colors[:, :3] = np.clip(0.5 + SH_C0 * _stack(data, SPLAT_FIELDS[:3]), 0.0, 1.0)
+    if color == _DC:
+        colors[:, :3] = np.clip(0.5 + SH_C0 * _stack(data, _DC), 0.0, 1.0)
+    else:
+        colors[:, :3] = _stack(data, _RGB) / (255.0 if data["red"].dtype.kind in "iu" else 1.0)
     return Reconstruction(
         positions=checked_positions(path, _stack(data, _XYZ)),
         kind="gaussian_splat", source=Path(path), sha256=sha256_of_files([path]),

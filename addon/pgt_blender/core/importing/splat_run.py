@@ -1,0 +1,62 @@
+"""A 3D Gaussian Splatting output folder (graphdeco-inria/gaussian-splatting ``train.py
+--model_path RUN``), as scene/__init__.py and gaussian_model.py write it:
+
+```
+RUN/cfg_args                                   the run's arguments, a Namespace(...) repr:
+                                               source_path='<the COLMAP dataset it trained on>'
+RUN/cameras.json                               the test and train cameras (cameras.py)
+RUN/input.ply                                  the COLMAP points it started from
+RUN/point_cloud/iteration_N/point_cloud.ply    the splats after N iterations
+```
+
+The splats of the highest N are read; their cameras come from ``cameras.json``, else
+from the COLMAP model the run trained on (``source_path``/sparse/0 when that path is
+absolute, or RUN/sparse/0).
+"""
+
+import re
+from pathlib import Path
+
+from .cameras import load_cameras, read_cameras_json
+from .colmap import MODEL_FILES
+
+_ITERATION = re.compile(r"iteration_(\d+)$")
+_SOURCE_PATH = re.compile(r"source_path=(['\"])(.*?)\1")
+
+
+def run_ply(folder) -> Path | None:
+    """``point_cloud.ply`` of the highest iteration in the run ``folder``, or None when
+    ``folder`` is not a 3DGS output folder."""
+    iterations = [(int(match.group(1)), entry) for entry in (Path(folder) / "point_cloud").glob("iteration_*")
+                  if (match := _ITERATION.search(entry.name)) and (entry / "point_cloud.ply").is_file()]
+    return max(iterations)[1] / "point_cloud.ply" if iterations else None
+
+
+def run_of(ply) -> Path | None:
+    """The run folder of a splat PLY at RUN/point_cloud/iteration_N/point_cloud.ply, else None."""
+    ply = Path(ply)
+    if ply.name == "point_cloud.ply" and _ITERATION.search(ply.parent.name) and ply.parent.parent.name == "point_cloud":
+        return ply.parents[2]
+    return None
+
+
+def run_cameras(run) -> list:
+    """The cameras of a 3DGS run (see the module docstring); [] when it has none."""
+    run = Path(run)
+    if (run / "cameras.json").is_file():
+        return read_cameras_json(run / "cameras.json")
+    for model in _colmap_candidates(run):
+        if all((model / f"{name}.bin").exists() or (model / f"{name}.txt").exists() for name in MODEL_FILES):
+            return load_cameras(model)
+    return []
+
+
+def _colmap_candidates(run: Path) -> list:
+    candidates = [run / "sparse" / "0"]
+    try:
+        match = _SOURCE_PATH.search((run / "cfg_args").read_text(encoding="utf-8", errors="replace"))
+    except OSError:
+        match = None
+    if match and Path(match.group(2)).is_absolute():  # a relative one was relative to a working folder unknown here
+        candidates.insert(0, Path(match.group(2)) / "sparse" / "0")
+    return candidates
