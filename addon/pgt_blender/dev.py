@@ -96,3 +96,34 @@ def ranking_objects(folder, dataset: str = "kitti") -> list:
         write_prepared(authored, class_name, dataset, folder / "prepared")
     found, incomplete = prepared_objects(folder / "prepared")
     return checked_objects(found, incomplete, False, folder / "prepared")
+
+
+# How the tests and bench_placement judge whether a box stands on a scan's ground.
+FOOTPRINT_RETURNS = 20  # returns under a footprint that make a judgement
+
+
+def scan_ground_gap(points, box):
+    """(gap, how): box bottom minus the scan's own ground at the box, m, for (N, >= 3)
+    scan points (before anything was placed) and a (>= 7,) centre box. The ground is the
+    median height of the lowest returns under the footprint (within 0.2 m of their 5th
+    percentile; "footprint", with FOOTPRINT_RETURNS or more), else a plane fitted to the
+    returns 0.3-4 m around it (bank.ground.fit_ground, "ring", with MIN_GROUND_POINTS or
+    more), else (None, "none")."""
+    import numpy as np
+
+    from .core.bank.ground import MIN_GROUND_POINTS, fit_ground
+    from .core.boxes import box_frame
+
+    xyz = np.asarray(points, np.float64)[:, :3]
+    box = np.asarray(box, np.float64)
+    local = box_frame(xyz, box[:3], box[6])
+    under = xyz[(np.abs(local[:, :2]) <= box[3:5] / 2).all(axis=1), 2]
+    bottom = box[2] - box[5] / 2
+    if len(under) >= FOOTPRINT_RETURNS:
+        lowest = under[under <= np.percentile(under, 5) + 0.2]
+        return float(bottom - np.median(lowest)), "footprint"
+    fit = fit_ground(xyz, box[:3], box[3:6], box[6])
+    if fit["points"] >= MIN_GROUND_POINTS:
+        return fit["bottom_gap"], "ring"
+    return None, "none"
+

@@ -27,7 +27,7 @@ from ..core.gt_database import load_infos
 from ..core.reconstruction import Reconstruction
 from ..core.scan.sensors import BIN_COLUMNS, INTENSITY_MAX
 from .authoring import current_dims, is_reconstruction, status
-from .objects import box_empty, remove_datablocks
+from .objects import box_empty, remove_collection
 from .scanning import mesh_triangles, mesh_vertices, point_colors, points_object, ramp
 
 
@@ -150,7 +150,7 @@ def preview_bank(scene: bpy.types.Scene, folder, count: int) -> list:
     chosen = [infos[i] for i in np.unique(np.linspace(0, len(infos) - 1, min(count, len(infos))).round().astype(int))]
     dataset = manifest["config"]["dataset"]
     entries = [(info, read_float32_rows(folder / fmt / info["path"], len(BIN_COLUMNS[dataset]))) for info in chosen]
-    remove_preview()
+    remove_collection(PREVIEW_COLLECTION)
     collection = bpy.data.collections.new(PREVIEW_COLLECTION)
     scene.collection.children.link(collection)
     made = []
@@ -167,13 +167,3 @@ def preview_bank(scene: bpy.types.Scene, folder, count: int) -> list:
         for obj in (points, cube):
             collection.objects.link(obj)
     return [obj for obj in made if isinstance(obj, bpy.types.Object) and obj.type == "MESH"]
-
-
-def remove_preview() -> None:
-    """Remove an earlier bank preview: its collection, objects and their meshes."""
-    collection = bpy.data.collections.get(PREVIEW_COLLECTION)
-    if collection is None:
-        return
-    old = list(collection.objects)
-    remove_datablocks(old + [obj.data for obj in old if obj.type == "MESH" and obj.data.users == 1])
-    bpy.data.collections.remove(collection)

@@ -64,6 +64,16 @@ def box_empty(name: str, box: np.ndarray, made: list) -> bpy.types.Object:
     return cube
 
 
+def remove_collection(name: str) -> None:
+    """Remove the collection ``name`` (when there is one), its objects and their meshes."""
+    collection = bpy.data.collections.get(name)
+    if collection is None:
+        return
+    old = list(collection.objects)
+    remove_datablocks(old + [obj.data for obj in old if obj.type == "MESH" and obj.data.users == 1])
+    bpy.data.collections.remove(collection)
+
+
 def remove_datablocks(datablocks) -> None:
     """Remove objects, meshes, cameras and node groups (objects first, so data has no users)."""
     for block in sorted(datablocks, key=lambda b: not isinstance(b, bpy.types.Object)):

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..core.placement.folder import read_placement
 from ..core.scan.sensors import INTENSITY_MAX
-from .objects import box_empty, remove_datablocks
+from .objects import box_empty, remove_collection, remove_datablocks
 from .scanning import points_object, ramp
 
 COLLECTION = "PGT Placed Scene"
@@ -40,7 +40,7 @@ def load_placement(scene: bpy.types.Scene, folder) -> list:
         if "collection" in locals():
             bpy.data.collections.remove(collection)
         raise
-    remove_placement()
+    remove_collection(COLLECTION)
     collection.name = COLLECTION
     scene.collection.children.link(collection)
     for obj in shown:
@@ -54,13 +54,3 @@ def _points(name: str, rows: np.ndarray, columns: list, intensity_max: float, ma
         returns[column] = rows[:, index]
     values = rows[:, columns.index("intensity")] / intensity_max if "intensity" in columns else np.zeros(len(rows))
     return points_object(name, returns, ramp(np.clip(values, 0.0, 1.0)), made)
-
-
-def remove_placement() -> None:
-    """Remove an earlier placed scene: its collection, objects and their meshes."""
-    collection = bpy.data.collections.get(COLLECTION)
-    if collection is None:
-        return
-    old = list(collection.objects)
-    remove_datablocks(old + [obj.data for obj in old if obj.type == "MESH" and obj.data.users == 1])
-    bpy.data.collections.remove(collection)

@@ -29,7 +29,7 @@ import numpy as np
 from mmcv.transforms import BaseTransform
 from mmdet3d.registry import TRANSFORMS
 
-from ..core.placement.bandit import ThompsonCells
+from ..core.placement.bandit import ThompsonFile
 from ..core.placement.entries import EntryPool
 from ..core.placement.place import PlacementConfig, place_objects
 from ..core.scan.sensors import sensor_from_name
@@ -48,8 +48,7 @@ class PGTPlacement(BaseTransform):
                                       min_points=min_points)
         self.pool = EntryPool(self.db_sampler.db_infos, None, "mmdet3d", max_distance=max_distance, min_points=0,
                               load=self._read_entry, source=self.db_sampler.info_path)
-        self.thompson_path = None if thompson_state is None else Path(thompson_state)
-        self._thompson, self._thompson_stamp = None, None
+        self.thompson = None if thompson_state is None else ThompsonFile(thompson_state, max_distance)
 
     def _read_entry(self, info: dict) -> np.ndarray:
         """ObjectSample's read: the sampler's points_loader, moved by the stored bottom centre."""
@@ -58,17 +57,6 @@ class PGTPlacement(BaseTransform):
         points = sampler.points_loader({"lidar_points": {"lidar_path": path}})["points"]
         points.translate(info["box3d_lidar"][:3])
         return points.tensor.numpy()
-
-    def thompson(self) -> ThompsonCells | None:
-        """The Thompson cells of ``thompson_state``, reread when the file changes."""
-        if self.thompson_path is None:
-            return None
-        stamp = self.thompson_path.stat().st_mtime_ns if self.thompson_path.is_file() else None
-        if stamp != self._thompson_stamp:
-            self._thompson = ThompsonCells.load(self.thompson_path) if stamp is not None else \
-                ThompsonCells(max_range=self.config.max_distance)
-            self._thompson_stamp = stamp
-        return self._thompson
 
     def transform(self, input_dict: dict) -> dict:
         sampler = self.db_sampler
@@ -83,7 +71,8 @@ class PGTPlacement(BaseTransform):
         names = [sampler.label2cat[int(label)] for label in labels]
         points = input_dict["points"]
         placement = place_objects(points.tensor.numpy(), boxes, names, self.pool, counts, self.config,
-                                  np.random.default_rng(np.random.randint(2 ** 31)), bandit=self.thompson(),
+                                  np.random.default_rng(np.random.randint(2 ** 31)),
+                                  bandit=self.thompson and self.thompson.cells(),
                                   source=input_dict.get("lidar_path", "scan"))
         placed = placement.boxes.copy()
         placed[:, 2] -= placed[:, 5] / 2  # centre -> bottom

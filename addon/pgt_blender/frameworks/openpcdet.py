@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.placement.bandit import ThompsonCells
+from ..core.placement.bandit import ThompsonFile
 from ..core.placement.entries import EntryPool
 from ..core.placement.place import PlacementConfig, place_objects
 from ..core.scan.sensors import sensor_from_name
@@ -73,9 +73,8 @@ def sampler_class():
             self.pool = EntryPool(self.db_infos, self.root_path, "openpcdet", int(sampler_cfg.NUM_POINT_FEATURES),
                                   self.placement_config.max_distance, min_points=0, load=self._read_entry,
                                   source=Path(self.root_path) / sampler_cfg.DB_INFO_PATH[0])
-            self.thompson_path = Path(self.root_path) / settings["THOMPSON_STATE"] \
-                if settings.get("THOMPSON_STATE") else None
-            self._thompson, self._thompson_stamp = None, None
+            self.thompson = ThompsonFile(Path(self.root_path) / settings["THOMPSON_STATE"],
+                                         self.placement_config.max_distance) if settings.get("THOMPSON_STATE") else None
 
         def _read_entry(self, info: dict) -> np.ndarray:
             """The stock sampler's read: float32 rows of NUM_POINT_FEATURES, moved by the box centre."""
@@ -84,18 +83,6 @@ def sampler_class():
             assert points.shape[0] == info["num_points_in_gt"]
             points[:, :3] += np.asarray(info["box3d_lidar"][:3], np.float32)
             return points
-
-        def thompson(self) -> ThompsonCells | None:
-            """The Thompson cells of THOMPSON_STATE, reread when the file changes (the trainer
-            updates and saves it; data-loader workers see it here)."""
-            if self.thompson_path is None:
-                return None
-            stamp = self.thompson_path.stat().st_mtime_ns if self.thompson_path.is_file() else None
-            if stamp != self._thompson_stamp:
-                self._thompson = ThompsonCells.load(self.thompson_path) if stamp is not None else \
-                    ThompsonCells(max_range=self.placement_config.max_distance)
-                self._thompson_stamp = stamp
-            return self._thompson
 
         def __call__(self, data_dict):
             gt_names = data_dict["gt_names"].astype(str)
@@ -109,7 +96,7 @@ def sampler_class():
             points = data_dict["points"]
             rng = np.random.default_rng(np.random.randint(2 ** 31))
             placement = place_objects(points, data_dict["gt_boxes"], gt_names, self.pool, counts,
-                                      self.placement_config, rng, bandit=self.thompson(),
+                                      self.placement_config, rng, bandit=self.thompson and self.thompson.cells(),
                                       source=data_dict.get("frame_id", "scan"))
             inserted = placement.rows[:, 1].max() if len(placement.rows) else 0
             objects = placement.points[:inserted]

@@ -127,3 +127,22 @@ class ThompsonCells:
             raise InputError(path, f"cannot read the file ({error.strerror or error})") from None
         except (ValueError, KeyError, TypeError) as error:
             raise InputError(path, f"not a Thompson cells state: {error}") from None
+
+
+class ThompsonFile:
+    """The ThompsonCells saved at ``path``, read again whenever the file changes (a
+    trainer updates and saves them; every data-loader worker follows through this); fresh
+    cells out to ``max_range`` while there is no file yet."""
+
+    def __init__(self, path, max_range: float = 54.0):
+        self.path, self.max_range = Path(path), max_range
+        self._cells, self._stamp = None, ()
+
+    def cells(self) -> ThompsonCells:
+        stamp = self.path.stat().st_mtime_ns if self.path.is_file() else None
+        if stamp != self._stamp:
+            self._cells = ThompsonCells.load(self.path) if stamp is not None else \
+                ThompsonCells(max_range=self.max_range)
+            self._stamp = stamp
+        return self._cells
+

@@ -26,13 +26,17 @@ def bev_overlaps(boxes_a: np.ndarray, boxes_b: np.ndarray, margin: float = 0.0) 
         return np.zeros((len(a), len(b)), bool)
     a[:, 3:5] += 2 * margin
     b[:, 3:5] += 2 * margin
-    corners_a, corners_b = footprint_corners(a), footprint_corners(b)
-    axes = np.concatenate([np.broadcast_to(_normals(a)[:, None], (len(a), len(b), 2, 2)),
-                           np.broadcast_to(_normals(b)[None], (len(a), len(b), 2, 2))], axis=2)  # (N, M, 4, 2)
-    project_a = np.einsum("nmkd,ncd->nmkc", axes, corners_a)
-    project_b = np.einsum("nmkd,mcd->nmkc", axes, corners_b)
+    # only pairs whose circumscribed circles meet can overlap: the test runs on those
+    reach = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
+    first, second = np.nonzero(reach < (np.hypot(a[:, 3], a[:, 4])[:, None] + np.hypot(b[:, 3], b[:, 4])[None]) / 2)
+    corners_a, corners_b = footprint_corners(a)[first], footprint_corners(b)[second]
+    axes = np.concatenate([_normals(a)[first], _normals(b)[second]], axis=1)  # (P, 4, 2)
+    project_a = np.einsum("pkd,pcd->pkc", axes, corners_a)
+    project_b = np.einsum("pkd,pcd->pkc", axes, corners_b)
     apart = (project_a.max(-1) <= project_b.min(-1)) | (project_b.max(-1) <= project_a.min(-1))
-    return ~apart.any(axis=2)
+    overlaps = np.zeros((len(a), len(b)), bool)
+    overlaps[first, second] = ~apart.any(axis=1)
+    return overlaps
 
 
 def _normals(boxes: np.ndarray) -> np.ndarray:

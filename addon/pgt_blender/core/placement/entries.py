@@ -39,9 +39,9 @@ class ClassEntries:
     ranges: np.ndarray
     infos: list
 
-    def within(self, low: float, high: float) -> tuple:
-        """(start, stop): the entries whose range lies in [low, high)."""
-        return int(np.searchsorted(self.ranges, low, "left")), int(np.searchsorted(self.ranges, high, "left"))
+    def within(self, low: np.ndarray, high: np.ndarray) -> tuple:
+        """(start, stop) (N,) each: the entries whose range lies in [low, high), (N,) m each."""
+        return np.searchsorted(self.ranges, low, "left"), np.searchsorted(self.ranges, high, "left")
 
 
 class EntryPool:

@@ -34,6 +34,7 @@ are followed.
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage  # imported here once: scipy's lazy import costs milliseconds a call
 
 from ..errors import InputError
 
@@ -99,8 +100,6 @@ def estimate_ground(points: np.ndarray, radius: float = 80.0, cell: float = 2.0,
                     clearance: float = 0.5, source="scan") -> Ground:
     """The Ground of (N, >= 3) sensor-frame returns (the module docstring's fit).
     InputError naming ``source`` when no cell holds ground."""
-    from scipy import ndimage
-
     xyz = np.asarray(points[:, :3], np.float64)
     size = int(np.ceil(2 * radius / cell))
     origin = np.array([-radius, -radius])

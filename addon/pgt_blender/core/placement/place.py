@@ -1,9 +1,10 @@
 """Placing database entries into a real scene: the whole step.
 
-For each object asked (class and count, in the order given), cells of the bandit's
-polar grid (bandit.ThompsonCells) are taken in the order of a Thompson draw (or a
-seeded shuffle without one), a batch of ``batch`` cells at a time, each cell used by
-at most one object. In each cell a candidate is made: an entry of the class whose
+For each object asked (class and count, in the order given), the cells of the bandit's
+polar grid (bandit.ThompsonCells) are tried in the order of one Thompson draw per scene
+(with fresh cells: a seeded shuffle), ``batch`` at a time, skipping the cells objects
+were placed in already: the objects go to the best cells that suit them. In each cell
+a candidate is made: an entry of the class whose
 range lies in the cell's range band, turned to a random azimuth in the cell (a whole
 number of column steps: entries.column_turn) and lifted onto the ground there (its
 bottom at the mean ground height under its centre and corners). The first candidate of the batch that passes every check is placed:
@@ -50,8 +51,8 @@ class PlacementConfig:
     box_margin: float = 0.1
     ego_clearance: float = 2.0
     standing_tolerance: float = 0.25
-    tries: int = 64
-    batch: int = 16
+    tries: int = 128
+    batch: int = 32
     map_bounds_ground: bool = True
     class_layers: dict | None = None
 
@@ -107,13 +108,13 @@ def place_objects(points: np.ndarray, boxes: np.ndarray, names, pool: EntryPool,
     obstacles = points[height > config.standing_tolerance, :3].astype(np.float64)
     bandit = bandit or ThompsonCells(max_range=config.max_distance)
     order = np.argsort(-bandit.draw(rng), kind="stable")
-    free_cells = np.ones(len(order), bool)  # by position in ``order``
+    taken = np.zeros(len(order), bool)  # by position in ``order``: an object stands there
 
     placed, entries, turns, missing = [], [], [], {}
     for class_name, count in counts.items():
         mask = feasibility.map_mask(class_name)
         for _ in range(count):
-            found = _place_one(pool.classes[class_name], class_name, mask, order, free_cells, bandit, feasibility,
+            found = _place_one(pool.classes[class_name], class_name, mask, order, taken, bandit, feasibility,
                                ground, np.vstack([scene_boxes[:, :7]] + [box[None, :7] for box in placed]),
                                obstacles, config, rng)
             if found is None:
@@ -157,36 +158,30 @@ def _box_width(pool: EntryPool) -> int:
     return 7
 
 
-def _place_one(entries, class_name, mask, order, free_cells, bandit, feasibility, ground, taken, obstacles, config,
-               rng):
-    """(box, entry index, turn) of the first candidate that passes the checks, or None."""
-    tried = 0
-    while tried < config.tries:
-        positions = np.flatnonzero(free_cells)[:config.batch]
-        if not len(positions):
-            return None
-        free_cells[positions] = False  # a cell is offered to one object only
-        tried += len(positions)
-        low, high, start, stop = bandit.bounds(order[positions])
-        spans = np.array([entries.within(a, b) for a, b in zip(low, high)]).reshape(-1, 2)
-        has = spans[:, 1] > spans[:, 0]
-        if not has.any():
-            continue
-        positions, start, stop, spans = positions[has], start[has], stop[has], spans[has]
-        picks = spans[:, 0] + (rng.random(len(spans)) * (spans[:, 1] - spans[:, 0])).astype(np.int64)
+def _place_one(entries, class_name, mask, order, taken, bandit, feasibility, ground, boxes, obstacles, config, rng):
+    """(box, entry index, turn) of the first candidate that passes the checks, or None;
+    the cell it stands in is marked ``taken``."""
+    low, high, _, _ = bandit.bounds(order)
+    first_entry, past_entry = entries.within(low, high)
+    free = np.flatnonzero(~taken & (past_entry > first_entry))  # cells with an entry at their range
+    for first in range(0, min(config.tries, len(free)), config.batch):
+        positions = free[first:min(first + config.batch, config.tries)]
+        _, _, start, stop = bandit.bounds(order[positions])
+        spans = past_entry[positions] - first_entry[positions]
+        picks = first_entry[positions] + (rng.random(len(positions)) * spans).astype(np.int64)
         stored = entries.boxes[picks]
         target = rng.uniform(start, stop)
         turn = column_turn(np.arctan2(stored[:, 1], stored[:, 0]), target, config.sensor.columns)
-        candidates = turn_boxes(stored, turn)
-        candidates[:, 2] = ground.under_boxes(candidates) + candidates[:, 5] / 2
-        corners = footprint_corners(candidates)
-        spots = np.concatenate([candidates[:, None, :2], corners], axis=1).reshape(-1, 2)
+        candidates = turn_boxes(stored, turn)  # the checks, cheapest first, each on what passed the last
+        spots = np.concatenate([candidates[:, None, :2], footprint_corners(candidates)], axis=1).reshape(-1, 2)
         ok = feasibility.allows(class_name, spots, mask).reshape(len(candidates), 5).all(axis=1)
         ok &= _ego_gap(candidates) >= config.ego_clearance
-        ok &= ~bev_overlaps(candidates[:, :7], taken, config.box_margin).any(axis=1)
-        for index in np.flatnonzero(ok):
+        ok[ok] = ~bev_overlaps(candidates[ok, :7], boxes, config.box_margin).any(axis=1)
+        survivors = np.flatnonzero(ok)
+        candidates[survivors, 2] = ground.under_boxes(candidates[survivors]) + candidates[survivors, 5] / 2
+        for index in survivors:
             if not inside_box(obstacles, candidates[index]).any():
-                free_cells[positions[index + 1:]] = True  # unused cells of the batch go back
+                taken[positions[index]] = True
                 return candidates[index], int(picks[index]), float(turn[index])
     return None
 
