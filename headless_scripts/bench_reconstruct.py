@@ -103,7 +103,8 @@ def main(argv: list) -> int:
          "features s", "matching s", "mapping s", "total s"],
         [[r["configuration"], f"{r['registered']}/{r['images']}", r["points"], f"{r['reprojection_error_px']:.2f}",
           f"{r['centre_error_median']:.2%}", f"{r['centre_error_p95']:.2%}", f"{r['centre_error_max']:.2%}",
-          f"{r['focal_vs_shipped']:.3f}", *(f"{r['seconds'][step]:.1f}" for step in ("features", "matching", "mapping")),
+          f"{r['focal_vs_shipped']:.3f}",
+          *(f"{r['seconds'][step]:.1f}" for step in ("features", "matching", "mapping")),
           f"{r['total_s']:.1f}"] for r in rows])
     inputs = {"photos": f"{len(reference)} photos of ../shared/data/colmap_statue/images (800 x 1200, many cameras, "
                         f"cropped), in name order; shipped model: 1 SIMPLE_RADIAL camera, f {shipped_focal:.1f} px",

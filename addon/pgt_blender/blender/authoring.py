@@ -2,7 +2,8 @@
 
 The mesh data is rewritten in the object frame (``foreach_get`` -> the core's
 ``apply_transform`` -> ``foreach_set``; a splat's scale and rotation attributes with
-``apply_to_splats``), exactly as ``prepare_objects.py`` does with the same arrays; an object's own matrix (where the user put it) is left alone. Child
+``apply_to_splats``), exactly as ``prepare_objects.py`` does with the same arrays; an
+object's own matrix (where the user put it) is left alone. Child
 cameras follow the rigid part of each step. A child empty, "PGT Box", shows the box.
 """
 

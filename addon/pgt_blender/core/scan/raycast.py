@@ -261,7 +261,8 @@ class Trace:
 def trace_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray, window: bool = True,
                cast_bounds: np.ndarray | None = None, engine: str = "bvh") -> Trace:
     """Cast the rays of ``target`` placed by ``sensor_from_object`` through ``engine``
-    (Gaussian targets: gaussians.gaussian_hits, the same for every engine); with ``cast_bounds`` (2, 3, object frame) the window keeps only rays meeting that box
+    (Gaussian targets: gaussians.gaussian_hits, the same for every engine); with
+    ``cast_bounds`` (2, 3, object frame) the window keeps only rays meeting that box
     instead of the whole geometry's (a scan that wants part of the object)."""
     sensor.directions  # the cached ray table: built on first use, kept out of the timing
     start = time.perf_counter()
