@@ -62,9 +62,11 @@ extension: $(VENV)/.run-installed
 
 bench: $(VENV)/.dev-installed
 	$(VENV)/bin/python headless_scripts/bench_import.py
+	$(VENV)/bin/python headless_scripts/bench_reconstruct.py
 	$(VENV)/bin/python headless_scripts/bench_alignment.py
 	$(VENV)/bin/python headless_scripts/bench_heading.py
 	$(VENV)/bin/python headless_scripts/bench_scan.py
+	$(VENV)/bin/python headless_scripts/bench_gaussian_scan.py
 	$(VENV)/bin/python headless_scripts/bench_intensity.py
 	$(VENV)/bin/python headless_scripts/bench_bank.py
 	$(VENV)/bin/python headless_scripts/bench_fidelity.py

@@ -119,6 +119,13 @@ def import_out_is_a_folder(folder, inputs):
     return ["import_reconstruction.py", inputs["statue"], "--out", folder / "scene"], folder / "scene", "is a folder"
 
 
+def reconstruct_file(name: str, content: bytes, problem):
+    def build(folder, _):
+        (folder / name).write_bytes(content)
+        return ["reconstruct_frames.py", folder / name, "--out", folder / "model"], folder / name, problem
+    return build
+
+
 def scan(extra, problem, named=lambda folder, inputs: inputs["mesh"]):
     """scan_object.py of the sample truck at (10, 0) with ``extra(folder, inputs)`` arguments;
     the error names ``named(folder, inputs)``."""
@@ -281,6 +288,12 @@ CASES = {
     "Plenoxels learned basis": plenoxels(lambda a: a.__setitem__("basis_type", np.array(4)),
                                          "basis_type 4 (a learned 3D-texture basis)"),
     "import --out is a folder": import_out_is_a_folder,
+    # structure from motion
+    "reconstruct_frames of a folder without images": lambda folder, inputs: (
+        ["reconstruct_frames.py", folder, "--out", folder / "model"], folder, "no images (.jpg, .jpeg, .png)"),
+    "reconstruct_frames of a text file": reconstruct_file("notes.txt", b"frames", "not a folder of images nor a video"),
+    "reconstruct_frames of a damaged video": reconstruct_file("orbit.mp4", b"\0\1garbage" * 100,
+                                                              "not a decodable video"),
     # scanning
     "scan of a missing object": scan(lambda f, i: ["--object", f / "missing.obj"], "no such file",
                                      in_folder("missing.obj")),

@@ -242,6 +242,41 @@ def test_an_object_whose_faces_are_its_box_keeps_its_returns_under_range_noise(t
     assert min(kept) >= 0.99  # was 0.59-0.71 when the noisy points were cropped
 
 
+def test_a_prepared_splat_enters_the_bank_as_gaussians(shared_data, tmp_path):
+    """A real 3DGS splat prepared as a car is scanned as Gaussians, its size variants
+    with their splats stretched; its entries load as OpenPCDet loads them, inside their
+    boxes."""
+    from pgt_blender.core.bank.entries import TargetCache
+    from pgt_blender.core.bank.grid import size_variants
+    from pgt_blender.core.scan.gaussians import rotation_matrices
+
+    folder = tmp_path / "prepared"
+    splat = load_reconstruction(shared_data / "gaussian_splat_donut" / "fused.ply")
+    write_prepared(prepare(splat, "car", up="pca", heading_method="baseline", seed=1), "car", "nuscenes", folder)
+    found, incomplete = prepared_objects(folder)
+    objects = checked_objects(found, incomplete, False, folder)
+    config = config_from_table({"grid": {"headings_deg": [0, 90, 90], "x": [10, 20, 10], "y": [0, 0, 1]},
+                                "bank": {"sweeps": 2}, "jitter": {"size_variants": 2}})
+    cache = TargetCache(objects, config)
+    attributes = objects[0].geometry.attributes
+    shaped = rotation_matrices(attributes["rotation"]) * attributes["scale"][:, None, :].astype(np.float64)
+    for variant, dims in enumerate(size_variants(config, 0, objects[0].dims)):
+        target, _ = cache.get(0, variant)
+        assert target.kind == "gaussians" and len(target.gaussians) == len(splat.positions)
+        stretch = np.diag(dims / objects[0].dims)
+        expected = stretch @ shaped @ shaped.transpose(0, 2, 1) @ stretch
+        found = target.gaussians.axes * target.gaussians.scales[:, None, :]
+        assert np.abs(found @ found.transpose(0, 2, 1) - expected).max() < 1e-6 * np.abs(expected).max()
+    out = tmp_path / "bank"
+    manifest = export.export_bank(objects, config, out, workers=1)
+    infos = pickle.loads((out / "openpcdet" / "nuscenes_dbinfos_pgt.pkl").read_bytes())["car"]
+    assert manifest["counts"] == {"car": len(infos)} and len(infos) >= 3
+    for info in infos:
+        points = load_like_openpcdet(out / "openpcdet", info, 5)
+        assert info["num_points_in_gt"] >= 16
+        assert inside_box(points[:, :3].astype(np.float64), info["box3d_lidar"].astype(np.float64), NOISE_MARGIN).all()
+
+
 def test_the_ground_model_places_and_tilts_objects_and_is_fitted_from_real_scans(shared_data):
     from pgt_blender.core.bank.ground import fit_ground, fit_kitti_frames, sample_ground
     from pgt_blender.core.scan.raycast import Ground, placement, placed_box

@@ -13,7 +13,7 @@ from pgt_blender.core.reconstruction import Reconstruction
 from pgt_blender.core.scan.raycast import scan_object
 from pgt_blender.core.scan.returns import RETURN_DTYPE
 from pgt_blender.core.scan.sensors import PRESETS
-from pgt_blender.core.scan.targets import mesh_target, reflectivity_from_srgb, surfel_target
+from pgt_blender.core.scan.targets import gaussian_target, mesh_target, reflectivity_from_srgb, surfel_target
 
 from .conftest import datablock_counts
 
@@ -232,6 +232,36 @@ def test_point_cloud_scans_as_surfels(scene):
     assert expected.hits > 100
     assert_same_rows(bpy.data.objects[f"{cloud.name} Scan"], expected.returns)
     assert scanning.scan_target(cloud, settings.surfel_scale).kind == "surfels"
+
+
+def test_an_authored_splat_scans_as_gaussians(scene, donut):
+    """Align, heading and size move the splats' shapes as prepare() does; the Scan panel
+    then scans the splat as Gaussians, row for row as the core does."""
+    from pgt_blender.core.authoring.prepare import prepare
+    from pgt_blender.core.importing import load_reconstruction
+
+    assert bpy.ops.import_scene.pgt_gaussian_splat(filepath=str(donut)) == {"FINISHED"}
+    splat = bpy.context.view_layer.objects.active
+    authoring = scene.pgt_authoring
+    authoring.up, authoring.heading_method, authoring.size_mode = "pca", "baseline", "class"
+    authoring.dataset, authoring.class_name, authoring.seed = "nuscenes", "car", 4
+    for operator in (bpy.ops.object.pgt_align, bpy.ops.object.pgt_auto_heading, bpy.ops.object.pgt_set_size):
+        assert operator() == {"FINISHED"}
+    authored = prepare(load_reconstruction(donut), "car", up="pca", heading_method="baseline", seed=4)
+    shapes = scanning.splat_attributes(splat.data)
+    np.testing.assert_array_equal(positions(splat), authored.positions)
+    np.testing.assert_array_equal(shapes["scale"], authored.splat_shapes[0])
+    np.testing.assert_array_equal(shapes["rotation"], authored.splat_shapes[1])
+
+    settings = scene.pgt_scan
+    settings.distance, settings.azimuth = 12.0, math.radians(20)
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    assert scanning.scan_target(splat).kind == "gaussians"
+    stored_colors = color_values(splat.data.color_attributes.active_color)
+    target = gaussian_target(authored.positions, *authored.splat_shapes, shapes["opacity"], splat.name, stored_colors)
+    expected = core_scan(target, settings)
+    assert expected.hits > 100
+    assert_same_rows(bpy.data.objects[f"{splat.name} Scan"], expected.returns)
 
 
 @pytest.mark.parametrize("node_tree", [False, True])

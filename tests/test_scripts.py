@@ -144,6 +144,14 @@ def test_bench_scan_quick(tmp_path):
     assert all(row["false"] == row["missed"] == 0 and row["error_max_m"] < 1e-6 for row in exact)
 
 
+def test_bench_gaussian_scan_quick(tmp_path, shared_data):  # splats fitted to the Chrono sedan
+    result = run_script("bench_gaussian_scan.py", "--quick", "--out", tmp_path / "gaussians")
+    assert result.returncode == 0, result.stderr
+    overall = {row["method"]: row for row in json.loads((tmp_path / "gaussians.json").read_text())["overall"]}
+    assert set(overall) == {"gaussians 20k", "surfels 20k"} and (tmp_path / "gaussians.png").stat().st_size > 0
+    assert all(row["missed_pct"] < 1 and row["error_median_m"] < 0.02 for row in overall.values())
+
+
 def test_bench_bank_quick(tmp_path, shared_data):  # its trucks are the Chrono mesh
     result = run_script("bench_bank.py", "--quick", "--out", tmp_path / "bank")
     assert result.returncode == 0, result.stderr

@@ -1,8 +1,9 @@
 """Apply core authoring steps to Blender objects, in bulk.
 
 The mesh data is rewritten in the object frame (``foreach_get`` -> the core's
-``apply_transform`` -> ``foreach_set``), exactly as ``prepare_objects.py`` does with
-the same arrays; an object's own matrix (where the user put it) is left alone. Child
+``apply_transform`` -> ``foreach_set``; a splat's scale and rotation attributes with
+``apply_to_splats``), exactly as ``prepare_objects.py`` does with the same arrays; an
+object's own matrix (where the user put it) is left alone. Child
 cameras follow the rigid part of each step. A child empty, "PGT Box", shows the box.
 """
 
@@ -12,8 +13,9 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..core.authoring.prepare import Step, apply_transform
+from ..core.authoring.prepare import Step, apply_to_splats, apply_transform
 from .objects import _BLENDER_FROM_OPENCV, POINTS_GROUP
+from .scanning import splat_attributes
 
 BOX_TAG = "pgt_box"
 
@@ -85,6 +87,11 @@ def apply_step(obj: bpy.types.Object, step: Step) -> None:
     """Apply ``step`` to the mesh data, the child cameras and the record on ``obj.pgt``."""
     mesh = obj.data
     mesh.attributes["position"].data.foreach_set("vector", apply_transform(positions(obj), step.transform).ravel())
+    splats = splat_attributes(mesh)
+    if "scale" in splats and "rotation" in splats:  # Gaussian splats turn and stretch with their means
+        scales, rotations = apply_to_splats(splats["scale"], splats["rotation"], step.transform)
+        mesh.attributes["scale"].data.foreach_set("vector", scales.ravel())
+        mesh.attributes["rotation"].data.foreach_set("value", rotations.ravel())
     mesh.update()
     linear = step.transform[:3, :3]
     scale = float(np.cbrt(abs(np.linalg.det(linear))))

@@ -4,7 +4,8 @@ against it, when the section names one), and a preview of a finished bank in the
 viewport.
 
 Gathering the inputs (core/bank/inputs.py) is done in bulk. An object's mesh data is its object frame (authoring wrote it so); its box is the last
-authoring step's dims. Meshes give their triangles, point objects their points; colors
+authoring step's dims. Meshes give their triangles, point objects their points (and
+Gaussian splats their scale, rotation and opacity attributes); colors
 come from the per-point color attribute (sRGB), as the prepared-object route reads them
 from the PLY, so the same objects by either route make the same bank.
 """
@@ -26,9 +27,10 @@ from ..core.files import read_float32_rows
 from ..core.gt_database import load_infos
 from ..core.reconstruction import Reconstruction
 from ..core.scan.sensors import BIN_COLUMNS, INTENSITY_MAX
+from ..core.scan.targets import has_gaussians
 from .authoring import current_dims, is_reconstruction, status
 from .objects import box_empty, remove_collection
-from .scanning import mesh_triangles, mesh_vertices, point_colors, points_object, ramp
+from .scanning import mesh_triangles, mesh_vertices, point_colors, points_object, ramp, splat_attributes
 
 
 def scene_bank_objects(scene: bpy.types.Scene) -> tuple[list, list]:
@@ -44,9 +46,11 @@ def scene_bank_objects(scene: bpy.types.Scene) -> tuple[list, list]:
             continue
         mesh = obj.data
         faces = mesh_triangles(mesh)[0] if len(mesh.polygons) else np.zeros((0, 3), np.int32)
+        splats = {} if len(faces) else splat_attributes(mesh)
         geometry = Reconstruction(mesh_vertices(mesh), "mesh" if len(faces) else "point_ply",
                                   Path(bpy.data.filepath or "scene") / obj.name, obj.pgt.source_sha256,
-                                  faces=faces, colors=point_colors(mesh))
+                                  faces=faces, colors=point_colors(mesh),
+                                  attributes=splats if has_gaussians(splats) else {})
         objects.append(BankObject(obj.name, obj.pgt.class_name, current_dims(obj), geometry))
     return objects, incomplete
 

@@ -7,7 +7,7 @@ the sensor frame (sensor at the origin, ground at z = -mounting_height) by
 object stands: ``matrix_world = object.matrix_world @ inverse(sensor_from_object)``.
 
 Geometry is read and results are written in bulk (``foreach_get`` / ``foreach_set``).
-Each object's ScanTarget (its BVH) is built once and cached under the object's name
+Each object's ScanTarget (its BVH, or its Gaussians for a splat) is built once and cached under the object's name
 with a fingerprint of everything that went into it, so scans from other poses reuse
 it and an edited mesh, color or material rebuilds it.
 """
@@ -24,8 +24,9 @@ from ..core.errors import InputError
 from ..core.scan.raycast import ScanOptions, cast_rays, placement, resolve_engine
 from ..core.scan.returns import Scan
 from ..core.scan.sensors import PRESETS, Sensor, load_sensor_toml
-from ..core.scan.targets import (DEFAULT_REFLECTIVITY, ScanTarget, mesh_target, reflectivity_from_linear,
-                                 reflectivity_from_srgb, see_through_materials, surfel_target)
+from ..core.scan.targets import (DEFAULT_REFLECTIVITY, ScanTarget, gaussian_target, has_gaussians, mesh_target,
+                                 reflectivity_from_linear, reflectivity_from_srgb, see_through_materials,
+                                 surfel_target)
 from .objects import add_attribute, show_as_points, remove_datablocks
 
 CUSTOM = "CUSTOM"
@@ -66,8 +67,9 @@ def scan(obj: bpy.types.Object, settings) -> tuple[Scan, Sensor, np.ndarray]:
 def scan_target(obj: bpy.types.Object, radius_scale: float = 1.0, engine: str = "auto") -> ScanTarget:
     """The (cached) ScanTarget of ``obj``'s mesh data, object frame, m, for ``engine``
     (raycast.ENGINES; Blender's BVH is built for "bvh" only). With faces: its triangles,
-    ``source_index`` = the Blender polygon index of each. Without: surfels of
-    ``radius_scale`` x the point spacing, ``source_index`` = the vertex index."""
+    ``source_index`` = the Blender polygon index of each. Without: Gaussians when it
+    carries the splat attributes (scale, rotation, opacity: splat_attributes), else
+    surfels of ``radius_scale`` x the point spacing; ``source_index`` = the vertex index."""
     inputs, build = _target_inputs(obj, radius_scale, resolve_engine(engine) == "bvh")
     fingerprint = _fingerprint(inputs)
     cached = _cache.pop(obj.name, None)
@@ -86,9 +88,12 @@ def _target_inputs(obj: bpy.types.Object, radius_scale: float, with_bvh: bool):
     vertices = mesh_vertices(mesh)
     if not len(mesh.polygons):
         colors = point_colors(mesh)
-        opacity = mesh.attributes.get("opacity")  # Gaussian splats: faint ones are seen through
-        opacities = read(opacity.data, "value", len(vertices), np.float32) if opacity is not None \
-            and opacity.data_type == "FLOAT" and opacity.domain == "POINT" else None
+        splats = splat_attributes(mesh)
+        if has_gaussians(splats):
+            return ("gaussians", vertices, colors, splats["scale"], splats["rotation"], splats["opacity"]), \
+                lambda: gaussian_target(vertices, splats["scale"], splats["rotation"], splats["opacity"], obj.name,
+                                        colors)
+        opacities = splats.get("opacity")  # faint points are seen through
         return ("surfels", vertices, colors, radius_scale, opacities, with_bvh), \
             lambda: surfel_target(vertices, obj.name, colors, radius_scale, with_bvh=with_bvh, opacities=opacities)
     corners, polygon_index = _triangle_corners(mesh)
@@ -103,6 +108,23 @@ def _target_inputs(obj: bpy.types.Object, radius_scale: float, with_bvh: bool):
         return replace(target, source_index=polygon_index[target.source_index])
 
     return ("mesh", vertices, triangles, polygon_index, reflectivity, see_through, with_bvh), build
+
+
+SPLAT_ATTRIBUTES = {"opacity": ("FLOAT", "value", 1), "scale": ("FLOAT_VECTOR", "vector", 3),
+                    "rotation": ("QUATERNION", "value", 4)}  # name -> (type, field, values per point)
+
+
+def splat_attributes(mesh: bpy.types.Mesh) -> dict:
+    """The Gaussian-splat point attributes the mesh carries, as the importer made them
+    (objects.add_attribute): ``opacity`` (N,), ``scale`` (N, 3) m and ``rotation``
+    (N, 4) w x y z, float32; absent ones (or of another type or domain) are left out."""
+    found = {}
+    for name, (data_type, field, width) in SPLAT_ATTRIBUTES.items():
+        attribute = mesh.attributes.get(name)
+        if attribute is not None and attribute.data_type == data_type and attribute.domain == "POINT":
+            values = read(attribute.data, field, len(mesh.vertices) * width, np.float32)
+            found[name] = values if width == 1 else values.reshape(-1, width)
+    return found
 
 
 def _fingerprint(inputs: tuple) -> tuple:

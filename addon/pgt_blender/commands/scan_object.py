@@ -7,10 +7,12 @@
 
 --object: a mesh (.obj .ply .glb .gltf .stl), a point PLY or a Gaussian-splat PLY, in
 the object frame (+x forward, +y left, +z up, metres), e.g. prepare_objects.py's
-output. Meshes are ray cast as they are; points become surfels (or, with --surface
-range-view, the paper's range-view projection). The object stands on the ground with
-its object-frame origin at (--x, --y) m in the sensor frame, turned by --heading deg
-counter-clockwise from +x. --sensor: nuscenes, kitti, lyft, vlp16 or a .toml file.
+output. Meshes are ray cast as they are; Gaussian splats are scanned as Gaussians (each
+ray composites the splats it meets and returns where their opacity reaches 0.5,
+pgt_blender/core/scan/gaussians.py); points become surfels (splats too with --surface
+surfels; or, with --surface range-view, the paper's range-view projection). The object
+stands on the ground with its object-frame origin at (--x, --y) m in the sensor frame,
+turned by --heading deg counter-clockwise from +x. --sensor: nuscenes, kitti, lyft, vlp16 or a .toml file.
 
 Output by suffix: .bin float32 in the dataset's columns (KITTI x y z intensity;
 nuScenes/Lyft x y z intensity time_lag), .ply every column, .npy the structured rows
@@ -39,8 +41,7 @@ from ..core.scan.raycast import ScanOptions, placement
 from ..core.scan.returns import OUTPUT_SUFFIXES, write_scan
 from ..core.scan.sensors import PRESETS, sensor_from_name
 from ..core.scan.sweeps import CLASS_MOTION, Motion, motion_class, sample_motion, scan_sweeps
-from ..core.scan.targets import (element_colors, reflectivity_from_srgb,
-                                           target_from_reconstruction)
+from ..core.scan.targets import element_colors, has_gaussians, reflectivity_from_srgb, target_from_reconstruction
 
 
 def sidecar_class(path: Path) -> str | None:
@@ -75,12 +76,14 @@ def scan(args):
 
 
 def ray_cast(args, recon, sensor, heading: float, class_name: str, options):
-    """A mesh (or surfel) scan over --sweeps sweeps: (Scan, the object's box bounds (2, 3))."""
+    """A mesh, Gaussian or surfel scan over --sweeps sweeps: (Scan, the object's box bounds (2, 3))."""
     if args.surface == "mesh" and not len(recon.faces):
         raise InputError(args.object, "has no faces to scan as a mesh; use --surface surfels")
+    if args.surface == "gaussians" and (len(recon.faces) or not has_gaussians(recon.attributes)):
+        raise InputError(args.object, "is not a Gaussian splat (no scale, rotation and opacity); use --surface auto")
     if args.surface == "surfels":
         recon.faces = recon.faces[:0]
-    target = target_from_reconstruction(recon, args.radius_scale)
+    target = target_from_reconstruction(recon, args.radius_scale, gaussians=args.surface != "surfels")
     motion = Motion()
     if args.speed is not None:
         motion = Motion(args.speed, args.acceleration)
@@ -122,8 +125,8 @@ def main(argv: list) -> int:
     parser.add_argument("--class", dest="class_name", help="class for the motion model (default: sidecar JSON)")
     parser.add_argument("--speed", type=finite, help="m/s along the heading, instead of the class's draw")
     parser.add_argument("--acceleration", type=finite, default=0.0, help="m/s^2, with --speed")
-    parser.add_argument("--surface", choices=("auto", "mesh", "surfels", "range-view"), default="auto",
-                        help="auto: mesh when the file has faces, else surfels")
+    parser.add_argument("--surface", choices=("auto", "mesh", "gaussians", "surfels", "range-view"), default="auto",
+                        help="auto: mesh when the file has faces, Gaussians for a splat, else surfels")
     parser.add_argument("--radius-scale", type=finite, default=1.0, help="surfel radius / local point spacing")
     parser.add_argument("--intensity-checkpoint", type=Path,
                         help="intensity.pt of train_intensity.py: learned intensities instead of the physical law")

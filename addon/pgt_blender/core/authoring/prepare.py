@@ -43,6 +43,14 @@ def apply_transform(positions: np.ndarray, transform: np.ndarray) -> np.ndarray:
     return (points @ transform[:3, :3].T + transform[:3, 3]).astype(np.float32)
 
 
+def apply_to_splats(scales: np.ndarray, rotations: np.ndarray, transform: np.ndarray) -> tuple:
+    """Gaussian splats' (N, 3) scales and (N, 4) w x y z rotations after ``transform``
+    (4, 4) moves their means (scan/gaussians.transform_gaussians), float32."""
+    from ..scan.gaussians import transform_gaussians
+
+    return transform_gaussians(scales, rotations, transform[:3, :3])
+
+
 def up_vector(choice: str, world_from_cameras=(), source="points"):
     """(3,) up direction in the source frame for an UP_CHOICES entry, or None for the
     PCA minor axis. ``world_from_cameras``: (C, 4, 4) OpenCV camera poses, whose mean
@@ -116,6 +124,9 @@ class AuthoredObject:
     """A reconstruction on its way to the object frame.
 
     positions: (N, 3) float32, the current frame (the object frame once aligned).
+    splat_shapes: Gaussian splats' (N, 3) scales and (N, 4) w x y z rotations, float32,
+        in the current frame (each step moves them as it moves the points:
+        apply_to_splats), or None for other reconstructions.
     object_from_source: (4, 4) float64, the product of every step's transform.
     """
 
@@ -124,13 +135,19 @@ class AuthoredObject:
     object_from_source: np.ndarray = field(default_factory=lambda: np.eye(4))
     dims: np.ndarray | None = None
     steps: list = field(default_factory=list)
+    splat_shapes: tuple | None = None
 
     @classmethod
     def from_reconstruction(cls, recon: Reconstruction) -> "AuthoredObject":
-        return cls(recon, np.asarray(recon.positions, np.float32))
+        shapes = None
+        if recon.attributes.get("scale") is not None and recon.attributes.get("rotation") is not None:
+            shapes = (recon.attributes["scale"], recon.attributes["rotation"])
+        return cls(recon, np.asarray(recon.positions, np.float32), splat_shapes=shapes)
 
     def apply(self, step: Step) -> "AuthoredObject":
         self.positions = apply_transform(self.positions, step.transform)
+        if self.splat_shapes is not None:
+            self.splat_shapes = apply_to_splats(*self.splat_shapes, step.transform)
         self.object_from_source = step.transform @ self.object_from_source
         self.dims = np.asarray(step.dims, np.float64)
         self.steps.append(step)
@@ -218,13 +235,23 @@ def read_sidecar(path) -> dict:
 
 
 def _point_columns(authored: AuthoredObject) -> dict:
-    """PLY columns: x, y, z, uchar colors and the frame-independent scalars (opacity,
-    track length, ...). Splat scales and rotations are frame-dependent and left out."""
+    """PLY columns: x, y, z, then for a Gaussian splat its whole 3DGS record in the
+    object frame (f_dc_* and f_rest_* as read, opacity as a logit, scale_* as logs and
+    rot_* of the moved splats: a Gaussian-splat PLY again), else uchar colors and the
+    frame-independent scalars (opacity, track length, ...)."""
     columns = {axis: authored.positions[:, i] for i, axis in enumerate("xyz")}
     recon = authored.source
+    attributes = {name: values for name, values in recon.attributes.items() if values.ndim == 1}
+    if authored.splat_shapes is not None and recon.kind == "gaussian_splat":
+        scales, rotations = authored.splat_shapes
+        opacity = np.clip(attributes.pop("opacity").astype(np.float64), 1e-7, 1 - 1e-7)
+        columns.update(attributes)
+        columns["opacity"] = np.log(opacity / (1 - opacity)).astype(np.float32)
+        columns.update({f"scale_{i}": np.log(np.maximum(scales[:, i], 1e-30)).astype(np.float32) for i in range(3)})
+        columns.update({f"rot_{i}": rotations[:, i] for i in range(4)})
+        return columns
     if recon.colors is not None:
         rgb = np.round(recon.colors[:, :3] * 255).astype(np.uint8)
         columns.update(red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])
-    columns.update({name: values for name, values in recon.attributes.items() if values.ndim == 1})
+    columns.update(attributes)
     return columns
-

@@ -8,8 +8,8 @@ returns all stay (a surface on the box's face would otherwise lose half its retu
 noise, while a real annotated box has room around the object), so kept points may lie
 outside the box by the range noise (sigma 2 cm on the presets).
 
-The target (BVH) of each size variant is built once per worker and reused for every
-pose: ``TargetCache``.
+The target (BVH, or Gaussians for a splat) of each size variant is built once per
+worker and reused for every pose: ``TargetCache``.
 """
 
 from dataclasses import replace
@@ -19,7 +19,8 @@ import numpy as np
 from ..boxes import inside_box
 from ..scan.raycast import Ground, ScanOptions
 from ..scan.sweeps import Motion, scan_sweeps
-from ..scan.targets import element_colors, target_from_reconstruction
+from ..scan.gaussians import transform_gaussians
+from ..scan.targets import element_colors, has_gaussians, target_from_reconstruction
 from .config import BankConfig
 from .grid import size_variants, sweeps_of
 from .inputs import BankObject
@@ -48,6 +49,10 @@ class TargetCache:
             dims = size_variants(self.config, object_index, obj.dims)[variant]
             scale = (dims / obj.dims).astype(np.float32)
             geometry = replace(obj.geometry, positions=obj.geometry.positions * scale)
+            if has_gaussians(geometry.attributes):  # the splats stretch with their means
+                shapes = transform_gaussians(geometry.attributes["scale"], geometry.attributes["rotation"],
+                                             np.diag(scale.astype(np.float64)))
+                geometry.attributes = {**geometry.attributes, "scale": shapes[0], "rotation": shapes[1]}
             target = target_from_reconstruction(geometry, self.config.radius_scale, self.config.engine == "bvh")
             self._targets[variant] = (target, np.stack([-dims / 2, dims / 2]))
         return self._targets[variant]

@@ -22,7 +22,8 @@ from ..reconstruction import Reconstruction
 class BankObject:
     """One authored object: ``name`` (unique, used in file names), its ``class_name``
     (as authored, e.g. nuScenes' "truck"), ``dims`` (3,) float64 metres and its geometry
-    as a Reconstruction in the object frame (a mesh, or points that become surfels)."""
+    as a Reconstruction in the object frame (a mesh, Gaussian splats scanned as
+    Gaussians, or points that become surfels)."""
 
     name: str
     class_name: str
@@ -36,10 +37,12 @@ class BankObject:
 
     def summary(self) -> dict:
         """What the bank depends on; ``sha256`` is of the geometry itself (positions,
-        faces, colors), so either input route gives the same summary."""
+        faces, colors, and a splat's scales, rotations and opacities), so either input
+        route gives the same summary."""
         geometry = self.geometry
         digest = hashlib.sha256()
-        for array in (geometry.positions, geometry.faces, geometry.colors):
+        splat = [geometry.attributes.get(key) for key in ("scale", "rotation", "opacity")]
+        for array in (geometry.positions, geometry.faces, geometry.colors, *splat):
             if array is not None:
                 digest.update(np.ascontiguousarray(array).tobytes())
         return {"name": self.name, "class": self.class_name, "dims": self.dims.tolist(),

@@ -24,6 +24,7 @@ from itertools import chain, repeat
 
 import numpy as np
 
+from .gaussians import gaussian_hits
 from .physical_intensity import dataset_intensity, relative_intensity
 from .ray_drop import drop_probability
 from .returns import RETURN_DTYPE, Scan
@@ -259,13 +260,20 @@ class Trace:
 
 def trace_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray, window: bool = True,
                cast_bounds: np.ndarray | None = None, engine: str = "bvh") -> Trace:
-    """Cast the rays of ``target`` placed by ``sensor_from_object`` through ``engine``;
-    with ``cast_bounds`` (2, 3, object frame) the window keeps only rays meeting that box
+    """Cast the rays of ``target`` placed by ``sensor_from_object`` through ``engine``
+    (Gaussian targets: gaussians.gaussian_hits, the same for every engine); with
+    ``cast_bounds`` (2, 3, object frame) the window keeps only rays meeting that box
     instead of the whole geometry's (a scan that wants part of the object)."""
     sensor.directions  # the cached ray table: built on first use, kept out of the timing
     start = time.perf_counter()
     cast_bounds = target.cast_bounds if cast_bounds is None else cast_bounds
     cells, origin, directions = rays_to_cast(sensor, cast_bounds, sensor_from_object, window)
+    if target.gaussians is not None:  # splats: their own compositing, whatever the engine
+        splats, ranges, cos_incidence = gaussian_hits(target.gaussians, sensor, sensor_from_object, cells, origin,
+                                                      directions)
+        hit = splats >= 0
+        return Trace(len(cells), cells[hit], ranges[hit], cos_incidence[hit], splats[hit],
+                     time.perf_counter() - start)
     cast = _embree_hits if engine == "embree" else _bvh_hits
     polygons, bvh_range = cast(target, origin, directions, sensor.max_range)
     if target.see_through is not None:

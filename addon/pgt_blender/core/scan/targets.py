@@ -2,9 +2,10 @@
 
 Object frame: +x forward, +y left, +z up, metres (what authoring writes). Meshes are
 used as they are (open, non-manifold and self-intersecting meshes are fine: a ray
-takes the nearest triangle). Point clouds and Gaussian splats become *surfels*: one
-flat hexagon per point with the area of its disk, so a reconstruction is scanned
-without meshing.
+takes the nearest triangle). Gaussian splats (scales, rotations and opacities) are
+scanned as Gaussians (gaussians.py: each ray composites the splats it meets). Point
+clouds, and splats when asked, become *surfels*: one flat hexagon per point with the
+area of its disk, so a reconstruction is scanned without meshing.
 
 A LiDAR sees through glass: rays pass see-through polygons (glass and window
 materials, transparent ones, splats fainter than SEE_THROUGH_OPACITY) and return from
@@ -19,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
+from .gaussians import Gaussians, rotation_matrices
 
 SURFEL_SIDES = 6
 # A hexagon with the disk's area: circumradius = r * sqrt(2 pi / (3 sqrt 3)).
@@ -59,7 +61,7 @@ class ScanTarget:
                   for the physical intensity and the ray drop.
     source_index: (P,) int32: the mesh face (or point) each polygon came from; the
                   scan's ``face`` column.
-    kind:         "mesh" or "surfels".
+    kind:         "mesh", "surfels" or "gaussians".
     see_through:  (P,) bool per polygon, or None: glass and faint splats, which a ray
                   passes on to what lies behind (raycast.trace_rays).
     triangle_vertices (V, 3) float32, triangle_faces (T, 3) int32: the polygons as an
@@ -80,6 +82,7 @@ class ScanTarget:
     triangle_polygon: np.ndarray | None = None
     embree_scene: object = None  # built on the first Embree cast (raycast.trace_rays)
     see_through: np.ndarray | None = None
+    gaussians: Gaussians | None = None
 
     @property
     def size(self) -> np.ndarray:
@@ -195,15 +198,6 @@ def local_frames(positions: np.ndarray, neighbours: int = 8):
     return axes[:, :, 0], axes[:, :, 1:], distances[:, 1:].mean(axis=1)
 
 
-def _quaternion_matrices(wxyz: np.ndarray) -> np.ndarray:
-    w, x, y, z = (wxyz / np.linalg.norm(wxyz, axis=1, keepdims=True)).T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], axis=1)
-
-
 def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarray | None = None,
                   radius_scale: float = 1.0, neighbours: int = 8,
                   scales: np.ndarray | None = None, rotations: np.ndarray | None = None,
@@ -225,7 +219,7 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
     if not radius_scale > 0:
         raise InputError(name, f"surfel radius scale must be positive, got {radius_scale}")
     if scales is not None and rotations is not None:
-        axes = _quaternion_matrices(np.asarray(rotations, np.float64))
+        axes = rotation_matrices(rotations)
         scales = np.asarray(scales, np.float64)
         order = np.argsort(scales, axis=1)[:, ::-1]  # largest first
         tangents = np.take_along_axis(axes, order[:, None, :2], axis=2)
@@ -266,10 +260,47 @@ def element_colors(reconstruction) -> np.ndarray:
     return colors[reconstruction.faces].mean(axis=1) if len(reconstruction.faces) else colors
 
 
-def target_from_reconstruction(reconstruction, radius_scale: float = 1.0, with_bvh: bool = True) -> ScanTarget:
-    """A mesh target when the reconstruction has faces, else surfels (splat-shaped when
-    it carries ``scale`` and ``rotation``). Positions must already be in the object frame.
-    ``with_bvh=False`` skips Blender's BVH: the target serves the Embree engine only."""
+def gaussian_target(positions: np.ndarray, scales: np.ndarray, rotations: np.ndarray, opacities: np.ndarray,
+                    name: str = "object", colors: np.ndarray | None = None) -> ScanTarget:
+    """Gaussian splats scanned as Gaussians (gaussians.py), object frame (m):
+    ``positions`` (N, 3) means, ``scales`` (N, 3) standard deviations, ``rotations``
+    (N, 4) w x y z, ``opacities`` (N,) in [0, 1]. ``cast_bounds`` hold every splat's
+    CUTOFF_SIGMAS ellipsoid; reflectivity per splat from ``colors`` (sRGB), weighted by
+    opacity x its two larger scales (what a ray sees of it)."""
+    positions = np.asarray(positions, np.float64).reshape(-1, 3)
+    if len(positions) == 0:
+        raise InputError(name, "point cloud is empty")
+    arrays = {"positions": positions, "scales": scales, "rotations": rotations, "opacities": opacities}
+    for what, array in arrays.items():
+        array = np.asarray(array, np.float64)
+        if len(array) != len(positions) or not np.isfinite(array).all():
+            raise InputError(name, f"splat {what} must be {len(positions)} finite rows")
+    if (np.linalg.norm(np.asarray(rotations, np.float64), axis=1) == 0).any():
+        raise InputError(name, "a splat has a zero-length rotation quaternion")
+    splats = Gaussians.from_splats(positions, scales, rotations, opacities)
+    extents = splats.extents
+    weights = splats.opacities * np.sort(splats.scales, axis=1)[:, 1:].prod(axis=1)
+    reflectivity = (np.full(len(positions), DEFAULT_REFLECTIVITY, np.float32) if colors is None
+                    else relative_reflectivity(reflectivity_from_srgb(colors), weights))
+    return ScanTarget(None, np.stack([positions.min(0), positions.max(0)]),
+                      np.stack([(positions - extents).min(0), (positions + extents).max(0)]),
+                      _planes(splats.normals, positions), reflectivity, np.arange(len(positions), dtype=np.int32),
+                      "gaussians", name, gaussians=splats)
+
+
+def has_gaussians(attributes: dict) -> bool:
+    """Whether a reconstruction's attributes make Gaussian splats: ``scale``,
+    ``rotation`` and ``opacity``."""
+    return all(attributes.get(key) is not None for key in ("scale", "rotation", "opacity"))
+
+
+def target_from_reconstruction(reconstruction, radius_scale: float = 1.0, with_bvh: bool = True,
+                               gaussians: bool = True) -> ScanTarget:
+    """A mesh target when the reconstruction has faces; else Gaussians when it carries
+    ``scale``, ``rotation`` and ``opacity`` (and ``gaussians``); else surfels
+    (splat-shaped when it carries ``scale`` and ``rotation``). Positions must already be
+    in the object frame. ``with_bvh=False`` skips Blender's BVH: the target serves the
+    Embree engine only."""
     name = str(reconstruction.source)
     colors = reconstruction.colors
     if len(reconstruction.faces):
@@ -278,6 +309,9 @@ def target_from_reconstruction(reconstruction, radius_scale: float = 1.0, with_b
             face_reflectivity = reflectivity_from_srgb(colors)[reconstruction.faces].mean(axis=1)
         return mesh_target(reconstruction.positions, reconstruction.faces, name, face_reflectivity, with_bvh)
     attributes = reconstruction.attributes
+    if gaussians and has_gaussians(attributes):
+        return gaussian_target(reconstruction.positions, attributes["scale"], attributes["rotation"],
+                               attributes["opacity"], name, colors)
     return surfel_target(reconstruction.positions, name, colors, radius_scale,
                          scales=attributes.get("scale"), rotations=attributes.get("rotation"), with_bvh=with_bvh,
                          opacities=attributes.get("opacity"))

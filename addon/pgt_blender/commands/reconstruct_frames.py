@@ -1,0 +1,84 @@
+"""Reconstruct photos or a video's frames into a COLMAP sparse model, on the CPU.
+
+    pgt-reconstruct-frames FRAMES_DIR|VIDEO --out DIR
+    .venv/bin/python headless_scripts/reconstruct_frames.py FRAMES_DIR|VIDEO --out DIR
+        [--every K] [--pick every|sharpest] [--matching auto|orbit|exhaustive] [--overlap 10]
+        [--camera single|per-image] [--max-features 8192] [--max-image-size 1600] [--threads 0] [--seed 0]
+
+FRAMES_DIR: a folder of .jpg/.jpeg/.png images, matched in name order; VIDEO: a video
+file (.mp4 .mov .m4v .avi .mkv .webm, decoded with PyAV: pip install
+'pgt_blender[video]'), whose kept frames are written to DIR/images. --every K keeps one
+frame in K (default: 10 for a video, 1 for a folder): the first of each run of K
+(--pick every) or the sharpest (--pick sharpest, the default: the highest variance of
+the Laplacian). Then pycolmap: SIFT features, matching ("orbit": each frame with its
+next --overlap frames and those 2^j ahead, cyclically, which closes an orbit video's
+loop; "exhaustive": all pairs; "auto": exhaustive up to 60 images), incremental
+mapping (pgt_blender/core/importing/structure_from_motion.py). Writes DIR/database.db
+and DIR/sparse/0, the model pgt-import-reconstruction and the Import panel read.
+Progress bars on stderr; bad input: a one-line error and exit code 1.
+"""
+
+import argparse
+from pathlib import Path
+
+from .. import cli
+from ..core.errors import InputError
+from ..core.importing.frames import PICKS, VIDEO_SUFFIXES, choose_images, decode_video
+from ..core.importing.structure_from_motion import MATCHINGS, SfmOptions, reconstruct
+
+VIDEO_EVERY = 10  # a video's default: 1 frame kept in 10 (3 per second at 30 fps)
+
+
+def main(argv: list) -> int:
+    parser = argparse.ArgumentParser(prog="reconstruct_frames.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("input", type=Path, help="folder of images, or a video file")
+    parser.add_argument("--out", type=Path, required=True, help="output folder (database.db, sparse/0, images/)")
+    parser.add_argument("--every", type=int, help=f"keep 1 frame in K (default {VIDEO_EVERY} for a video, 1 for a "
+                                                  f"folder)")
+    parser.add_argument("--pick", choices=PICKS, default="sharpest", help="which frame of each run of K")
+    parser.add_argument("--matching", choices=MATCHINGS, default="auto", help="image pairs to match")
+    parser.add_argument("--overlap", type=int, default=10, help="orbit matching: neighbours each frame meets")
+    parser.add_argument("--camera", choices=("single", "per-image"), default="single",
+                        help="one camera for all frames (a video), or one per image (photos from many cameras)")
+    parser.add_argument("--max-features", type=int, default=8192, help="SIFT features per image")
+    parser.add_argument("--max-image-size", type=int, default=1600, help="px: larger images are scaled down for SIFT")
+    parser.add_argument("--threads", type=int, default=0, help="CPU threads (0: all)")
+    parser.add_argument("--seed", type=int, default=0, help="RANSAC's and the mapper's random seed")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars and no COLMAP log")
+    args = parser.parse_args(argv)
+    if (args.every is not None and args.every < 1) or args.overlap < 1 or args.max_features < 1 \
+            or args.max_image_size < 1 or args.threads < 0:
+        parser.error("--every, --overlap, --max-features and --max-image-size must be >= 1, --threads >= 0")
+    options = SfmOptions(args.matching, args.overlap, args.camera == "single", args.max_features,
+                         args.max_image_size, args.threads, args.seed)
+    _quiet_colmap(args.quiet)
+    progress = not args.quiet
+    if args.input.is_dir():
+        folder, names = args.input, choose_images(args.input, args.every or 1, args.pick, progress)
+    elif args.input.is_file() and args.input.suffix.lower() in VIDEO_SUFFIXES:
+        folder = args.out / "images"
+        names = decode_video(args.input, folder, args.every or VIDEO_EVERY, args.pick, progress)
+    elif args.input.exists():
+        raise InputError(args.input, f"not a folder of images nor a video ({', '.join(VIDEO_SUFFIXES)})")
+    else:
+        raise InputError(args.input, "no such file or folder")
+    result = reconstruct(folder, names, args.out, options, progress)
+    total = sum(result.seconds.values())
+    print(cli.markdown_table(
+        ["images", "registered", "points", "reprojection px", "models", "features s", "matching s", "mapping s"],
+        [[result.images, result.registered, result.points, f"{result.reprojection_error:.2f}", result.models,
+          *(f"{result.seconds[step]:.1f}" for step in ("features", "matching", "mapping"))]]))
+    print("\ncamera(s): " + "; ".join(f"{c['model']} {', '.join(f'{p:.4g}' for p in c['params'])}"
+                                       for c in result.cameras[:3]) + (" ..." if len(result.cameras) > 3 else ""))
+    print(f"wrote {result.model} in {total:.1f} s (import it: pgt-import-reconstruction {result.model})")
+    return 0
+
+
+def _quiet_colmap(quiet: bool) -> None:
+    """COLMAP logs every step at INFO to stderr: keep warnings only, or errors when quiet."""
+    import pycolmap
+
+    pycolmap.logging.minloglevel = pycolmap.logging.ERROR if quiet else pycolmap.logging.WARNING
+
+
+run = cli.command(main)

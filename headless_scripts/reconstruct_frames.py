@@ -1,0 +1,9 @@
+"""Shim of pgt_blender.commands.reconstruct_frames (its docstring is the help), so that
+``blender -b -P headless_scripts/reconstruct_frames.py -- ARGS`` and ``python headless_scripts/reconstruct_frames.py ARGS`` run it."""
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
+from pgt_blender.commands.reconstruct_frames import run  # noqa: E402
+
+run()
