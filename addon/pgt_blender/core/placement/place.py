@@ -63,9 +63,8 @@ class Placement:
     first, object by object (``rows`` (I, 2) start, stop of each), then the scene's kept
     points. ``boxes`` (B, 7 or 9) centre boxes, the scene's first, ``names`` (B,),
     ``inserted`` (B,) bool, ``ground_height`` (B,) the ground z each box stands on (m,
-Ground.under_boxes),
-    ``entries`` the info dict each inserted box came from, ``turns`` (I,) rad each was
-    turned by. ``scene_in_boxes`` and ``scene_shadowed`` (N,) bool: scene points removed
+    Ground.under_boxes), ``entries`` the info dict each inserted box came from, ``turns``
+    (I,) rad each was turned by. ``scene_in_boxes`` and ``scene_shadowed`` (N,) bool: scene points removed
     inside placed boxes and in their shadows. ``missing`` {class: objects not placed}.
     ``seconds`` {stage: s}: ground, feasibility, candidates, entries (reading and turning
     the chosen ones), compose (removal, occlusion, the output arrays)."""
@@ -98,14 +97,15 @@ def place_objects(points: np.ndarray, boxes: np.ndarray, names, pool: EntryPool,
     points = np.asarray(points, np.float32)
     width = boxes.shape[1] if np.ndim(boxes) == 2 and len(boxes) else _box_width(pool)
     scene_boxes = np.asarray(boxes, np.float64).reshape(-1, width)
-    ground = estimate_ground(points, radius=config.max_distance + 6.0, source=source)
-    height = ground.height_above(points[:, :3].astype(np.float64))
+    xyz = points[:, :3].astype(np.float64)
+    ground = estimate_ground(xyz, radius=config.max_distance + 6.0, source=source)
+    height = ground.height_above(xyz)
     clock.lap("ground")
     feasibility = scene_feasibility(points, ground, scene_map, radius=config.max_distance,
                                     map_bounds_ground=config.map_bounds_ground,
                                     layers_by_class=config.class_layers, height_above=height)
     clock.lap("feasibility")
-    obstacles = points[height > config.standing_tolerance, :3].astype(np.float64)
+    obstacles = xyz[height > config.standing_tolerance]
     bandit = bandit or ThompsonCells(max_range=config.max_distance)
     order = np.argsort(-bandit.draw(rng), kind="stable")
     taken = np.zeros(len(order), bool)  # by position in ``order``: an object stands there
@@ -132,8 +132,8 @@ def place_objects(points: np.ndarray, boxes: np.ndarray, names, pool: EntryPool,
         clouds.append(turn_points(pool.load(stored.infos[pick]), turn, box[2] - stored.boxes[pick, 2]))
     entries = [(class_name, pool.classes[class_name].infos[pick]) for class_name, pick in entries]
     clock.lap("entries")
-    placement = _compose(points, scene_boxes, np.asarray(names), placed, entries, turns, clouds, ground, feasibility,
-                         config, missing)
+    placement = _compose(points, xyz, scene_boxes, np.asarray(names), placed, entries, turns, clouds, ground,
+                         feasibility, config, missing)
     clock.lap("compose")
     placement.seconds = clock.laps
     return placement
@@ -193,10 +193,10 @@ def _ego_gap(boxes: np.ndarray) -> np.ndarray:
     return np.hypot(np.maximum(np.abs(along) - boxes[:, 3] / 2, 0.0), np.maximum(np.abs(across) - boxes[:, 4] / 2, 0.0))
 
 
-def _compose(points, scene_boxes, names, placed, entries, turns, clouds, ground, feasibility, config, missing):
-    """The Placement: scene points inside placed boxes removed, occlusion, thin objects dropped."""
+def _compose(points, xyz, scene_boxes, names, placed, entries, turns, clouds, ground, feasibility, config, missing):
+    """The Placement: scene points (and their float64 ``xyz``) inside placed boxes removed,
+    occlusion, thin objects dropped."""
     placed = np.array(placed, np.float64).reshape(-1, scene_boxes.shape[1])
-    xyz = points[:, :3].astype(np.float64)
     in_boxes = np.zeros(len(points), bool)
     for box in placed:
         in_boxes |= inside_box(xyz, box)
@@ -207,7 +207,7 @@ def _compose(points, scene_boxes, names, placed, entries, turns, clouds, ground,
                                                                                            np.float32)
         owner = np.repeat(np.arange(len(chosen)), [len(clouds[i]) for i in chosen])
         if config.occlusion and len(inserted):
-            scene_kept, inserted_kept = occlude(config.sensor, points[~in_boxes], inserted, owner)
+            scene_kept, inserted_kept = occlude(config.sensor, xyz[~in_boxes], inserted, owner)
         else:
             scene_kept, inserted_kept = np.ones((~in_boxes).sum(), bool), np.ones(len(inserted), bool)
         counts = np.bincount(owner[inserted_kept], minlength=len(chosen))
