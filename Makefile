@@ -62,6 +62,7 @@ extension: $(VENV)/.run-installed
 
 bench: $(VENV)/.dev-installed
 	$(VENV)/bin/python headless_scripts/bench_import.py
+	$(VENV)/bin/python headless_scripts/bench_view_color.py
 	$(VENV)/bin/python headless_scripts/bench_reconstruct.py
 	$(VENV)/bin/python headless_scripts/bench_alignment.py
 	$(VENV)/bin/python headless_scripts/bench_heading.py
@@ -71,6 +72,7 @@ bench: $(VENV)/.dev-installed
 	$(VENV)/bin/python headless_scripts/bench_bank.py
 	$(VENV)/bin/python headless_scripts/bench_fidelity.py
 	$(VENV)/bin/python headless_scripts/bench_quality.py
+	$(VENV)/bin/python headless_scripts/bench_placement.py
 
 clean:
 	rm -rf $(VENV) $(MMDET3D_VENV) $(OTHER_BPY_VENVS) dist demo_output
