@@ -84,11 +84,8 @@ class EntryPool:
         rows = read_float32_rows(path, self.columns, "point columns")
         if len(rows) != int(info["num_points_in_gt"]):
             raise InputError(path, f"{len(rows)} points, but its info declares {info['num_points_in_gt']}")
-        origin = centre_box(info["box3d_lidar"], self.convention)[:3].copy()
-        if self.convention == "mmdet3d":
-            origin[2] -= float(info["box3d_lidar"][5]) / 2
-        rows = rows.copy()
-        rows[:, :3] += origin.astype(np.float32)
+        rows = rows.copy()  # stored relative to box3d_lidar[:3]: the centre, or mmdet3d's bottom centre
+        rows[:, :3] += np.asarray(info["box3d_lidar"][:3], np.float32)
         return rows
 
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .ground import GROUND_TOLERANCE, OBSTACLE_BAND, Ground
-from .maps import MapRaster, class_layers
+from .maps import MapRaster, class_layers, square_cells
 
 AZIMUTH_BINS = 720  # 0.5 deg
 OCCUPANCY_CELL = 0.5  # m
@@ -50,11 +50,8 @@ class Feasibility:
         xy = np.asarray(xy, np.float64)
         bins = _azimuth_bins(xy, len(self.free_range))
         free = np.hypot(xy[:, 0], xy[:, 1]) <= self.free_range[bins]
-        index = np.floor((xy + self.radius) / self.cell).astype(np.int64)
-        size = self.occupied.shape[0]
-        inside = ((index >= 0) & (index < size)).all(axis=1)
-        index = np.clip(index, 0, size - 1)
-        occupied = inside & self.occupied[index[:, 1], index[:, 0]]
+        rows, columns, inside = square_cells(xy, self.radius, self.cell, self.occupied.shape[0])
+        occupied = inside & self.occupied[rows, columns]
         return free & ~occupied, occupied
 
     def allows(self, class_name: str, xy: np.ndarray, map_mask: np.ndarray | None = None) -> np.ndarray:
@@ -94,9 +91,8 @@ def scene_feasibility(points: np.ndarray, ground: Ground, scene_map: MapRaster |
     free_range = np.zeros(azimuth_bins)
     np.maximum.at(free_range, bins[before], distance[before])
     size = int(np.ceil(2 * radius / cell))
-    index = np.floor((xyz[obstacle, :2] + radius) / cell).astype(np.int64)
-    index = index[((index >= 0) & (index < size)).all(axis=1)]
+    rows, columns, inside = square_cells(xyz[obstacle], radius, cell, size)
     occupied = np.zeros((size, size), bool)
-    occupied[index[:, 1], index[:, 0]] = True
+    occupied[rows[inside], columns[inside]] = True
     return Feasibility(ground, free_range, occupied, float(cell), float(radius), scene_map, map_bounds_ground,
                        layers_by_class)

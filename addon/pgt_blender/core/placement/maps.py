@@ -67,11 +67,7 @@ class MapRaster:
 
     def pixels(self, xy: np.ndarray) -> tuple:
         """(row, column) (N,) int64 of (N, 2) sensor-frame points, and (N,) bool inside the raster."""
-        index = np.floor((np.asarray(xy, np.float64) + self.radius) / self.resolution).astype(np.int64)
-        size = self.masks.shape[1]
-        inside = ((index >= 0) & (index < size)).all(axis=1)
-        index = np.clip(index, 0, size - 1)
-        return index[:, 1], index[:, 0], inside
+        return square_cells(xy, self.radius, self.resolution, self.masks.shape[1])
 
     def layer_mask(self, layers) -> np.ndarray:
         """(H, W) bool: pixels on any of ``layers`` (names the map lacks add nothing)."""
@@ -84,6 +80,16 @@ class MapRaster:
         mask = self.layer_mask(layers) if mask is None else mask
         rows, columns, inside = self.pixels(xy)
         return inside & mask[rows, columns]
+
+
+def square_cells(xy: np.ndarray, radius: float, cell: float, size: int) -> tuple:
+    """(row, column) (N,) int64 and (N,) bool inside, of (N, 2) sensor-frame points in a
+    square grid of ``size`` x ``size`` cells of ``cell`` m from -``radius`` (row = y,
+    column = x); outside points get the nearest border cell."""
+    index = np.floor((np.asarray(xy, np.float64)[:, :2] + radius) / cell).astype(np.int64)
+    inside = ((index >= 0) & (index < size)).all(axis=1)
+    index = np.clip(index, 0, size - 1)
+    return index[:, 1], index[:, 0], inside
 
 
 def pixel_centres(radius: float = RADIUS, resolution: float = RESOLUTION) -> tuple:

@@ -18,7 +18,7 @@ cells, so a few of them near an inserted object's outline may be judged wrongly.
 
 import numpy as np
 
-from ..scan.range_view import cells_of_points
+from ..scan.range_view import cells_of_points, columns_of
 from ..scan.sensors import Sensor
 
 
@@ -67,7 +67,5 @@ def _in_columns(sensor: Sensor, points: np.ndarray, columns: np.ndarray) -> np.n
     touched[columns] = True
     reach = int(np.ceil(np.abs(sensor.azimuth_offsets_deg).max(initial=0.0) / sensor.azimuth_step_deg)) + 1
     touched = np.logical_or.reduce([np.roll(touched, shift) for shift in range(-reach, reach + 1)])
-    azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
-    column = np.floor(sensor.direction * (azimuth - sensor.start_azimuth_deg) / sensor.azimuth_step_deg)
-    return np.flatnonzero(touched[column.astype(np.int64) % sensor.columns])
+    return np.flatnonzero(touched[columns_of(sensor, np.degrees(np.arctan2(points[:, 1], points[:, 0])))])
 

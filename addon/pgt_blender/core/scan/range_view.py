@@ -23,6 +23,13 @@ from .returns import Scan
 from .sensors import Sensor
 
 
+def columns_of(sensor: Sensor, azimuth_deg: np.ndarray) -> np.ndarray:
+    """(N,) int64 column whose azimuth span holds each (N,) azimuth (degrees, the beam's
+    azimuth offset already taken off)."""
+    step = sensor.direction * (np.asarray(azimuth_deg) - sensor.start_azimuth_deg) / sensor.azimuth_step_deg
+    return np.floor(step).astype(np.int64) % sensor.columns
+
+
 def cells_of_points(sensor: Sensor, points: np.ndarray):
     """(M,) flat cell index and (M,) range from the cell's laser for (M, 3) sensor-frame
     points; -1 for points outside the beam table's span."""
@@ -39,9 +46,7 @@ def cells_of_points(sensor: Sensor, points: np.ndarray):
     inside = (rings >= 0) & (rings < sensor.beams)
     rings = np.clip(rings, 0, sensor.beams - 1)
     azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0])) - np.asarray(sensor.azimuth_offsets_deg)[rings]
-    step = sensor.direction * (azimuth - sensor.start_azimuth_deg) / sensor.azimuth_step_deg
-    columns = np.floor(step).astype(np.int64) % sensor.columns
-    cells = rings * sensor.columns + columns
+    cells = rings * sensor.columns + columns_of(sensor, azimuth)
     origins = 0.0 if sensor.cell_origins is None else sensor.cell_origins[cells]
     return np.where(inside, cells, -1), np.linalg.norm(points - origins, axis=1)
 
