@@ -220,7 +220,7 @@ def test_an_object_whose_faces_are_its_box_keeps_its_returns_under_range_noise(t
     (every face on its box) keeps all its current-sweep returns, noise or not."""
     import trimesh
 
-    from pgt_blender.core.bank.entries import TargetCache, scan_entry
+    from pgt_blender.core.bank.entries import TargetCache, scan_entries
     from pgt_blender.core.bank.grid import ENTRY_DTYPE
     from pgt_blender.core.bank.inputs import BankObject
     from pgt_blender.core.reconstruction import Reconstruction
@@ -235,7 +235,7 @@ def test_an_object_whose_faces_are_its_box_keeps_its_returns_under_range_noise(t
     for x, y, heading in ((15.0, 0.0, 0.0), (0.0, 15.0, 0.5), (-10.0, -12.0, 2.0)):
         entry = np.zeros(1, ENTRY_DTYPE)[0]
         entry["x"], entry["y"], entry["heading"], entry["noise_seed"] = x, y, heading, 7
-        scan, keep = scan_entry(cache, PRESETS["nuscenes"], entry, config)
+        (scan, keep), = scan_entries(cache, PRESETS["nuscenes"], entry[None], config)
         assert scan.hits > 200
         kept.append(keep.mean())
         assert inside_box(scan.xyz[keep], scan.box, NOISE_MARGIN).all()

@@ -17,11 +17,13 @@ def atomic_output(path):
             yield stream
         os.replace(temporary, path)
     except OSError as error:
+        temporary.unlink(missing_ok=True)
         if error.filename not in (None, str(temporary)):
             raise
         raise OSError(error.errno, error.strerror, str(path)) from error
-    finally:
+    except BaseException:
         temporary.unlink(missing_ok=True)
+        raise
 
 
 def read_float32_rows(path, columns: int = 1, what: str = "values"):

@@ -25,12 +25,12 @@ from ..scan.sensors import INTENSITY_MAX, sensor_from_name
 from ..scan.sweeps import motion_class
 from . import executors
 from .config import BankConfig
-from .entries import TargetCache, scan_entry
+from .entries import TargetCache, scan_entries
 from .formats import DATABASE_CLASSES, DATABASE_FOLDER, class_name_for, database_record, entry_points
 from .grid import object_entries, sweeps_of
 from .inputs import BankObject, safe_name
 from .folder import (INTENSITY_BINS, MANIFEST, STATS_DTYPE, chunk_record, chunk_record_path, pending_chunks,
-                     prepare_folder, read_identity, write_file)
+                     prepare_folder, read_identity, write_entry_file, write_file)
 from .records import write_record
 
 @dataclass
@@ -146,8 +146,8 @@ class ChunkDone:
     executors report them (benchmarks sum them; nothing in the bank depends on them).
 
     targets:   building the object variants' ray targets (BVH / Embree), first use only;
-    scans:     the entries' sweeps (scan_entry: casts, returns, noise, drop, box crop);
-    casts:     the part of ``scans`` spent casting rays (Scan.cast_seconds);
+    scans:     the entries' sweeps (scan_entries: rays, casts, returns, noise, drop, box crop);
+    casts:     the part of ``scans`` spent in the ray engine's own calls (Scan.cast_seconds);
     intensity: the learned intensity estimator, when the config names one;
     records:   points in the dataset's columns and each format's record;
     writes:    the .bin files and the chunk record.
@@ -162,7 +162,6 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
     config, sensor = job.config, job.sensor
     infos = {fmt: [] for fmt in config.formats}
     files, stats = {}, np.zeros(len(entries), STATS_DTYPE)
-    histograms = {}
     seconds = dict.fromkeys(CHUNK_STAGES, 0.0)
     clock = [time.perf_counter()]
 
@@ -171,13 +170,17 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
         seconds[stage] += now - clock[0]
         clock[0] = now
 
-    for row, entry in zip(stats, entries):
+    built = cache.build_seconds
+    scans = scan_entries(cache, sensor, entries, config)
+    seconds["targets"] = cache.build_seconds - built
+    seconds["casts"] = sum(scan.cast_seconds for scan, _ in scans)
+    lap("scans")
+    seconds["scans"] -= seconds["targets"]
+    for fmt in config.formats:
+        (job.out / fmt / DATABASE_FOLDER).mkdir(parents=True, exist_ok=True)
+    intensities = {}
+    for row, entry, (scan, keep) in zip(stats, entries, scans):
         obj: BankObject = job.objects[entry["object"]]
-        cache.get(int(entry["object"]), int(entry["variant"]))
-        lap("targets")
-        scan, keep = scan_entry(cache, sensor, entry, config)
-        seconds["casts"] += scan.cast_seconds
-        lap("scans")
         rows = scan.returns[keep]
         row["object"], row["index"], row["heading"] = entry["object"], entry["index"], entry["heading"]
         row["x"], row["y"], row["points"] = scan.box[0], scan.box[1], len(rows)
@@ -198,12 +201,14 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
             data, info = database_record(fmt, config.dataset, points, scan.box, shared)
             lap("records")
             relative = f"{fmt}/{info['path']}"
-            files[relative] = write_file(job.out / relative, data.tobytes())
+            files[relative] = write_entry_file(job.out / relative, data.tobytes())
             lap("writes")
             infos[fmt].append(info)
-        histogram = histograms.setdefault(class_name, np.zeros(INTENSITY_BINS, np.int64))
-        histogram += np.histogram(rows["intensity"], INTENSITY_BINS, (0.0, INTENSITY_MAX[config.dataset]))[0]
-        lap("records")
+        intensities.setdefault(class_name, []).append(rows["intensity"])
+    histograms = {name: np.histogram(np.concatenate(values), INTENSITY_BINS,
+                                     (0.0, INTENSITY_MAX[config.dataset]))[0].astype(np.int64)
+                  for name, values in intensities.items()}
+    lap("records")
     record = {"chunk": chunk_id, "infos": infos, "files": files, "stats": stats, "intensity": histograms}
     write_file(chunk_record_path(job.out, chunk_id), write_record(record))
     lap("writes")

@@ -6,8 +6,8 @@
     OUT/.work/identity.json                     what this bank is made of (checked on --resume)
     OUT/.work/chunks/<chunk>.json               one chunk's infos, file checksums and statistics (records.py)
 
-A chunk is done exactly when its record exists (its files are written first, each
-atomically): a folder is made ready once (``prepare_folder``), its pending chunks are
+A chunk is done exactly when its record exists (its entry files are written first, then
+the record, atomically; a chunk cut short is redone whole): a folder is made ready once (``prepare_folder``), its pending chunks are
 those without a whole record, shards' records are copied in, and every reader of
 ``.work`` goes through here with one error policy (InputError naming the file).
 """
@@ -160,6 +160,22 @@ def info_path_root(info_pickle: Path) -> Path:
     except (OSError, ValueError, AttributeError):
         data_root = None
     return Path(info_pickle).parent if data_root is None else manifest.parent / data_root
+
+
+def write_entry_file(path: Path, data: bytes) -> str:
+    """Write one entry's file (its folder exists) in place and return its sha256: not
+    through a temporary file, since the chunk record that lists it is written after it
+    (atomically) and a chunk without a record is redone whole; a write that fails
+    removes the file and names it."""
+    try:
+        with open(path, "wb") as stream:
+            stream.write(data)
+    except BaseException as error:
+        path.unlink(missing_ok=True)
+        if isinstance(error, OSError) and error.filename is None:
+            raise OSError(error.errno, error.strerror, str(path)) from error
+        raise
+    return hashlib.sha256(data).hexdigest()
 
 
 def write_file(path: Path, data: bytes) -> str:

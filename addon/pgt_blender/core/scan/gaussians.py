@@ -168,18 +168,10 @@ def _cell_blocks(gaussians: Gaussians, sensor, sensor_from_object: np.ndarray) -
     near_xy, far_xy = np.maximum(rho - reach_xy, 0.0), rho + reach_xy
     low = np.degrees(np.arctan2(z_low, np.where(z_low > 0, far_xy, near_xy)))
     high = np.degrees(np.arctan2(z_high, np.where(z_high > 0, near_xy, far_xy)))
-    elevations = np.asarray(sensor.elevations_deg)
-    first_ring = np.searchsorted(elevations, low - 1e-7)
-    rings = np.searchsorted(elevations, high + 1e-7, side="right") - first_ring
-    offsets = np.asarray(sensor.azimuth_offsets_deg)
-    centre = np.degrees(azimuth)
-    steps = [sensor.direction * (centre + np.degrees(side) - beam - sensor.start_azimuth_deg)
-             / sensor.azimuth_step_deg - 0.5
-             for side in (low_azimuth, high_azimuth) for beam in (offsets.min(initial=0.0), offsets.max(initial=0.0))]
-    first_column = np.floor(np.min(steps, axis=0)).astype(np.int64) - 1
-    columns = np.minimum(np.ceil(np.max(steps, axis=0)).astype(np.int64) + 1 - first_column + 1, sensor.columns)
+    first_ring, rings = sensor.ring_span(low, high)
+    first_column, columns = sensor.column_span(np.degrees(azimuth), np.degrees(low_azimuth), np.degrees(high_azimuth))
     first_column[every_column], columns[every_column] = 0, sensor.columns
-    return first_ring.astype(np.int64), np.maximum(rings, 0).astype(np.int64), first_column, columns
+    return first_ring, rings, first_column, columns
 
 
 def gaussian_hits(gaussians: Gaussians, sensor, sensor_from_object: np.ndarray, cells: np.ndarray,

@@ -79,7 +79,7 @@ def range_view_scan(positions: np.ndarray, sensor: Sensor, sensor_from_object: n
     cos_incidence = np.einsum("ij,ij->i", surface_normals, directions)
     reflectivity = (np.full(len(positions), DEFAULT_REFLECTIVITY, np.float32) if reflectivity is None
                     else relative_reflectivity(reflectivity, np.ones(len(positions))))
-    returns = build_returns(sensor, cells[kept], ranges[kept], reflectivity[kept], cos_incidence,
-                            kept.astype(np.int32), options, sweep)
+    returns, _ = build_returns(sensor, cells[kept], ranges[kept], reflectivity[kept], cos_incidence,
+                               kept.astype(np.int32), options, sweep)
     return Scan(returns, placed_box(bounds, sensor_from_object, velocity), len(positions),
                 time.perf_counter() - start, sensor.dataset, [sensor_from_object])

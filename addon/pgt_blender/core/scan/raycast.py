@@ -16,13 +16,13 @@ angular window, then only those whose ray meets its bounding box (exact float64 
 test). A full revolution casts every cell; both return the same rows, bit for bit.
 """
 
-import math
 import time
 from dataclasses import dataclass
 from functools import lru_cache
-from itertools import chain, repeat
+from itertools import chain
 
 import numpy as np
+from numpy.lib.recfunctions import structured_to_unstructured
 
 from .gaussians import gaussian_hits
 from .physical_intensity import dataset_intensity, relative_intensity
@@ -93,37 +93,39 @@ class ScanOptions:
 class Ground:
     """The ground under an object: ``height`` (m) of the ground under it above the flat
     plane z = -mounting_height, and the ``pitch`` (rad, nose up > 0) and ``roll`` (rad,
-    left side up > 0) it stands at. The default is the flat plane."""
+    left side up > 0) it stands at (arrays of them: one per object). The default is
+    the flat plane."""
 
     height: float = 0.0
     pitch: float = 0.0
     roll: float = 0.0
 
-    @property
-    def flat(self) -> bool:
-        return self.height == 0.0 and self.pitch == 0.0 and self.roll == 0.0
 
-
-def placement(bounds: np.ndarray, sensor: Sensor, x: float, y: float, heading: float,
-              ground: Ground = Ground()) -> np.ndarray:
+def placement(bounds: np.ndarray, sensor: Sensor, x, y, heading, ground: Ground = Ground()) -> np.ndarray:
     """(4, 4) sensor_from_object: the object-frame origin at (x, y) (m, sensor frame),
     turned by ``heading`` (rad, counter-clockwise from +x), its lowest point on the
     ground z = -mounting_height (+ ``ground.height``); on sloped ground the object is
-    tilted by pitch and roll about the bottom centre of ``bounds``' z axis."""
+    tilted by pitch and roll about the bottom centre of ``bounds``' z axis. Arrays of
+    x, y, heading (and of the ground's fields) give (..., 4, 4), one per element."""
+    x, y, heading, height, pitch, roll = np.broadcast_arrays(*(np.asarray(value, np.float64) for value in (
+        x, y, heading, ground.height, ground.pitch, ground.roll)))
     cos, sin = np.cos(heading), np.sin(heading)
-    matrix = np.eye(4)
-    matrix[:2, :2] = [[cos, -sin], [sin, cos]]
-    matrix[:3, 3] = [x, y, -sensor.mounting_height - bounds[0, 2]]
-    if ground.flat:
+    matrix = np.zeros(x.shape + (4, 4))
+    matrix[..., 0, 0], matrix[..., 0, 1], matrix[..., 1, 0], matrix[..., 1, 1] = cos, -sin, sin, cos
+    matrix[..., 2, 2] = matrix[..., 3, 3] = 1.0
+    matrix[..., 0, 3], matrix[..., 1, 3], matrix[..., 2, 3] = x, y, -sensor.mounting_height - bounds[0, 2]
+    tilted = (height != 0.0) | (pitch != 0.0) | (roll != 0.0)
+    if not tilted.any():
         return matrix
-    cp, sp, cr, sr = np.cos(ground.pitch), np.sin(ground.pitch), np.cos(ground.roll), np.sin(ground.roll)
+    cp, sp, cr, sr = np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    zero, one = np.zeros_like(cp), np.ones_like(cp)
     # Nose up: +x rises (a rotation by -pitch about y); left side up: +y rises (+roll about x).
-    tilt = np.array([[cp, 0.0, -sp], [0.0, 1.0, 0.0], [sp, 0.0, cp]]) @ np.array([[1.0, 0.0, 0.0],
-                                                                                [0.0, cr, -sr], [0.0, sr, cr]])
-    rotation = matrix[:3, :3] @ tilt
+    tilt = np.stack([cp, zero, -sp, zero, one, zero, sp, zero, cp], -1).reshape(x.shape + (3, 3)) @ \
+        np.stack([one, zero, zero, zero, cr, -sr, zero, sr, cr], -1).reshape(x.shape + (3, 3))
+    rotation = matrix[..., :3, :3] @ tilt
     pivot = np.array([0.0, 0.0, bounds[0, 2]])  # object frame; it lands on the ground at (x, y)
-    matrix[:3, :3] = rotation
-    matrix[:3, 3] = np.array([x, y, -sensor.mounting_height + ground.height]) - rotation @ pivot
+    lifted = np.stack([x, y, -sensor.mounting_height + height], -1) - rotation @ pivot
+    matrix[tilted, :3, :3], matrix[tilted, :3, 3] = rotation[tilted], lifted[tilted]
     return matrix
 
 
@@ -140,94 +142,120 @@ _AXES = np.arange(3)
 
 
 def _padded(bounds: np.ndarray) -> np.ndarray:
-    # The BVH stores float32 corners: pad the float64 box so no hit falls outside it.
-    pad = 1e-4 + 1e-5 * np.abs(bounds).max()
-    return bounds + np.array([[-pad], [pad]])
+    """``bounds`` (..., 2, 3) grown so that no hit on the float32 geometry falls outside."""
+    pad = 1e-4 + 1e-5 * np.abs(bounds).max(axis=(-2, -1))
+    return bounds + np.stack([-pad, pad], axis=-1)[..., None]
 
 
-def candidate_cells(sensor: Sensor, bounds: np.ndarray, sensor_from_object: np.ndarray) -> np.ndarray:
-    """Sorted flat cell indices (ring * columns + column) whose rays' angles fall within
-    the angular window of the box ``bounds`` placed by ``sensor_from_object``; a superset
-    of the cells whose rays meet the box. A sensor inside the footprint (or a pose that
-    tilts the box) opens every azimuth; elevations follow the nearest and farthest
+def cell_window(sensor: Sensor, bounds: np.ndarray, poses: np.ndarray) -> tuple:
+    """(first ring, rings, first column, columns), (T,) int64 each: the block of cells
+    whose rays' angles fall within the angular window of each box ``bounds`` (T, 2, 3)
+    placed by ``poses`` (T, 4, 4) sensor_from_object; a superset of the cells whose rays
+    meet the box. A sensor inside the footprint (the hull of the corners seen from above,
+    tilted or not) opens every azimuth; elevations follow the nearest and farthest
     footprint distance, so overhead and close objects keep all the beams they need."""
-    rotation, translation = sensor_from_object[:3, :3], sensor_from_object[:3, 3]
-    box = _padded(bounds)
-    placed = box[_CORNERS, _AXES] @ rotation.T + translation  # (8, 3) corners, sensor frame
-    sensor_in_object = rotation.T @ -translation
-    r_min = 0.0
-    if abs(rotation[2, 2] - 1.0) < 1e-12:  # upright: the footprint is the box's xy rectangle
-        r_min = math.hypot(*(min(max(sensor_in_object[axis], box[0, axis]), box[1, axis]) - sensor_in_object[axis]
-                             for axis in (0, 1)))
-    distances = np.hypot(placed[:, 0], placed[:, 1])
-    r_max, z_low, z_high = distances.max(), placed[:, 2].min(), placed[:, 2].max()
-    elevation_high = math.degrees(math.atan2(z_high, r_min if z_high > 0 else r_max))
-    elevation_low = math.degrees(math.atan2(z_low, r_max if z_low > 0 else r_min))
-    rings = np.arange(np.searchsorted(sensor.elevations_deg, elevation_low - 1e-7),
-                      np.searchsorted(sensor.elevations_deg, elevation_high + 1e-7, side="right"))
-    if r_min == 0.0:
-        columns = np.arange(sensor.columns)
-    else:
-        azimuths = np.degrees(np.arctan2(placed[:, 1], placed[:, 0]))
-        centre = math.degrees(math.atan2(placed[:, 1].mean(), placed[:, 0].mean()))
-        offsets = np.mod(azimuths - centre + 180.0, 360.0) - 180.0  # the footprint spans < 180 deg
-        steps = [sensor.direction * (centre + end - beam - sensor.start_azimuth_deg) / sensor.azimuth_step_deg - 0.5
-                 for end in (offsets.min(), offsets.max())
-                 for beam in (min(sensor.azimuth_offsets_deg), max(sensor.azimuth_offsets_deg))]
-        first, last = math.floor(min(steps)) - 1, math.ceil(max(steps)) + 1
-        columns = np.arange(first, min(last, first + sensor.columns - 1) + 1) % sensor.columns
-    return np.sort((rings[:, None] * sensor.columns + columns[None, :]).ravel())
-
-
-def _in_object_frame(sensor_from_object: np.ndarray, components, origins=None) -> tuple:
-    """The ray origins, (3,) the sensor's or (M, 3) the lasers' ``origins`` (sensor
-    frame), and the x, y, z components of ray directions, in the object frame,
-    elementwise (no BLAS), so a ray's bits do not depend on its batch."""
-    rotation, translation = sensor_from_object[:3, :3], sensor_from_object[:3, 3]
-    x, y, z = components
-    directions = tuple(x * rotation[0, i] + y * rotation[1, i] + z * rotation[2, i] for i in range(3))
-    sensor_origin = -(rotation.T @ translation)
-    if origins is None:
-        return sensor_origin, directions
-    ox, oy, oz = origins.T
-    return np.column_stack([ox * rotation[0, i] + oy * rotation[1, i] + oz * rotation[2, i] + sensor_origin[i]
-                            for i in range(3)]), directions
-
-
-def _meets_box(origin: np.ndarray, components, box: np.ndarray, far: float) -> np.ndarray:
-    """Slab test: (M,) bool, rays from ``origin`` with direction ``components`` meeting
-    ``box`` between range 0 and ``far``."""
-    enter, leave = np.zeros(len(components[0])), np.full(len(components[0]), far)
+    corners = np.take_along_axis(_padded(bounds), np.broadcast_to(_CORNERS, (len(bounds), 8, 3)), axis=1)
+    placed = np.einsum("tij,tcj->tci", poses[:, :3, :3], corners) + poses[:, None, :3, 3]  # (T, 8, 3) sensor frame
+    r_min = _footprint_distance(placed[..., :2])
+    r_max = np.hypot(placed[..., 0], placed[..., 1]).max(axis=1)
+    z_low, z_high = placed[..., 2].min(axis=1), placed[..., 2].max(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        for axis, direction in enumerate(components):
-            start = origin[..., axis]
-            t0, t1 = (box[0, axis] - start) / direction, (box[1, axis] - start) / direction
+        high = np.degrees(np.arctan2(z_high, np.where(z_high > 0, r_min, r_max)))
+        low = np.degrees(np.arctan2(z_low, np.where(z_low > 0, r_max, r_min)))
+    first_ring, rings = sensor.ring_span(low, high)
+    azimuths = np.degrees(np.arctan2(placed[..., 1], placed[..., 0]))
+    centre = np.degrees(np.arctan2(placed[..., 1].mean(axis=1), placed[..., 0].mean(axis=1)))
+    offsets = np.mod(azimuths - centre[:, None] + 180.0, 360.0) - 180.0  # the footprint spans < 180 deg
+    first_column, columns = sensor.column_span(centre, offsets.min(axis=1), offsets.max(axis=1))
+    every = r_min == 0.0
+    first_column[every], columns[every] = 0, sensor.columns
+    return first_ring, rings, first_column % sensor.columns, columns
+
+
+def _footprint_distance(corners: np.ndarray) -> np.ndarray:
+    """(T,) distance (m) from the sensor's z axis to the convex hull of each box's
+    corners' ``corners`` (T, 8, 2) sensor-frame xy (the footprint of a box however
+    tilted); 0 when the axis passes through it. The hull's distance is the largest
+    support value min(corners @ u) over unit directions u, attained at an edge normal or
+    a corner's direction: every pair's normals and every corner's direction are tried."""
+    first, second = np.triu_indices(corners.shape[1], 1)
+    edges = corners[:, second] - corners[:, first]
+    normal = edges[..., ::-1] * [1.0, -1.0]
+    directions = np.concatenate([corners, normal, -normal], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        directions = directions / np.hypot(directions[..., 0], directions[..., 1])[..., None]
+    support = np.nan_to_num((corners @ directions.transpose(0, 2, 1)).min(axis=1), nan=-np.inf)
+    return np.maximum(support.max(axis=1), 0.0)
+
+
+def window_cells(sensor: Sensor, first_ring, rings, first_column, columns) -> np.ndarray:
+    """(M,) int64 every cell (ring * columns + column) of each pose's block
+    (cell_window), pose by pose, ascending within a pose; pose t has rings[t] *
+    columns[t] of them."""
+    # Each pose's columns in ascending order: a block that wraps past the last column
+    # starts its run at column 0.
+    pose = np.repeat(np.arange(len(columns)), columns)
+    starts = np.cumsum(columns) - columns
+    within = np.arange(len(pose)) - starts[pose]
+    wrap = np.where(first_column + columns > sensor.columns, sensor.columns - first_column, 0)
+    column = (first_column[pose] + (within + wrap[pose]) % columns[pose]) % sensor.columns
+    # Then every ring of the pose runs through them.
+    pair = np.repeat(np.arange(len(rings)), rings)  # (pose, ring) pairs, pose by pose
+    ring = first_ring[pair] + np.arange(len(pair)) - (np.cumsum(rings) - rings)[pair]
+    width = columns[pair]
+    pair_start = np.cumsum(width) - width
+    index = np.repeat(starts[pair] - pair_start, width) + np.arange(width.sum())
+    return column[index] + np.repeat(ring * sensor.columns, width)
+
+
+def _in_object_frame(poses: np.ndarray, sizes: np.ndarray, cells: np.ndarray, sensor: Sensor) -> tuple:
+    """Ray origins (M, 3) and unit directions (M, 3), object frame, float64, of ``cells``
+    (M,) cast from ``poses`` (T, 4, 4), ``sizes[t]`` rays from pose t: written out
+    elementwise (no BLAS), so a ray's bits depend on its pose and cell only, never on
+    its batch."""
+    rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
+    sensor_origin = -np.einsum("tji,tj->ti", rotation, translation)
+    x, y, z = (axis[cells] for axis in sensor.direction_axes)
+    columns = [[np.repeat(rotation[:, row, i], sizes) for row in range(3)] for i in range(3)]
+    directions = np.column_stack([x * c[0] + y * c[1] + z * c[2] for c in columns])
+    origins = np.repeat(sensor_origin, sizes, axis=0)
+    if sensor.cell_origins is not None:
+        ox, oy, oz = sensor.cell_origins[cells].T
+        origins += np.column_stack([ox * c[0] + oy * c[1] + oz * c[2] for c in columns])
+    return origins, directions
+
+
+def _meets_box(origins: np.ndarray, directions: np.ndarray, boxes: np.ndarray, far: float) -> np.ndarray:
+    """Slab test: (M,) bool, rays from ``origins`` (M, 3) along ``directions`` (M, 3)
+    meeting their ``boxes`` (M, 2, 3) between range 0 and ``far``."""
+    enter, leave = np.zeros(len(directions)), np.full(len(directions), far)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for axis in range(3):
+            t0 = (boxes[:, 0, axis] - origins[:, axis]) / directions[:, axis]
+            t1 = (boxes[:, 1, axis] - origins[:, axis]) / directions[:, axis]
             # fmin/fmax skip the NaN of a ray lying in a slab plane: kept, as a superset must.
             enter = np.fmax(enter, np.fmin(t0, t1))
             leave = np.fmin(leave, np.fmax(t0, t1))
     return enter <= leave
 
 
-def rays_to_cast(sensor: Sensor, cast_bounds: np.ndarray, sensor_from_object: np.ndarray, window: bool = True):
-    """The cells a scan casts, (M,) sorted, with their origins ((3,) the sensor's, or
-    (M, 3) per laser) and unit directions (M, 3) in the object frame, float64.
-    ``window``: only cells inside the angular window whose rays meet the padded
-    ``cast_bounds`` from range 0 (not min_range: a hit in the blind zone still takes its
-    random draws, as in a full revolution, so both give the same bytes with noise on);
-    else every cell. Lasers off the origin widen the window by their offset."""
-    origins = sensor.cell_origins
+def rays_to_cast(sensor: Sensor, cast_bounds: np.ndarray, poses: np.ndarray, window: bool = True) -> tuple:
+    """The rays of the poses ``poses`` (T, 4, 4) sensor_from_object: (pose (M,), cells
+    (M,), origins (M, 3), unit directions (M, 3)), object frame, float64, pose by pose
+    and cells ascending. ``window``: the cells of the angular window of the padded
+    ``cast_bounds`` (T, 2, 3) (lasers off the origin widen it by their offset); else every
+    cell. Poses whose cast box is empty (a max below its min) cast nothing."""
     if window:
         widened = cast_bounds + np.array([[-1.0], [1.0]]) * sensor.max_origin_offset
-        cells = candidate_cells(sensor, widened, sensor_from_object)
-        origin, local = _in_object_frame(sensor_from_object, [axis[cells] for axis in sensor.direction_axes],
-                                         None if origins is None else origins[cells])
-        inside = _meets_box(origin, local, _padded(cast_bounds), sensor.max_range)
-        cells, local = cells[inside], [axis[inside] for axis in local]
-        origin = origin if origins is None else origin[inside]
+        blocks = cell_window(sensor, widened, poses)
+        blocks[1][np.any(cast_bounds[:, 1] < cast_bounds[:, 0], axis=1)] = 0
     else:
-        cells = np.arange(sensor.beams * sensor.columns)
-        origin, local = _in_object_frame(sensor_from_object, sensor.direction_axes, origins)
-    return cells, origin, np.column_stack(local)
+        count = len(poses)
+        blocks = (np.zeros(count, np.int64), np.full(count, sensor.beams), np.zeros(count, np.int64),
+                  np.full(count, sensor.columns))
+    sizes = blocks[1] * blocks[3]
+    cells = window_cells(sensor, *blocks)
+    return (np.repeat(np.arange(len(poses)), sizes), cells, *_in_object_frame(poses, sizes, cells, sensor))
 
 
 def _refined_ranges(planes: np.ndarray, origin: np.ndarray, directions: np.ndarray, bvh_range: np.ndarray):
@@ -236,8 +264,7 @@ def _refined_ranges(planes: np.ndarray, origin: np.ndarray, directions: np.ndarr
     Near-grazing hits, where the plane solve is ill-conditioned, keep the BVH's range."""
     # Written out, not BLAS: a ray's bits must not depend on the batch it is in.
     cos_incidence = planes[:, 0] * directions[:, 0] + planes[:, 1] * directions[:, 1] + planes[:, 2] * directions[:, 2]
-    height = planes[:, 3] - (planes[:, 0] * origin[..., 0] + planes[:, 1] * origin[..., 1]
-                             + planes[:, 2] * origin[..., 2])
+    height = planes[:, 3] - (planes[:, 0] * origin[:, 0] + planes[:, 1] * origin[:, 1] + planes[:, 2] * origin[:, 2])
     with np.errstate(divide="ignore", invalid="ignore"):
         solved = height / cos_incidence
     usable = (np.abs(cos_incidence) > 1e-3) & (np.abs(solved - bvh_range) < 1e-3 * (1 + bvh_range))
@@ -246,48 +273,83 @@ def _refined_ranges(planes: np.ndarray, origin: np.ndarray, directions: np.ndarr
 
 @dataclass(frozen=True)
 class Trace:
-    """What the rays of one pose met, before any sensor effect: the cells cast (M,),
-    and for the hits among them their cells, float64 ranges (m), cosines of incidence
-    and BVH polygons; ``seconds`` the wall time."""
+    """What the rays of T poses met, before any sensor effect: ``rays`` (T,) the rays
+    cast per pose, and for the hits, pose by pose and cells ascending within a pose,
+    their ``pose`` (H,) index, cells, float64 ranges (m), cosines of incidence and
+    polygons; ``seconds`` the wall time, ``engine_seconds`` its part in the ray
+    engine's own calls (BVH or Embree; Gaussian compositing for splats)."""
 
-    rays: int
+    rays: np.ndarray
+    pose: np.ndarray
     cells: np.ndarray
     ranges: np.ndarray
     cos_incidence: np.ndarray
     polygons: np.ndarray
     seconds: float
+    engine_seconds: float
+
+    def of_pose(self) -> np.ndarray:
+        """(T + 1,) offsets: pose t's hits are rows [offsets[t], offsets[t + 1])."""
+        return np.searchsorted(self.pose, np.arange(len(self.rays) + 1))
 
 
-def trace_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray, window: bool = True,
+def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bool = True,
                cast_bounds: np.ndarray | None = None, engine: str = "bvh") -> Trace:
-    """Cast the rays of ``target`` placed by ``sensor_from_object`` through ``engine``
-    (Gaussian targets: gaussians.gaussian_hits, the same for every engine); with
-    ``cast_bounds`` (2, 3, object frame) the window keeps only rays meeting that box
-    instead of the whole geometry's (a scan that wants part of the object)."""
+    """Cast the rays of ``target`` placed by each of ``poses`` (T, 4, 4) sensor_from_object
+    (or one (4, 4)) through ``engine``, all poses in one engine call (Gaussian targets:
+    gaussians.gaussian_hits, pose by pose, the same for every engine). With
+    ``cast_bounds`` ((T, 2, 3) or (2, 3), object frame) only the hits inside that padded
+    box count (a scan that wants part of the object), and the window is that box's."""
     sensor.directions  # the cached ray table: built on first use, kept out of the timing
     start = time.perf_counter()
-    cast_bounds = target.cast_bounds if cast_bounds is None else cast_bounds
-    cells, origin, directions = rays_to_cast(sensor, cast_bounds, sensor_from_object, window)
+    poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    part = cast_bounds is not None
+    cast_bounds = np.broadcast_to(target.cast_bounds if cast_bounds is None else cast_bounds, (len(poses), 2, 3))
+    pose, cells, origins, directions = rays_to_cast(sensor, cast_bounds, poses, window)
+    if engine == "bvh" and len(cells):  # one Python call per ray: a slab test first costs far less
+        inside = _meets_box(origins, directions, _padded(cast_bounds)[pose], sensor.max_range)
+        pose, cells, origins, directions = pose[inside], cells[inside], origins[inside], directions[inside]
+    rays = np.bincount(pose, minlength=len(poses))
+    engine_start = time.perf_counter()
     if target.gaussians is not None:  # splats: their own compositing, whatever the engine
-        splats, ranges, cos_incidence = gaussian_hits(target.gaussians, sensor, sensor_from_object, cells, origin,
-                                                      directions)
-        hit = splats >= 0
-        return Trace(len(cells), cells[hit], ranges[hit], cos_incidence[hit], splats[hit],
-                     time.perf_counter() - start)
-    cast = _embree_hits if engine == "embree" else _bvh_hits
-    polygons, bvh_range = cast(target, origin, directions, sensor.max_range)
-    if target.see_through is not None:
-        polygons, bvh_range = _through_glass(target, cast, origin, directions, polygons, bvh_range, sensor.max_range)
+        polygons, ranges, cos_incidence = _gaussian_hits(target, sensor, poses, pose, cells, origins, directions)
+        engine_seconds = time.perf_counter() - engine_start
+    else:
+        cast = _embree_hits if engine == "embree" else _bvh_hits
+        polygons, bvh_range = cast(target, origins, directions, sensor.max_range)
+        if target.see_through is not None:
+            polygons, bvh_range = _through_glass(target, cast, origins, directions, polygons, bvh_range,
+                                                 sensor.max_range)
+        engine_seconds = time.perf_counter() - engine_start
+        hit = np.flatnonzero(polygons >= 0)
+        polygons, origins, directions = polygons[hit], origins[hit], directions[hit]
+        ranges, cos_incidence = _refined_ranges(target.planes[polygons], origins, directions, bvh_range[hit])
+        pose, cells = pose[hit], cells[hit]
     hit = polygons >= 0
-    polygons, bvh_range = polygons[hit], bvh_range[hit]
-    origin = origin if origin.ndim == 1 else origin[hit]
-    ranges, cos_incidence = _refined_ranges(target.planes[polygons], origin, directions[hit], bvh_range)
-    return Trace(len(cells), cells[hit], ranges, cos_incidence, polygons, time.perf_counter() - start)
+    if part:  # the hits where the cast box wants them
+        points = origins + ranges[:, None] * directions
+        boxes = _padded(cast_bounds)[pose]
+        hit &= np.all((points >= boxes[:, 0]) & (points <= boxes[:, 1]), axis=1)
+    return Trace(rays, pose[hit], cells[hit], ranges[hit], cos_incidence[hit], polygons[hit],
+                 time.perf_counter() - start, engine_seconds)
 
 
-def _through_glass(target: ScanTarget, cast, origin: np.ndarray, directions: np.ndarray, polygons: np.ndarray,
+def _gaussian_hits(target: ScanTarget, sensor: Sensor, poses: np.ndarray, pose: np.ndarray, cells: np.ndarray,
+                   origins: np.ndarray, directions: np.ndarray) -> tuple:
+    """gaussians.gaussian_hits of each pose's rays: (M,) splat (-1: none), range, cosine."""
+    found, ranges, cosines = np.full(len(cells), -1, np.int64), np.full(len(cells), np.nan), np.zeros(len(cells))
+    offsets = np.searchsorted(pose, np.arange(len(poses) + 1))
+    for index, (first, last) in enumerate(zip(offsets[:-1], offsets[1:])):
+        if last > first:
+            rays = slice(first, last)
+            found[rays], ranges[rays], cosines[rays] = gaussian_hits(
+                target.gaussians, sensor, poses[index], cells[rays], origins[rays], directions[rays])
+    return found, ranges, cosines
+
+
+def _through_glass(target: ScanTarget, cast, origins: np.ndarray, directions: np.ndarray, polygons: np.ndarray,
                    ranges: np.ndarray, far: float) -> tuple:
-    """(polygons, ranges from ``origin``) after the rays that hit see-through polygons
+    """(polygons, ranges from ``origins``) after the rays that hit see-through polygons
     went on from just past them, up to MAX_SEE_THROUGH times (then they are lost)."""
     polygons, ranges, travelled = polygons.copy(), ranges.copy(), np.zeros(len(directions))
     for _ in range(MAX_SEE_THROUGH):
@@ -296,28 +358,27 @@ def _through_glass(target: ScanTarget, cast, origin: np.ndarray, directions: np.
         if not len(passing):
             return polygons, ranges
         travelled[passing] = ranges[passing] + SEE_THROUGH_STEP
-        starts = (origin if origin.ndim == 1 else origin[passing]) + travelled[passing, None] * directions[passing]
+        starts = origins[passing] + travelled[passing, None] * directions[passing]
         found, further = cast(target, starts, directions[passing], far - travelled[passing])
         polygons[passing], ranges[passing] = found, travelled[passing] + further
     polygons[(polygons >= 0) & target.see_through[np.maximum(polygons, 0)]] = -1
     return polygons, ranges
 
 
-def _bvh_hits(target: ScanTarget, origin: np.ndarray, directions: np.ndarray, far) -> tuple:
+def _bvh_hits(target: ScanTarget, origins: np.ndarray, directions: np.ndarray, far) -> tuple:
     """(M,) int64 polygon hit by each ray (-1: none) and (M,) float64 its distance;
-    ``origin`` (3,) or (M, 3), ``far`` a distance or (M,) distances."""
+    ``origins`` (M, 3), ``far`` a distance or (M,) distances."""
     from mathutils import Vector
 
-    starts = repeat(Vector(origin), len(directions)) if origin.ndim == 1 else map(Vector, origin.tolist())
     limits = np.broadcast_to(far, len(directions)).tolist()
-    results = map(target.bvh.ray_cast, starts, directions.tolist(), limits)
+    results = map(target.bvh.ray_cast, map(Vector, origins.tolist()), directions.tolist(), limits)
     # One pass over the results: (polygon, distance) per ray, polygon -1 for a miss.
     found = np.fromiter(chain.from_iterable(_MISS if result[2] is None else result[2:] for result in results),
                         np.float64, 2 * len(directions)).reshape(-1, 2)
     return found[:, 0].astype(np.int64), found[:, 1]
 
 
-def _embree_hits(target: ScanTarget, origin: np.ndarray, directions: np.ndarray, far: float) -> tuple:
+def _embree_hits(target: ScanTarget, origins: np.ndarray, directions: np.ndarray, far) -> tuple:
     """As ``_bvh_hits``, in one batched Embree call on the target's triangles."""
     if target.embree_scene is None:
         try:
@@ -329,10 +390,8 @@ def _embree_hits(target: ScanTarget, origin: np.ndarray, directions: np.ndarray,
         TriangleMesh(target.embree_scene, target.triangle_vertices, target.triangle_faces)
     if not len(directions):
         return np.zeros(0, np.int64), np.zeros(0)
-    result = target.embree_scene.run(np.ascontiguousarray(np.broadcast_to(origin, directions.shape), np.float32),
-                                     directions.astype(np.float32),
-                                     dists=np.broadcast_to(far, len(directions)).astype(np.float32),
-                                     output=1)
+    result = target.embree_scene.run(origins.astype(np.float32), directions.astype(np.float32),
+                                     dists=np.broadcast_to(far, len(directions)).astype(np.float32), output=1)
     triangle = result["primID"]
     polygons = np.where(triangle >= 0, target.triangle_polygon[np.maximum(triangle, 0)], -1)
     return polygons.astype(np.int64), result["tfar"].astype(np.float64)
@@ -343,49 +402,78 @@ def cast_rays(target: ScanTarget, sensor: Sensor, sensor_from_object: np.ndarray
     """Scan ``target`` placed by ``sensor_from_object``: one row per return (returns.py)."""
     trace = trace_rays(target, sensor, sensor_from_object, options.window, engine=options.engine)
     start = time.perf_counter()
-    returns = trace_returns(target, sensor, trace, options, sweep)
+    returns, _ = trace_returns(target, sensor, trace, options, sweep)
     box = placed_box(target.bounds, sensor_from_object)
-    return Scan(returns, box, trace.rays, trace.seconds + time.perf_counter() - start, sensor.dataset,
-                [sensor_from_object], cast_seconds=trace.seconds)
+    return Scan(returns, box, int(trace.rays.sum()), trace.seconds + time.perf_counter() - start, sensor.dataset,
+                [sensor_from_object], cast_seconds=trace.engine_seconds)
 
 
-def trace_returns(target: ScanTarget, sensor: Sensor, trace: Trace, options: ScanOptions, sweep: int = 0):
-    """RETURN_DTYPE rows of ``trace``'s hits after the sensor effects of ``options``."""
-    polygons = trace.polygons
-    return build_returns(sensor, trace.cells, trace.ranges, target.reflectivity[polygons], trace.cos_incidence,
-                         target.source_index[polygons], options, sweep)
+def trace_returns(target: ScanTarget, sensor: Sensor, trace: Trace, options: ScanOptions, sweep=0, hits=None,
+                  draws=None):
+    """build_returns of ``trace``'s hits (or of those it picks with ``hits``, an index
+    array: a hit may serve several sweeps) after the sensor effects of ``options``;
+    ``sweep`` and ``draws`` as build_returns takes them."""
+    hits = slice(None) if hits is None else hits
+    polygons = trace.polygons[hits]
+    return build_returns(sensor, trace.cells[hits], trace.ranges[hits], target.reflectivity[polygons],
+                         trace.cos_incidence[hits], target.source_index[polygons], options, sweep, draws)
+
+
+def sensor_draws(options: ScanOptions, sensor: Sensor, counts: np.ndarray, seeds) -> tuple | None:
+    """The random draws of ``options``' sensor effects for E object scans' candidate
+    returns, ``counts`` (E, S) per object and sweep, concatenated object by object and
+    sweep by sweep: object e draws from its own generator ``default_rng(seeds[e])``,
+    sweep by sweep (current first), each sweep the drop's uniforms, then the range
+    noise's normals (m), then the intensity spread's standard normals for its
+    candidates in cell order. Returns (uniform, noise, spread), each (R,) or None when
+    that effect is off; None when no effect draws."""
+    if not (options.drop_rate or options.ray_drop or options.range_noise):
+        return None
+    spread = options.range_noise and len(sensor.intensity_law) == 3 and sensor.intensity_law[2] > 0
+    uniform, noise, normal = [], [], []
+    for seed, sweeps in zip(np.asarray(seeds).tolist(), np.asarray(counts).tolist()):
+        rng = np.random.default_rng(seed)
+        for count in sweeps:
+            uniform.append(rng.random(count))
+            if options.range_noise:
+                noise.append(rng.normal(0.0, sensor.range_noise_sigma, count))
+                if spread:
+                    normal.append(rng.standard_normal(count))
+    return tuple(np.concatenate(part) if part else None for part in (uniform, noise, normal))
 
 
 def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflectivity: np.ndarray,
-                  cos_incidence: np.ndarray, faces: np.ndarray, options: ScanOptions, sweep: int = 0) -> np.ndarray:
-    """Rows of RETURN_DTYPE for returns at ``ranges`` (M,) m along the rays of ``cells``
-    (M,), after the min/max range gate and the options' drops and noise. Random draws
-    are one per candidate return in cell order, from a generator seeded by (seed, sweep):
-    drop, range noise, intensity spread."""
+                  cos_incidence: np.ndarray, faces: np.ndarray, options: ScanOptions, sweep=0,
+                  draws=None) -> tuple:
+    """(rows, kept): RETURN_DTYPE rows for returns at ``ranges`` (M,) m along the rays of
+    ``cells`` (M,) after the min/max range gate and the options' drops and noise, and
+    (K,) int64 the candidates they come from. ``sweep``: the sweep index, or (M,) one per
+    candidate; ``draws``: sensor_draws for the candidates, by default those of one
+    object scan seeded by options.seed."""
     keep = (ranges >= sensor.min_range) & (ranges <= sensor.max_range)
+    if draws is None and np.ndim(sweep) == 0:
+        draws = sensor_draws(options, sensor, [[len(cells)]], [options.seed])
+    uniform, noise, normal = draws or (None, None, None)
     noisy = ranges
-    drop = options.drop_rate
-    if options.ray_drop and sensor.ray_drop:
-        drop = 1.0 - (1.0 - drop) * (1.0 - drop_probability(sensor.ray_drop, reflectivity, cos_incidence, ranges))
-    spread = options.range_noise and len(sensor.intensity_law) == 3 and sensor.intensity_law[2] > 0
-    normal = None
-    if options.drop_rate or options.ray_drop or options.range_noise:
-        rng = np.random.default_rng([options.seed, sweep])
-        keep &= rng.random(len(cells)) >= drop
-        if options.range_noise:
-            noisy = ranges + rng.normal(0.0, sensor.range_noise_sigma, len(cells))
-            keep &= noisy > 0
-        normal = rng.standard_normal(len(cells)) if spread else None
+    if uniform is not None:
+        drop = options.drop_rate
+        if options.ray_drop and sensor.ray_drop:
+            drop = 1.0 - (1.0 - drop) * (1.0 - drop_probability(sensor.ray_drop, reflectivity, cos_incidence, ranges))
+        keep &= uniform >= drop
+    if noise is not None:
+        noisy = ranges + noise
+        keep &= noisy > 0
     relative = relative_intensity(reflectivity, cos_incidence, ranges, sensor.intensity_law, normal)
     if options.max_incidence_deg < 90:
         keep &= np.abs(cos_incidence) >= np.cos(np.radians(options.max_incidence_deg))
     if options.min_intensity:
         keep &= relative >= options.min_intensity
+    keep = np.flatnonzero(keep)
     cells, noisy = cells[keep], noisy[keep]
     points = sensor.return_points(cells, noisy)
     rings, columns = np.divmod(cells, sensor.columns)
     rows = np.zeros(len(cells), RETURN_DTYPE)
-    rows["x"], rows["y"], rows["z"] = points.T
+    structured_to_unstructured(rows[["x", "y", "z"]], copy=False)[:] = points  # a view: one strided copy
     rows["intensity"] = dataset_intensity(relative[keep], sensor.dataset)
     rows["ring"], rows["column"] = rings, columns
     rows["azimuth"] = sensor.cell_azimuths.ravel()[cells]
@@ -393,9 +481,10 @@ def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflect
     rows["range"] = noisy
     rows["true_range"] = ranges[keep]
     rows["face"] = faces[keep]
+    sweep = sweep if np.ndim(sweep) == 0 else sweep[keep]
     rows["time_lag"] = sweep * sensor.sweep_interval
     rows["sweep"] = sweep
-    return rows
+    return rows, keep
 
 
 def scan_object(target: ScanTarget, sensor: Sensor, x: float, y: float, heading: float,

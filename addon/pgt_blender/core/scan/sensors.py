@@ -169,6 +169,26 @@ class Sensor:
         """The x, y, z columns of ``directions`` as three contiguous (cells,) arrays."""
         return tuple(np.ascontiguousarray(self.directions[:, axis]) for axis in range(3))
 
+    def ring_span(self, low_deg: np.ndarray, high_deg: np.ndarray) -> tuple:
+        """(first ring, ring count), (T,) int64, of the beams whose elevations lie within
+        [low_deg, high_deg] (T,) degrees."""
+        elevations = np.asarray(self.elevations_deg)
+        first = np.searchsorted(elevations, low_deg - 1e-7)
+        count = np.searchsorted(elevations, high_deg + 1e-7, side="right") - first
+        return first.astype(np.int64), np.maximum(count, 0).astype(np.int64)
+
+    def column_span(self, centre_deg: np.ndarray, low_deg: np.ndarray, high_deg: np.ndarray) -> tuple:
+        """(first column, column count), (T,) int64, of the cells whose rays' azimuths
+        (each laser's offset included) can fall within [centre + low, centre + high] (T,)
+        degrees, with a column of margin each side; the first column is not reduced
+        modulo ``columns``."""
+        offsets = np.asarray(self.azimuth_offsets_deg)
+        steps = [self.direction * (centre_deg + side - beam - self.start_azimuth_deg) / self.azimuth_step_deg - 0.5
+                 for side in (low_deg, high_deg) for beam in (offsets.min(initial=0.0), offsets.max(initial=0.0))]
+        first = np.floor(np.min(steps, axis=0)).astype(np.int64) - 1
+        count = np.minimum(np.ceil(np.max(steps, axis=0)).astype(np.int64) + 1 - first + 1, self.columns)
+        return first, count
+
     def return_points(self, cells: np.ndarray, ranges: np.ndarray) -> np.ndarray:
         """(M, 3) float64 sensor frame: the returns at ``ranges`` (M,) m along the rays of
         ``cells`` (M,), each from its laser's origin."""

@@ -15,11 +15,11 @@ sensor.sweep_interval``; the box is the current one with velocity (vx, vy) = spe
 """
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
-from .raycast import Ground, ScanOptions, Trace, placed_box, placement, trace_rays, trace_returns
+from .raycast import Ground, ScanOptions, placed_box, placement, sensor_draws, trace_rays, trace_returns
 from .returns import Scan
 from .sensors import Sensor
 from .targets import ScanTarget
@@ -93,48 +93,80 @@ def scan_sweeps(target: ScanTarget, sensor: Sensor, x: float, y: float, heading:
                 sweeps: int, options: ScanOptions = ScanOptions(), bounds: np.ndarray | None = None,
                 box_margin: float | None = None, ego: Motion = Motion(), ground: Ground = Ground()) -> Scan:
     """``sweeps`` sweeps of ``target`` moving with ``motion``, seen from an ego vehicle
-    moving with ``ego``, merged in the key frame, current sweep first. The object stands
-    on ``ground`` (raycast.placement) and moves along its heading up or down its pitch.
-    ``bounds`` (2, 3, object frame) is the box that stands on the ground and that the
-    Scan reports (default: the geometry's bounds). Sweeps that see the object at the
-    same pose (a still object) share one ray cast; their noise and drops still differ.
+    moving with ``ego``, merged in the key frame, current sweep first: ``scan_many`` of
+    one object, its noise seeded by ``options.seed``."""
+    return scan_many(target, sensor, [x], [y], [heading], motion, sweeps, options, [options.seed], bounds,
+                     box_margin, ego, ground)[0]
 
-    ``box_margin`` (m): cast only the rays that meet the current box grown by it, the
-    only rays whose returns can lie in that box (a database keeps just those): older
-    sweeps of a moving object then cost only the part that overlaps the box."""
+
+def scan_many(target: ScanTarget, sensor: Sensor, x, y, heading, motion: Motion, sweeps: int,
+              options: ScanOptions, seeds, bounds: np.ndarray | None = None, box_margin: float | None = None,
+              ego: Motion = Motion(), ground: Ground = Ground()) -> list:
+    """One Scan per object (E of them: ``x``, ``y`` (m), ``heading`` (rad), ``seeds`` (E,)
+    and the fields of ``motion``, ``ego`` and ``ground`` arrays or scalars), each of
+    ``sweeps`` sweeps of ``target`` moving with ``motion`` seen from an ego vehicle moving
+    with ``ego``, merged in the key frame, current sweep first. Every sweep of every
+    object is cast in one engine call (raycast.trace_rays); sweeps that see an object at
+    the same pose (a still object from a still ego) share their rays, while their noise
+    and drops still differ: each object draws from its own generator seeded by its seed
+    (raycast.sensor_draws), so its scan is the same whatever else is in the batch.
+
+    Each object stands on ``ground`` (raycast.placement) and moves along its heading up
+    or down its pitch. ``bounds`` (2, 3, object frame) is the box that stands on the
+    ground and that the Scan reports (default: the geometry's bounds). ``box_margin``
+    (m): keep only the hits inside the current box grown by it, and cast only rays in
+    that box's window (a database keeps just those): older sweeps of a moving object
+    then cost only the part that overlaps the box."""
     if sweeps < 1:
         raise ValueError(f"sweeps must be at least 1, got {sweeps}")
     bounds = target.bounds if bounds is None else bounds
     start = time.perf_counter()
-    direction = np.array([np.cos(heading), np.sin(heading)])
-    parts, poses, origins, traces, rays = [], [], [], {}, 0
-    for sweep in range(sweeps):
-        travelled = motion.displacement(-sweep * sensor.sweep_interval)
-        shift = travelled * direction
-        origin = np.append(ego.displacement(-sweep * sensor.sweep_interval) * sensor.forward, 0.0)
-        under = ground if not travelled else replace(ground, height=ground.height + travelled * np.sin(ground.pitch))
-        pose = placement(bounds, sensor, x + shift[0], y + shift[1], heading, under)
-        seen_from = placement(bounds, sensor, x + shift[0] - origin[0], y + shift[1] - origin[1], heading, under)
-        cast_bounds = None
-        if box_margin is not None:  # the current box in this sweep's object frame, met with the geometry's
-            current = bounds + np.array([[-travelled - box_margin, -box_margin, -box_margin],
-                                         [-travelled + box_margin, box_margin, box_margin]])
-            cast_bounds = np.stack([np.maximum(current[0], target.cast_bounds[0]),
-                                    np.minimum(current[1], target.cast_bounds[1])])
-        key = (seen_from.tobytes(), None if cast_bounds is None else cast_bounds.tobytes())
-        if key not in traces:
-            if cast_bounds is not None and np.any(cast_bounds[1] < cast_bounds[0]):
-                traces[key] = Trace(0, *(np.zeros(0, dtype) for dtype in ("i8", "f8", "f8", "i8")), 0.0)
-            else:
-                traces[key] = trace_rays(target, sensor, seen_from, options.window, cast_bounds, options.engine)
-        returns = trace_returns(target, sensor, traces[key], options, sweep)
-        if origin.any():  # motion compensation: the sweep's sensor frame to the key frame
-            returns["x"] += origin[0]
-            returns["y"] += origin[1]
-        parts.append(returns)
-        poses.append(pose)
-        origins.append(origin)
-        rays += traces[key].rays
-    box = placed_box(bounds, poses[0], motion.speed * direction)
-    return Scan(np.concatenate(parts), box, rays, time.perf_counter() - start, sensor.dataset, poses, origins,
-                sum(trace.seconds for trace in traces.values()))
+    x, y, heading, seeds = (np.atleast_1d(np.asarray(value)) for value in (x, y, heading, seeds))
+    count = len(x)
+    at = -np.arange(sweeps) * sensor.sweep_interval  # (S,) s, each sweep's time
+    travelled = np.broadcast_to(Motion(np.reshape(motion.speed, (-1, 1)),
+                                       np.reshape(motion.acceleration, (-1, 1))).displacement(at), (count, sweeps))
+    driven = np.broadcast_to(Motion(np.reshape(ego.speed, (-1, 1)),
+                                    np.reshape(ego.acceleration, (-1, 1))).displacement(at), (count, sweeps))
+    cos, sin = np.cos(heading)[:, None], np.sin(heading)[:, None]
+    ground_height, pitch, roll = (np.broadcast_to(np.reshape(value, (-1, 1)), (count, sweeps))
+                                  for value in (ground.height, ground.pitch, ground.roll))
+    under = Ground(np.where(travelled != 0, ground_height + travelled * np.sin(pitch), ground_height), pitch, roll)
+    at_x, at_y = x[:, None] + travelled * cos, y[:, None] + travelled * sin
+    origins = np.zeros((count, sweeps, 3))  # where the sensor fired each sweep from, key frame
+    origins[..., :2] = driven[..., None] * sensor.forward
+    poses = placement(bounds, sensor, at_x, at_y, heading[:, None], under)  # (E, S, 4, 4), key frame
+    seen_from = placement(bounds, sensor, at_x - origins[..., 0], at_y - origins[..., 1], heading[:, None], under)
+    cast_bounds = np.broadcast_to(target.cast_bounds, (count, sweeps, 2, 3))
+    if box_margin is not None:  # the current box in each sweep's object frame, met with the geometry's
+        current = bounds + np.stack([np.stack([-travelled - box_margin, np.full_like(travelled, -box_margin),
+                                               np.full_like(travelled, -box_margin)], -1),
+                                     np.stack([-travelled + box_margin, np.full_like(travelled, box_margin),
+                                               np.full_like(travelled, box_margin)], -1)], -2)
+        cast_bounds = np.stack([np.maximum(current[..., 0, :], target.cast_bounds[0]),
+                                np.minimum(current[..., 1, :], target.cast_bounds[1])], -2)
+    # Sweeps alike in pose and cast box cast once.
+    keys = np.concatenate([seen_from[..., :3, :].reshape(count, sweeps, 12), cast_bounds.reshape(count, sweeps, 6)],
+                          -1).reshape(count * sweeps, 18)
+    unique, first, shared = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    trace = trace_rays(target, sensor, seen_from.reshape(-1, 4, 4)[first], options.window,
+                       cast_bounds.reshape(-1, 2, 3)[first], options.engine)
+    offsets = trace.of_pose()
+    group = shared.ravel()  # (E * S,) the trace pose of each object's sweep
+    hits = np.diff(offsets)[group]
+    picked = np.repeat(offsets[:-1][group] - np.cumsum(hits) + hits, hits) + np.arange(hits.sum())
+    sweep_of = np.tile(np.arange(sweeps), count)
+    draws = sensor_draws(options, sensor, hits.reshape(count, sweeps), seeds)
+    returns, kept = trace_returns(target, sensor, trace, options, np.repeat(sweep_of, hits), picked, draws)
+    row_group = np.repeat(np.arange(count * sweeps), hits)[kept]
+    returns["x"] += origins[..., 0].ravel()[row_group]  # motion compensation: each sweep's frame to the key frame
+    returns["y"] += origins[..., 1].ravel()[row_group]
+    ends = np.cumsum(np.bincount(row_group // sweeps, minlength=count))
+    rays = trace.rays[group].reshape(count, sweeps).sum(axis=1)
+    share = rays / max(rays.sum(), 1)  # the batch's time, shared by rays cast
+    seconds = time.perf_counter() - start
+    velocity = np.broadcast_to(motion.speed, count)[:, None] * np.column_stack([cos[:, 0], sin[:, 0]])
+    return [Scan(returns[end - length:end], placed_box(bounds, poses[index, 0], velocity[index]), int(rays[index]),
+                 seconds * share[index], sensor.dataset, list(poses[index]), list(origins[index]),
+                 trace.engine_seconds * share[index])
+            for index, (end, length) in enumerate(zip(ends, np.diff(ends, prepend=0)))]
