@@ -52,7 +52,11 @@ moved towards its neighbourhood plane by at most six times the estimated noise (
 sampling of flat faces, which then moves nothing), so noise inflates the box less
 while thin parts with too few points for a plane stay where they are. A side where a
 wall faces outwards is then the median of the wall's points, not their extreme
-(:func:`_surface_bounds`). What is left: the plane fit pulls a convex end (a tyre's
+(:func:`_surface_bounds`). Thin real parts that stick out of the body (mirrors, a few
+dozen points of 20,000) are neither trimmed by quantile nor cut at the wall: the points
+beyond a side's noise band (``PROTRUSION_BAND`` x noise) that have neighbours among
+themselves at the sampling's scale are a surface, and the side moves out to them
+(:func:`_protrusion`); floaters, spread over a volume, stay isolated. What is left: the plane fit pulls a convex end (a tyre's
 contact patch, a handlebar end) inwards by its sagitta over the neighbourhood, about 1
 to 2 % of the height or width at 0.5 % noise (bench/alignment.md).
 
@@ -78,6 +82,9 @@ MIRROR_SAMPLE = 4000
 FACING_DEG = 30.0
 SIDE_BAND = 2.0
 WALL_RATIO = 2.0
+PROTRUSION_BAND = 2.5
+PROTRUSION_RADIUS = 3.0
+PROTRUSION_NEIGHBOURS = 4
 
 
 @dataclass
@@ -210,7 +217,8 @@ def align_axes(positions, weights=None, up=None, source="points", refine: bool =
     if box_normals is None:
         low, high = _trimmed_bounds(box_points @ rotation.T, box_trim)
     else:
-        low, high = _surface_bounds(box_points @ rotation.T, box_normals @ rotation.T, extra["noise"])
+        low, high = _surface_bounds(box_points @ rotation.T, box_normals @ rotation.T, extra["noise"],
+                                    kept @ rotation.T)
     centre = (low + high) / 2
     transform = np.eye(4)
     transform[:3, :3] = rotation
@@ -374,14 +382,17 @@ def _trimmed_bounds(local: np.ndarray, share: float = BOX_TRIM) -> tuple:
     return ordered[trim], ordered[len(local) - 1 - trim]
 
 
-def _surface_bounds(local: np.ndarray, normals: np.ndarray, noise: float) -> tuple:
+def _surface_bounds(local: np.ndarray, normals: np.ndarray, noise: float, raw: np.ndarray) -> tuple:
     """Per-axis (low, high) of a denoised noisy surface ``local`` (N, 3) with its
-    ``normals`` (N, 3), same frame. A side where a wall faces outwards (the points
-    whose normal is within ``FACING_DEG`` of the axis crowd into the outer band,
-    ``SIDE_BAND`` x ``noise`` wide, at least ``WALL_RATIO`` times as many as in the
-    band inside it) is the median of that crowd: denoised points still scatter about
-    a wall, so their extreme lies outside it. Other sides (wheels, rounded ends) keep
-    the trimmed extreme."""
+    ``normals`` (N, 3), same frame, ``noise`` the surface noise (source units).
+
+    First the body: a side where a wall faces outwards (the points whose normal is
+    within ``FACING_DEG`` of the axis crowd into the outer band, ``SIDE_BAND`` x
+    ``noise`` wide, at least ``WALL_RATIO`` times as many as in the band inside it) is
+    the median of that crowd (denoised points still scatter about a wall, so their
+    extreme lies outside it); other sides keep the trimmed extreme. Then what sticks
+    out of the body (:func:`_protrusion`): thin real parts (mirrors, handles) that the
+    trim or the wall median cut off, told from floaters by being a cluster."""
     low, high = _trimmed_bounds(local)
     facing = np.abs(normals) > np.cos(np.radians(FACING_DEG))
     band = SIDE_BAND * noise
@@ -394,7 +405,43 @@ def _surface_bounds(local: np.ndarray, normals: np.ndarray, noise: float) -> tup
             inner = np.count_nonzero((outward < edge - band) & (outward >= edge - 2 * band))
             if len(outer) >= 1 / BOX_TRIM and len(outer) >= WALL_RATIO * inner:
                 bounds[axis] = sign * np.median(outer)
+    spacing = _spacing(raw)
+    for axis in range(3):
+        for sign, bounds in ((1, high), (-1, low)):
+            bounds[axis] = sign * _protrusion(sign * raw[:, axis], raw, sign * bounds[axis],
+                                              PROTRUSION_BAND * noise, spacing)
     return low, high
+
+
+def _spacing(points: np.ndarray) -> float:
+    """Median distance (source units) from a point of ``points`` (N, 3) to its nearest
+    distinct neighbour: the sampling's scale."""
+    from scipy.spatial import cKDTree
+
+    distances, _ = cKDTree(points).query(points, k=2, workers=-1)
+    return float(np.median(distances[:, 1]))
+
+
+def _protrusion(outward: np.ndarray, points: np.ndarray, edge: float, band: float, spacing: float) -> float:
+    """The side ``edge`` (a coordinate along ``outward``, (N,) the points' coordinates
+    increasing away from the body) moved out to a protrusion when there is one.
+
+    Candidates are the points beyond the edge's noise ``band``; a candidate is part of
+    a real surface when at least ``PROTRUSION_NEIGHBOURS`` other candidates lie within
+    ``PROTRUSION_RADIUS`` x ``spacing`` of it (a surface sampled at that spacing has
+    its neighbours there; floaters, spread over a volume, seldom do: at 10 % floaters
+    in a box 1.5x the object's their density is about 1/50 of a surface's). The side is
+    then the second most outward such point (one stray cluster member aside). Floaters
+    within the band of a wall remain and widen the box by at most the band."""
+    from scipy.spatial import cKDTree
+
+    beyond = outward > edge + band
+    if np.count_nonzero(beyond) <= PROTRUSION_NEIGHBOURS:
+        return edge
+    candidates = points[beyond]
+    counts = cKDTree(candidates).query_ball_point(candidates, PROTRUSION_RADIUS * spacing, return_length=True)
+    clustered = np.sort(outward[beyond][counts > PROTRUSION_NEIGHBOURS])
+    return float(clustered[-2]) if len(clustered) >= 2 else edge
 
 
 def _weighted_cov(points, weights) -> np.ndarray:
