@@ -40,9 +40,11 @@ and the correction is reported as ``tilt_deg``; with no prior the start is
 perpendicular to it, which needs no PCA and no source axis. Which refined axis is up
 then: x is the longest extent, y the axis across which the object is mirror-symmetric
 (:func:`mirror_error`: left and right of a vehicle match, top and bottom do not), z the
-third, its sign from the third moment as without refinement. The sign of up is not
-reliable from geometry alone (a bus is nearly as heavy at the top as at the bottom):
-without a prior, up is found as an axis and its sign is the documented symmetry. Shapes
+third, its sign from the third moment as without refinement (cabins and greenhouses
+narrow upwards); where the third moment does not tell (a box-shaped bus), from the wheels
+(:func:`_wheels_down`: the end band covering far less of the length is the bottom), else
+the source +z. The up sign without a prior is a property of vehicles, not of geometry in
+general: an upside-down box is a box. Shapes
 without enough planar structure (less than ``MIN_PLANAR_SHARE`` of the weight assigned
 to an axis: spheres, cylinders) keep the unrefined frame (``refined`` is False).
 
@@ -83,6 +85,9 @@ FACING_DEG = 30.0
 SIDE_BAND = 2.0
 WALL_RATIO = 2.0
 PROTRUSION_BAND = 2.5
+WHEEL_BAND = 0.05
+LENGTH_BINS = 50
+WHEEL_COVER_RATIO = 0.5
 PROTRUSION_RADIUS = 3.0
 PROTRUSION_NEIGHBOURS = 4
 
@@ -367,9 +372,30 @@ def _label_axes(rotation, points, weights) -> np.ndarray:
     others = [row for row in range(3) if row != x_row]
     errors = [mirror_error(points, rotation[row]) for row in others]
     z_row = others[int(np.argmax(errors))]
-    z = _signed(rotation[z_row], points, weights, np.array([0.0, 0.0, 1.0]))
     x = _signed(rotation[x_row], points, weights, np.array([1.0, 0.0, 0.0]))
+    z = _signed(rotation[z_row], points, weights, _wheels_down(rotation[z_row], x, points))
     return np.stack([x, np.cross(z, x), z])
+
+
+def _wheels_down(axis, x, points) -> np.ndarray:
+    """``axis`` or ``-axis``, whichever points away from the wheels, for the up sign of a
+    shape whose third moment does not tell (a box-shaped bus or trailer); else the
+    source +z. Wheels touch the ground at a few places along the length while a roof
+    runs along all of it: of the two end bands along ``axis`` (``WHEEL_BAND`` of the
+    extent), the one whose points cover at most half as many of ``LENGTH_BINS`` bins
+    along ``x`` as the other's is the bottom. (A chassis without wheels has a floor
+    there instead; its third moment decides, as cabins and greenhouses narrow upwards.)"""
+    along, length = points @ axis, points @ x
+    (low, high), (start, stop) = (np.percentile(values, [0.1, 99.9]) for values in (along, length))
+    band = WHEEL_BAND * (high - low)
+    bins = np.clip(((length - start) / max(stop - start, np.finfo(float).tiny) * LENGTH_BINS).astype(int),
+                   0, LENGTH_BINS - 1)
+    bottom, top = (len(np.unique(bins[mask])) for mask in (along <= low + band, along >= high - band))
+    if top <= WHEEL_COVER_RATIO * bottom:
+        return -axis
+    if bottom <= WHEEL_COVER_RATIO * top:
+        return axis
+    return np.array([0.0, 0.0, 1.0])
 
 
 def _trimmed_bounds(local: np.ndarray, share: float = BOX_TRIM) -> tuple:
