@@ -86,6 +86,7 @@ SIDE_BAND = 2.0
 WALL_RATIO = 2.0
 PROTRUSION_BAND = 2.5
 WHEEL_BAND = 0.05
+MESH_SAMPLES = 20000
 LENGTH_BINS = 50
 WHEEL_COVER_RATIO = 0.5
 PROTRUSION_RADIUS = 3.0
@@ -210,7 +211,11 @@ def align_axes(positions, weights=None, up=None, source="points", refine: bool =
         refined, share = refine_to_planes(start, surface.normals, planar)
         if share >= MIN_PLANAR_SHARE:
             if up is None:
-                refined = _label_axes(refined, surface.denoised, kept_weights)
+                # a mesh's vertices crowd where it has detail: its moments are its surface's
+                label_points, label_weights = ((surface.samples, np.ones(len(surface.samples))) if is_mesh
+                                               else (surface.denoised, kept_weights))
+                label_points = label_points - np.average(label_points, axis=0, weights=label_weights)
+                refined = _label_axes(refined, label_points, label_weights)
                 up_from = "planes"
             else:
                 refined = _length_first(refined, surface.denoised, kept_weights)
@@ -242,12 +247,15 @@ class SurfaceEstimate:
     denoised:  (N, 3) points moved towards their plane by at most 6 x ``noise``.
     noise:     the surface noise, the 10th percentile of sqrt(l1) over the points (flat
                patches exist on every vehicle; their out-of-plane spread is the noise).
+    samples:   (MESH_SAMPLES, 3) points spread evenly over a mesh's area (None for a
+               cloud): its moments, which the vertices (dense where the detail is) are not.
     """
 
     normals: np.ndarray
     planarity: np.ndarray
     denoised: np.ndarray
     noise: float
+    samples: np.ndarray | None = None
 
 
 def surface_estimate(points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) -> SurfaceEstimate:
@@ -273,7 +281,8 @@ def surface_estimate(points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) ->
 def mesh_surface(kept: np.ndarray, vertices: np.ndarray, faces, source="points") -> SurfaceEstimate:
     """The surface of a mesh: unit face normals of ``vertices`` (V, 3) with planarity
     sqrt(area / largest area) (so the weight, planarity squared, is the relative area),
-    the ``kept`` (N, 3) vertices as they are and noise 0."""
+    the ``kept`` (N, 3) vertices as they are, noise 0 and ``MESH_SAMPLES`` points
+    uniform over the area (seeded, so deterministic)."""
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= len(vertices):
         raise InputError(source, f"faces must be (F, 3) indices into {len(vertices)} vertices")
@@ -282,7 +291,14 @@ def mesh_surface(kept: np.ndarray, vertices: np.ndarray, faces, source="points")
     area = np.linalg.norm(cross, axis=1)
     used = area > 0
     normals = cross[used] / area[used, None]
-    return SurfaceEstimate(normals, np.sqrt(area[used] / area.max()), kept, 0.0)
+    rng = np.random.default_rng(0)  # fixed: the same mesh gives the same frame
+    face = rng.choice(len(area), MESH_SAMPLES, p=area / area.sum())
+    u, v = rng.random((2, MESH_SAMPLES))
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    edges = corners[face, 1:] - corners[face, :1]
+    samples = corners[face, 0] + u[:, None] * edges[:, 0] + v[:, None] * edges[:, 1]
+    return SurfaceEstimate(normals, np.sqrt(area[used] / area.max()), kept, 0.0, samples)
 
 
 def refine_to_planes(rotation: np.ndarray, normals: np.ndarray, weights: np.ndarray,
