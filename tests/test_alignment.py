@@ -407,3 +407,71 @@ def test_refined_box_is_not_inflated_by_noise_and_floaters(class_name):
     source, rotation, _, _ = posed_cloud(class_name, 7, 0.0, 0.0)
     clean = align_axes(source, up=rotation[:, 2], refine=True)
     assert np.abs(clean.dims / dims - 1).max() < 0.005
+
+
+def test_thin_protrusions_are_kept_and_floaters_are_not():
+    """A box body with two thin plates sticking out 0.25 m at the sides (mirrors: 0.4 %
+    of the surface each), 0.5 % noise, 10 % floaters, arbitrary pose with the up prior:
+    the width is the plates' span within 1 % (the trim and the wall median alone cut
+    them off), and no side is widened by the floaters beyond 1 %."""
+    body = trimesh.creation.box(extents=(4.0, 1.8, 1.4))
+    plates = [trimesh.creation.box(extents=(0.1, 0.25, 0.15),
+                                   transform=trimesh.transformations.translation_matrix((1.2, side * 1.025, 0.3)))
+              for side in (-1, 1)]
+    mesh = trimesh.util.concatenate([body, *plates])
+    truth = np.array([4.0, 2.3, 1.4])
+    rng = np.random.default_rng(12)
+    points, _ = trimesh.sample.sample_surface(mesh, 20000, seed=12)
+    points += rng.normal(scale=0.005 * np.linalg.norm(truth), size=points.shape)
+    floaters = rng.random(len(points)) < 0.1
+    points[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * truth
+    rotation = random_rotation(rng)
+    found = align_axes(points @ rotation.T + [50.0, -20.0, 3.0], up=rotation[:, 2], refine=True)
+    assert error_degrees(found.transform[:3, :3], rotation.T) < 0.5
+    np.testing.assert_allclose(found.dims, truth, rtol=0.01)
+
+
+# ---- issue 18's targets, a seeded loop over random poses -------------------------------
+
+def signed_up_degrees(found, rotation) -> float:
+    """Angle between the found and the true up, the sign counted (upside down: 180)."""
+    return float(np.degrees(np.arccos(np.clip(found.transform[2, :3] @ rotation[:, 2], -1, 1))))
+
+
+TARGET_OBJECTS = (*MINORITY_CLASSES, *(f"chrono_vehicles/data/vehicle/{m}" for m in CHRONO if "tire" not in m))
+# Clouds whose axes the refinement does not yet bring within the targets at 0.5 % noise
+# (curved car bodies, a bicycle's tubes; bench/alignment.md): strict, so a fix shows.
+CLOUD_SHORT = {"bicycle", *(f"chrono_vehicles/data/vehicle/{m}" for m in (
+    "Nissan_Patrol/suv_chassis.obj", "sedan/sedan_chassis_vis.obj", "MAN_Kat1/meshes/MAN_10t_chassis.obj",
+    "VW_microbus/van_chassis.obj"))}
+
+
+@pytest.mark.parametrize("name", TARGET_OBJECTS)
+def test_targets_on_meshes_in_random_poses(shared_data, name):
+    """The mesh itself (vertices and faces), three random poses 2 km away: with a prior
+    up to 10 degrees off the axes within 0.5 degrees and the box within 1 %; without a
+    prior up within 1 degree, its sign counted."""
+    mesh = sample_vehicle(name).trimesh() if name in MINORITY_CLASSES else trimesh.load(shared_data / name, force="mesh")
+    for seed in range(3):
+        rng = np.random.default_rng([seed, 18])
+        rotation = random_rotation(rng)
+        vertices = mesh.vertices @ rotation.T + rng.normal(scale=2000.0, size=3)
+        prior = align_axes(vertices, up=tilted(rotation[:, 2], rng.uniform(0, 10), rng), faces=mesh.faces, refine=True)
+        assert error_degrees(prior.transform[:3, :3], rotation.T) < 0.5
+        assert np.abs(np.sort(prior.dims[:2]) / np.sort(mesh.extents[:2]) - 1).max() < 0.01
+        assert abs(prior.dims[2] / mesh.extents[2] - 1) < 0.01
+        free = align_axes(vertices, faces=mesh.faces, refine=True)
+        assert signed_up_degrees(free, rotation) < 1.0
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(strict=True, reason="issue 18: not reached"))
+                                  if n in CLOUD_SHORT else n for n in TARGET_OBJECTS])
+def test_targets_on_noisy_clouds_in_random_poses(shared_data, name):
+    """20,000 surface points, 0.5 % noise (x box diagonal), 10 % floaters, three random
+    poses: with a prior up to 10 degrees off the axes within 0.5 degrees; without one up
+    within 1 degree, its sign counted."""
+    for seed in range(3):
+        source, rotation, _, rng = posed_cloud(name, 1800 + seed, 0.005, 0.1)
+        prior = align_axes(source, up=tilted(rotation[:, 2], rng.uniform(0, 10), rng), refine=True)
+        assert error_degrees(prior.transform[:3, :3], rotation.T) < 0.5
+        assert signed_up_degrees(align_axes(source, refine=True), rotation) < 1.0

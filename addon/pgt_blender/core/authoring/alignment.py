@@ -40,9 +40,11 @@ and the correction is reported as ``tilt_deg``; with no prior the start is
 perpendicular to it, which needs no PCA and no source axis. Which refined axis is up
 then: x is the longest extent, y the axis across which the object is mirror-symmetric
 (:func:`mirror_error`: left and right of a vehicle match, top and bottom do not), z the
-third, its sign from the third moment as without refinement. The sign of up is not
-reliable from geometry alone (a bus is nearly as heavy at the top as at the bottom):
-without a prior, up is found as an axis and its sign is the documented symmetry. Shapes
+third, its sign from the third moment as without refinement (cabins and greenhouses
+narrow upwards); where the third moment does not tell (a box-shaped bus), from the wheels
+(:func:`_wheels_down`: the end band covering far less of the length is the bottom), else
+the source +z. The up sign without a prior is a property of vehicles, not of geometry in
+general: an upside-down box is a box. Shapes
 without enough planar structure (less than ``MIN_PLANAR_SHARE`` of the weight assigned
 to an axis: spheres, cylinders) keep the unrefined frame (``refined`` is False).
 
@@ -52,7 +54,11 @@ moved towards its neighbourhood plane by at most six times the estimated noise (
 sampling of flat faces, which then moves nothing), so noise inflates the box less
 while thin parts with too few points for a plane stay where they are. A side where a
 wall faces outwards is then the median of the wall's points, not their extreme
-(:func:`_surface_bounds`). What is left: the plane fit pulls a convex end (a tyre's
+(:func:`_surface_bounds`). Thin real parts that stick out of the body (mirrors, a few
+dozen points of 20,000) are neither trimmed by quantile nor cut at the wall: the points
+beyond a side's noise band (``PROTRUSION_BAND`` x noise) that have neighbours among
+themselves at the sampling's scale are a surface, and the side moves out to them
+(:func:`_protrusion`); floaters, spread over a volume, stay isolated. What is left: the plane fit pulls a convex end (a tyre's
 contact patch, a handlebar end) inwards by its sagitta over the neighbourhood, about 1
 to 2 % of the height or width at 0.5 % noise (bench/alignment.md).
 
@@ -78,6 +84,13 @@ MIRROR_SAMPLE = 4000
 FACING_DEG = 30.0
 SIDE_BAND = 2.0
 WALL_RATIO = 2.0
+PROTRUSION_BAND = 2.5
+WHEEL_BAND = 0.05
+MESH_SAMPLES = 20000
+LENGTH_BINS = 50
+WHEEL_COVER_RATIO = 0.5
+PROTRUSION_RADIUS = 3.0
+PROTRUSION_NEIGHBOURS = 4
 
 
 @dataclass
@@ -198,7 +211,11 @@ def align_axes(positions, weights=None, up=None, source="points", refine: bool =
         refined, share = refine_to_planes(start, surface.normals, planar)
         if share >= MIN_PLANAR_SHARE:
             if up is None:
-                refined = _label_axes(refined, surface.denoised, kept_weights)
+                # a mesh's vertices crowd where it has detail: its moments are its surface's
+                label_points, label_weights = ((surface.samples, np.ones(len(surface.samples))) if is_mesh
+                                               else (surface.denoised, kept_weights))
+                label_points = label_points - np.average(label_points, axis=0, weights=label_weights)
+                refined = _label_axes(refined, label_points, label_weights)
                 up_from = "planes"
             else:
                 refined = _length_first(refined, surface.denoised, kept_weights)
@@ -210,7 +227,8 @@ def align_axes(positions, weights=None, up=None, source="points", refine: bool =
     if box_normals is None:
         low, high = _trimmed_bounds(box_points @ rotation.T, box_trim)
     else:
-        low, high = _surface_bounds(box_points @ rotation.T, box_normals @ rotation.T, extra["noise"])
+        low, high = _surface_bounds(box_points @ rotation.T, box_normals @ rotation.T, extra["noise"],
+                                    kept @ rotation.T)
     centre = (low + high) / 2
     transform = np.eye(4)
     transform[:3, :3] = rotation
@@ -229,12 +247,15 @@ class SurfaceEstimate:
     denoised:  (N, 3) points moved towards their plane by at most 6 x ``noise``.
     noise:     the surface noise, the 10th percentile of sqrt(l1) over the points (flat
                patches exist on every vehicle; their out-of-plane spread is the noise).
+    samples:   (MESH_SAMPLES, 3) points spread evenly over a mesh's area (None for a
+               cloud): its moments, which the vertices (dense where the detail is) are not.
     """
 
     normals: np.ndarray
     planarity: np.ndarray
     denoised: np.ndarray
     noise: float
+    samples: np.ndarray | None = None
 
 
 def surface_estimate(points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) -> SurfaceEstimate:
@@ -260,7 +281,8 @@ def surface_estimate(points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) ->
 def mesh_surface(kept: np.ndarray, vertices: np.ndarray, faces, source="points") -> SurfaceEstimate:
     """The surface of a mesh: unit face normals of ``vertices`` (V, 3) with planarity
     sqrt(area / largest area) (so the weight, planarity squared, is the relative area),
-    the ``kept`` (N, 3) vertices as they are and noise 0."""
+    the ``kept`` (N, 3) vertices as they are, noise 0 and ``MESH_SAMPLES`` points
+    uniform over the area (seeded, so deterministic)."""
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= len(vertices):
         raise InputError(source, f"faces must be (F, 3) indices into {len(vertices)} vertices")
@@ -269,7 +291,14 @@ def mesh_surface(kept: np.ndarray, vertices: np.ndarray, faces, source="points")
     area = np.linalg.norm(cross, axis=1)
     used = area > 0
     normals = cross[used] / area[used, None]
-    return SurfaceEstimate(normals, np.sqrt(area[used] / area.max()), kept, 0.0)
+    rng = np.random.default_rng(0)  # fixed: the same mesh gives the same frame
+    face = rng.choice(len(area), MESH_SAMPLES, p=area / area.sum())
+    u, v = rng.random((2, MESH_SAMPLES))
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    edges = corners[face, 1:] - corners[face, :1]
+    samples = corners[face, 0] + u[:, None] * edges[:, 0] + v[:, None] * edges[:, 1]
+    return SurfaceEstimate(normals, np.sqrt(area[used] / area.max()), kept, 0.0, samples)
 
 
 def refine_to_planes(rotation: np.ndarray, normals: np.ndarray, weights: np.ndarray,
@@ -359,9 +388,30 @@ def _label_axes(rotation, points, weights) -> np.ndarray:
     others = [row for row in range(3) if row != x_row]
     errors = [mirror_error(points, rotation[row]) for row in others]
     z_row = others[int(np.argmax(errors))]
-    z = _signed(rotation[z_row], points, weights, np.array([0.0, 0.0, 1.0]))
     x = _signed(rotation[x_row], points, weights, np.array([1.0, 0.0, 0.0]))
+    z = _signed(rotation[z_row], points, weights, _wheels_down(rotation[z_row], x, points))
     return np.stack([x, np.cross(z, x), z])
+
+
+def _wheels_down(axis, x, points) -> np.ndarray:
+    """``axis`` or ``-axis``, whichever points away from the wheels, for the up sign of a
+    shape whose third moment does not tell (a box-shaped bus or trailer); else the
+    source +z. Wheels touch the ground at a few places along the length while a roof
+    runs along all of it: of the two end bands along ``axis`` (``WHEEL_BAND`` of the
+    extent), the one whose points cover at most half as many of ``LENGTH_BINS`` bins
+    along ``x`` as the other's is the bottom. (A chassis without wheels has a floor
+    there instead; its third moment decides, as cabins and greenhouses narrow upwards.)"""
+    along, length = points @ axis, points @ x
+    (low, high), (start, stop) = (np.percentile(values, [0.1, 99.9]) for values in (along, length))
+    band = WHEEL_BAND * (high - low)
+    bins = np.clip(((length - start) / max(stop - start, np.finfo(float).tiny) * LENGTH_BINS).astype(int),
+                   0, LENGTH_BINS - 1)
+    bottom, top = (len(np.unique(bins[mask])) for mask in (along <= low + band, along >= high - band))
+    if top <= WHEEL_COVER_RATIO * bottom:
+        return -axis
+    if bottom <= WHEEL_COVER_RATIO * top:
+        return axis
+    return np.array([0.0, 0.0, 1.0])
 
 
 def _trimmed_bounds(local: np.ndarray, share: float = BOX_TRIM) -> tuple:
@@ -374,14 +424,17 @@ def _trimmed_bounds(local: np.ndarray, share: float = BOX_TRIM) -> tuple:
     return ordered[trim], ordered[len(local) - 1 - trim]
 
 
-def _surface_bounds(local: np.ndarray, normals: np.ndarray, noise: float) -> tuple:
+def _surface_bounds(local: np.ndarray, normals: np.ndarray, noise: float, raw: np.ndarray) -> tuple:
     """Per-axis (low, high) of a denoised noisy surface ``local`` (N, 3) with its
-    ``normals`` (N, 3), same frame. A side where a wall faces outwards (the points
-    whose normal is within ``FACING_DEG`` of the axis crowd into the outer band,
-    ``SIDE_BAND`` x ``noise`` wide, at least ``WALL_RATIO`` times as many as in the
-    band inside it) is the median of that crowd: denoised points still scatter about
-    a wall, so their extreme lies outside it. Other sides (wheels, rounded ends) keep
-    the trimmed extreme."""
+    ``normals`` (N, 3), same frame, ``noise`` the surface noise (source units).
+
+    First the body: a side where a wall faces outwards (the points whose normal is
+    within ``FACING_DEG`` of the axis crowd into the outer band, ``SIDE_BAND`` x
+    ``noise`` wide, at least ``WALL_RATIO`` times as many as in the band inside it) is
+    the median of that crowd (denoised points still scatter about a wall, so their
+    extreme lies outside it); other sides keep the trimmed extreme. Then what sticks
+    out of the body (:func:`_protrusion`): thin real parts (mirrors, handles) that the
+    trim or the wall median cut off, told from floaters by being a cluster."""
     low, high = _trimmed_bounds(local)
     facing = np.abs(normals) > np.cos(np.radians(FACING_DEG))
     band = SIDE_BAND * noise
@@ -394,7 +447,43 @@ def _surface_bounds(local: np.ndarray, normals: np.ndarray, noise: float) -> tup
             inner = np.count_nonzero((outward < edge - band) & (outward >= edge - 2 * band))
             if len(outer) >= 1 / BOX_TRIM and len(outer) >= WALL_RATIO * inner:
                 bounds[axis] = sign * np.median(outer)
+    spacing = _spacing(raw)
+    for axis in range(3):
+        for sign, bounds in ((1, high), (-1, low)):
+            bounds[axis] = sign * _protrusion(sign * raw[:, axis], raw, sign * bounds[axis],
+                                              PROTRUSION_BAND * noise, spacing)
     return low, high
+
+
+def _spacing(points: np.ndarray) -> float:
+    """Median distance (source units) from a point of ``points`` (N, 3) to its nearest
+    distinct neighbour: the sampling's scale."""
+    from scipy.spatial import cKDTree
+
+    distances, _ = cKDTree(points).query(points, k=2, workers=-1)
+    return float(np.median(distances[:, 1]))
+
+
+def _protrusion(outward: np.ndarray, points: np.ndarray, edge: float, band: float, spacing: float) -> float:
+    """The side ``edge`` (a coordinate along ``outward``, (N,) the points' coordinates
+    increasing away from the body) moved out to a protrusion when there is one.
+
+    Candidates are the points beyond the edge's noise ``band``; a candidate is part of
+    a real surface when at least ``PROTRUSION_NEIGHBOURS`` other candidates lie within
+    ``PROTRUSION_RADIUS`` x ``spacing`` of it (a surface sampled at that spacing has
+    its neighbours there; floaters, spread over a volume, seldom do: at 10 % floaters
+    in a box 1.5x the object's their density is about 1/50 of a surface's). The side is
+    then the second most outward such point (one stray cluster member aside). Floaters
+    within the band of a wall remain and widen the box by at most the band."""
+    from scipy.spatial import cKDTree
+
+    beyond = outward > edge + band
+    if np.count_nonzero(beyond) <= PROTRUSION_NEIGHBOURS:
+        return edge
+    candidates = points[beyond]
+    counts = cKDTree(candidates).query_ball_point(candidates, PROTRUSION_RADIUS * spacing, return_length=True)
+    clustered = np.sort(outward[beyond][counts > PROTRUSION_NEIGHBOURS])
+    return float(clustered[-2]) if len(clustered) >= 2 else edge
 
 
 def _weighted_cov(points, weights) -> np.ndarray:
