@@ -518,3 +518,29 @@ def test_glass_is_named_or_transparent_and_faint_splats_are_seen_through(donut):
     assert target.see_through is not None and target.see_through.sum() == faint.sum() > 0
     scan = cast_rays(target, FAR_NUSCENES, pose(6.0, 0.0, 0.0), ScanOptions())
     assert scan.hits > 100 and not faint[scan.returns["face"]].any()
+
+
+@pytest.mark.parametrize("engine", ["bvh", "embree"])
+def test_a_stretched_target_scans_as_the_mesh_stretched(sample_truck, engine):
+    """A size variant is the target's rays stretched (trace_rays' ``scale``), not a new
+    target: it returns the hits of the mesh whose vertices are scaled, on the same cells,
+    with the same ranges and incidences (float32 geometry apart), from every side and
+    over moving sweeps."""
+    scale = np.array([1.08, 0.93, 1.04])
+    mesh = sample_vehicle("truck").trimesh()
+    stretched = mesh_target(mesh.vertices * scale, mesh.faces, name="stretched")
+    rng = np.random.default_rng(3)
+    for _ in range(6):
+        distance, azimuth, heading = rng.uniform(5, 40), rng.uniform(-np.pi, np.pi), rng.uniform(-np.pi, np.pi)
+        x, y = distance * np.cos(azimuth), distance * np.sin(azimuth)
+        by_rays = scan_sweeps(sample_truck, NUSCENES, x, y, heading, Motion(6.0), 3, ScanOptions(engine=engine),
+                              scale=scale)
+        by_mesh = scan_sweeps(stretched, NUSCENES, x, y, heading, Motion(6.0), 3, ScanOptions(engine=engine))
+        assert by_rays.hits > 100
+        np.testing.assert_allclose(by_rays.box, by_mesh.box, atol=1e-12)
+        same = np.isin(by_rays.returns[["sweep", "ring", "column"]], by_mesh.returns[["sweep", "ring", "column"]])
+        assert same.mean() > 0.995  # a ray through a shared edge may pick the other side
+        rows, others = by_rays.returns[same], by_mesh.returns[np.isin(
+            by_mesh.returns[["sweep", "ring", "column"]], by_rays.returns[["sweep", "ring", "column"]])]
+        assert np.abs(rows["range"] - others["range"]).max() < 1e-5
+        assert np.abs(rows["intensity"] - others["intensity"]).max() <= 1.0  # whole numbers, the cosine's rounding

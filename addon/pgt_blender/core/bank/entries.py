@@ -8,16 +8,15 @@ returns all stay (a surface on the box's face would otherwise lose half its retu
 noise, while a real annotated box has room around the object), so kept points may lie
 outside the box by the range noise (sigma 2 cm on the presets).
 
-The target (BVH, or Gaussians for a splat) of each size variant is built once per
-worker and reused for every pose: ``TargetCache``.
+The target (BVH / Embree scene, or Gaussians for a splat) of each object is built once
+per worker and reused for every pose and size variant: ``TargetCache``.
 """
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..boxes import inside_box
 from ..scan.raycast import Ground, ScanOptions
 from ..scan.sweeps import Motion, scan_many
 from ..scan.gaussians import transform_gaussians
@@ -29,10 +28,23 @@ from .inputs import BankObject
 BOX_TOLERANCE = 1e-3  # m: a return on the box's faces counts as inside despite rounding
 
 
+@dataclass(frozen=True)
+class Variant:
+    """A size variant of a bank object: the ScanTarget to cast on, the variant's box
+    ``bounds`` (2, 3), object frame, m, and ``scale`` (3,): the variant is the target
+    stretched by it along the object's axes (raycast.trace_rays), or None when the
+    target is the variant's own (splats, whose Gaussians are stretched as such)."""
+
+    target: object
+    bounds: np.ndarray
+    scale: np.ndarray | None
+
+
 class TargetCache:
-    """ScanTargets of (object, size variant), built on first use (without Blender's BVH
-    for the Embree engine); holds one object's variants at a time (entries come object
-    by object)."""
+    """The size variants of each object, made on first use (targets without Blender's
+    BVH for the Embree engine): one target per object serves all its variants (each a
+    stretch of its rays), one per variant for splats; holds one object at a time
+    (entries come object by object)."""
 
     def __init__(self, objects: list, config: BankConfig):
         self.objects, self.config = objects, config
@@ -43,23 +55,28 @@ class TargetCache:
         if object_index != self._object:
             self._object, self._targets, self._rgb = object_index, {}, None
 
-    def get(self, object_index: int, variant: int) -> tuple:
-        """(ScanTarget, box bounds (2, 3)) of the variant, object frame, metres."""
+    def get(self, object_index: int, variant: int) -> Variant:
+        """The object's size variant ``variant``."""
         self._switch(object_index)
-        if variant not in self._targets:
+        obj: BankObject = self.objects[object_index]
+        dims = size_variants(self.config, object_index, obj.dims)[variant]
+        bounds = np.stack([-dims / 2, dims / 2])
+        if not has_gaussians(obj.geometry.attributes):
+            return Variant(self._target(None, obj.geometry), bounds, dims / obj.dims)
+        scale = (dims / obj.dims).astype(np.float32)
+        shapes = transform_gaussians(obj.geometry.attributes["scale"], obj.geometry.attributes["rotation"],
+                                     np.diag(scale.astype(np.float64)))  # the splats stretch with their means
+        geometry = replace(obj.geometry, positions=obj.geometry.positions * scale,
+                           attributes={**obj.geometry.attributes, "scale": shapes[0], "rotation": shapes[1]})
+        return Variant(self._target(variant, geometry), bounds, None)
+
+    def _target(self, key, geometry):
+        if key not in self._targets:
             start = time.perf_counter()
-            obj: BankObject = self.objects[object_index]
-            dims = size_variants(self.config, object_index, obj.dims)[variant]
-            scale = (dims / obj.dims).astype(np.float32)
-            geometry = replace(obj.geometry, positions=obj.geometry.positions * scale)
-            if has_gaussians(geometry.attributes):  # the splats stretch with their means
-                shapes = transform_gaussians(geometry.attributes["scale"], geometry.attributes["rotation"],
-                                             np.diag(scale.astype(np.float64)))
-                geometry.attributes = {**geometry.attributes, "scale": shapes[0], "rotation": shapes[1]}
-            target = target_from_reconstruction(geometry, self.config.radius_scale, self.config.engine == "bvh")
-            self._targets[variant] = (target, np.stack([-dims / 2, dims / 2]))
+            self._targets[key] = target_from_reconstruction(geometry, self.config.radius_scale,
+                                                            self.config.engine == "bvh")
             self.build_seconds += time.perf_counter() - start
-        return self._targets[variant]
+        return self._targets[key]
 
     def element_rgb(self, object_index: int) -> np.ndarray:
         """(E, 3) float32 sRGB of what a return's ``face`` indexes (targets.element_colors),
@@ -71,9 +88,9 @@ class TargetCache:
 
 
 def scan_entries(cache: TargetCache, sensor, entries: np.ndarray, config: BankConfig) -> list:
-    """[(Scan of every sweep, (N,) bool mask of its returns inside the current box)] of
-    grid.ENTRY_DTYPE rows, in their order; ``scan.box`` is the (9,) box, sensor frame.
-    The entries of each (object, size variant) are cast together (sweeps.scan_many)."""
+    """The Scan of every sweep of each grid.ENTRY_DTYPE row, in their order, its returns
+    those inside the current box (``scan.box``, (9,) sensor frame). The entries of each
+    (object, size variant) are cast together (sweeps.scan_many)."""
     options = ScanOptions(range_noise=config.range_noise, max_incidence_deg=config.max_incidence_deg,
                           drop_rate=config.drop_rate, ray_drop=config.ray_drop, engine=config.engine)
     scans = [None] * len(entries)
@@ -81,11 +98,12 @@ def scan_entries(cache: TargetCache, sensor, entries: np.ndarray, config: BankCo
     for pair in np.unique(pairs):
         index = np.flatnonzero(pairs == pair)
         batch = entries[index]
-        target, bounds = cache.get(int(pair["object"]), int(pair["variant"]))
-        found = scan_many(target, sensor, batch["x"], batch["y"], batch["heading"],
+        variant = cache.get(int(pair["object"]), int(pair["variant"]))
+        found = scan_many(variant.target, sensor, batch["x"], batch["y"], batch["heading"],
                           Motion(batch["speed"], batch["acceleration"]), sweeps_of(config), options,
-                          batch["noise_seed"], bounds, BOX_TOLERANCE, Motion(batch["ego_speed"], batch["ego_acceleration"]),
-                          Ground(batch["ground_height"], batch["pitch"], batch["roll"]))
+                          batch["noise_seed"], variant.bounds, BOX_TOLERANCE,
+                          Motion(batch["ego_speed"], batch["ego_acceleration"]),
+                          Ground(batch["ground_height"], batch["pitch"], batch["roll"]), variant.scale)
         for position, scan in zip(index, found):
-            scans[position] = (scan, inside_box(scan.true_xyz, scan.box, BOX_TOLERANCE))
+            scans[position] = scan
     return scans

@@ -173,15 +173,15 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
     built = cache.build_seconds
     scans = scan_entries(cache, sensor, entries, config)
     seconds["targets"] = cache.build_seconds - built
-    seconds["casts"] = sum(scan.cast_seconds for scan, _ in scans)
+    seconds["casts"] = sum(scan.cast_seconds for scan in scans)
     lap("scans")
     seconds["scans"] -= seconds["targets"]
     for fmt in config.formats:
         (job.out / fmt / DATABASE_FOLDER).mkdir(parents=True, exist_ok=True)
     intensities = {}
-    for row, entry, (scan, keep) in zip(stats, entries, scans):
+    for row, entry, scan in zip(stats, entries, scans):
         obj: BankObject = job.objects[entry["object"]]
-        rows = scan.returns[keep]
+        rows = scan.returns
         row["object"], row["index"], row["heading"] = entry["object"], entry["index"], entry["heading"]
         row["x"], row["y"], row["points"] = scan.box[0], scan.box[1], len(rows)
         row["kept"] = len(rows) >= config.min_points
@@ -190,7 +190,7 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
         if config.constant_intensity is not None:
             rows["intensity"] = config.constant_intensity
         elif config.intensity_checkpoint:
-            rows["intensity"] = _learned_intensity(config, cache, entry, obj, scan, keep)
+            rows["intensity"] = _learned_intensity(config, cache, entry, obj, scan)
             lap("intensity")
         class_name = job.class_names[entry["object"]]
         name = f"{safe_name(obj.name)}_{safe_name(class_name)}_{int(entry['index']):05d}.bin"
@@ -232,8 +232,8 @@ def _estimator(config: BankConfig):
     return _estimators[config.intensity_checkpoint]
 
 
-def _learned_intensity(config: BankConfig, cache: TargetCache, entry, obj: BankObject, scan, keep) -> np.ndarray:
-    """The estimator's intensities (dataset scale) for the kept returns
+def _learned_intensity(config: BankConfig, cache: TargetCache, entry, obj: BankObject, scan) -> np.ndarray:
+    """The estimator's intensities (dataset scale) for the scan's returns
     (intensity/estimator.scan_intensity). One object per call: the same numbers whatever
     the chunking."""
     import torch
@@ -241,9 +241,9 @@ def _learned_intensity(config: BankConfig, cache: TargetCache, entry, obj: BankO
     from ..intensity.estimator import scan_intensity
 
     torch.set_num_threads(1)  # float sums in a fixed order: the same bytes on any machine load
-    _, bounds = cache.get(int(entry["object"]), int(entry["variant"]))
+    bounds = cache.get(int(entry["object"]), int(entry["variant"])).bounds
     values, _ = scan_intensity(scan, bounds, cache.element_rgb(int(entry["object"])), obj.class_name,
-                               _estimator(config), keep, obj.name)
+                               _estimator(config), name=obj.name)
     return values
 
 

@@ -7,9 +7,10 @@
     OUT/.work/chunks/<chunk>.json               one chunk's infos, file checksums and statistics (records.py)
 
 A chunk is done exactly when its record exists (its entry files are written first, then
-the record, atomically; a chunk cut short is redone whole): a folder is made ready once (``prepare_folder``), its pending chunks are
-those without a whole record, shards' records are copied in, and every reader of
-``.work`` goes through here with one error policy (InputError naming the file).
+the record, atomically; a chunk cut short is redone whole): a folder is made ready once
+(``prepare_folder``), its pending chunks are those without a whole record, shards'
+records are copied in, and every reader of ``.work`` goes through here with one error
+policy (InputError naming the file).
 """
 
 import hashlib

@@ -130,10 +130,13 @@ def placement(bounds: np.ndarray, sensor: Sensor, x, y, heading, ground: Ground 
 
 
 def placed_box(bounds: np.ndarray, sensor_from_object: np.ndarray, velocity=(0.0, 0.0)) -> np.ndarray:
-    """(9,) OpenPCDet box x, y, z, dx, dy, dz, heading, vx, vy of ``bounds`` placed."""
-    centre = sensor_from_object[:3, :3] @ bounds.mean(axis=0) + sensor_from_object[:3, 3]
-    heading = np.arctan2(sensor_from_object[1, 0], sensor_from_object[0, 0])
-    return np.array([*centre, *(bounds[1] - bounds[0]), heading, *velocity])
+    """(9,) OpenPCDet box x, y, z, dx, dy, dz, heading, vx, vy of ``bounds`` placed by
+    ``sensor_from_object`` (4, 4); (E, 4, 4) poses and (E, 2) velocities give (E, 9)."""
+    centre = sensor_from_object[..., :3, :3] @ bounds.mean(axis=0) + sensor_from_object[..., :3, 3]
+    heading = np.arctan2(sensor_from_object[..., 1, 0], sensor_from_object[..., 0, 0])
+    velocity = np.broadcast_to(velocity, centre.shape[:-1] + (2,))
+    dims = np.broadcast_to(bounds[1] - bounds[0], centre.shape)
+    return np.concatenate([centre, dims, heading[..., None], velocity], axis=-1)
 
 
 _MISS = (-1, 0.0)
@@ -208,15 +211,17 @@ def window_cells(sensor: Sensor, first_ring, rings, first_column, columns) -> np
     return column[index] + np.repeat(ring * sensor.columns, width)
 
 
-def _in_object_frame(poses: np.ndarray, sizes: np.ndarray, cells: np.ndarray, sensor: Sensor) -> tuple:
-    """Ray origins (M, 3) and unit directions (M, 3), object frame, float64, of ``cells``
-    (M,) cast from ``poses`` (T, 4, 4), ``sizes[t]`` rays from pose t: written out
-    elementwise (no BLAS), so a ray's bits depend on its pose and cell only, never on
-    its batch."""
+def _in_object_frame(poses: np.ndarray, sizes: np.ndarray, cells: np.ndarray, sensor: Sensor,
+                     stretch: np.ndarray) -> tuple:
+    """Ray origins (M, 3) and directions (M, 3), float64, of ``cells`` (M,) cast from
+    ``poses`` (T, 4, 4), ``sizes[t]`` rays from pose t, in the object frame shrunk by
+    ``stretch`` (3,) (the frame of a target that the object is stretched from; the
+    directions are unit ones over stretch). Written out elementwise (no BLAS), so a
+    ray's bits depend on its pose and cell only, never on its batch."""
     rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
-    sensor_origin = -np.einsum("tji,tj->ti", rotation, translation)
+    sensor_origin = -np.einsum("tji,tj->ti", rotation, translation) / stretch
     x, y, z = (axis[cells] for axis in sensor.direction_axes)
-    columns = [[np.repeat(rotation[:, row, i], sizes) for row in range(3)] for i in range(3)]
+    columns = [[np.repeat(rotation[:, row, i] / stretch[i], sizes) for row in range(3)] for i in range(3)]
     directions = np.column_stack([x * c[0] + y * c[1] + z * c[2] for c in columns])
     origins = np.repeat(sensor_origin, sizes, axis=0)
     if sensor.cell_origins is not None:
@@ -239,12 +244,15 @@ def _meets_box(origins: np.ndarray, directions: np.ndarray, boxes: np.ndarray, f
     return enter <= leave
 
 
-def rays_to_cast(sensor: Sensor, cast_bounds: np.ndarray, poses: np.ndarray, window: bool = True) -> tuple:
+def rays_to_cast(sensor: Sensor, cast_bounds: np.ndarray, poses: np.ndarray, window: bool = True,
+                 stretch: np.ndarray = np.ones(3)) -> tuple:
     """The rays of the poses ``poses`` (T, 4, 4) sensor_from_object: (pose (M,), cells
-    (M,), origins (M, 3), unit directions (M, 3)), object frame, float64, pose by pose
-    and cells ascending. ``window``: the cells of the angular window of the padded
-    ``cast_bounds`` (T, 2, 3) (lasers off the origin widen it by their offset); else every
-    cell. Poses whose cast box is empty (a max below its min) cast nothing."""
+    (M,), origins (M, 3), directions (M, 3)), float64, pose by pose and cells
+    ascending, in the object frame shrunk by ``stretch`` (_in_object_frame: unit
+    directions without one). ``window``: the cells of the angular window of the padded
+    ``cast_bounds`` (T, 2, 3), object frame (lasers off the origin widen it by their
+    offset); else every cell. Poses whose cast box is empty (a max below its min) cast
+    nothing."""
     if window:
         widened = cast_bounds + np.array([[-1.0], [1.0]]) * sensor.max_origin_offset
         blocks = cell_window(sensor, widened, poses)
@@ -255,20 +263,23 @@ def rays_to_cast(sensor: Sensor, cast_bounds: np.ndarray, poses: np.ndarray, win
                   np.full(count, sensor.columns))
     sizes = blocks[1] * blocks[3]
     cells = window_cells(sensor, *blocks)
-    return (np.repeat(np.arange(len(poses)), sizes), cells, *_in_object_frame(poses, sizes, cells, sensor))
+    return (np.repeat(np.arange(len(poses)), sizes), cells,
+            *_in_object_frame(poses, sizes, cells, sensor, stretch))
 
 
-def _refined_ranges(planes: np.ndarray, origin: np.ndarray, directions: np.ndarray, bvh_range: np.ndarray):
-    """Ranges of hits solved in float64 on the hit polygon's plane (the BVH's float32
-    distance is off by up to a few micrometres at 100 m), and the cosine of incidence.
-    Near-grazing hits, where the plane solve is ill-conditioned, keep the BVH's range."""
+def _refined_ranges(planes: np.ndarray, origins: np.ndarray, directions: np.ndarray, engine_range: np.ndarray):
+    """Ranges of hits solved in float64 on the hit polygon's plane (n . x = offset,
+    ``planes`` (H, 4)) along ``origins`` + range x ``directions`` (the engine's float32
+    distance is off by up to a few micrometres at 100 m), and n . direction. Near-grazing
+    hits, where the plane solve is ill-conditioned, keep the engine's range."""
     # Written out, not BLAS: a ray's bits must not depend on the batch it is in.
-    cos_incidence = planes[:, 0] * directions[:, 0] + planes[:, 1] * directions[:, 1] + planes[:, 2] * directions[:, 2]
-    height = planes[:, 3] - (planes[:, 0] * origin[:, 0] + planes[:, 1] * origin[:, 1] + planes[:, 2] * origin[:, 2])
+    along = planes[:, 0] * directions[:, 0] + planes[:, 1] * directions[:, 1] + planes[:, 2] * directions[:, 2]
+    height = planes[:, 3] - (planes[:, 0] * origins[:, 0] + planes[:, 1] * origins[:, 1]
+                             + planes[:, 2] * origins[:, 2])
     with np.errstate(divide="ignore", invalid="ignore"):
-        solved = height / cos_incidence
-    usable = (np.abs(cos_incidence) > 1e-3) & (np.abs(solved - bvh_range) < 1e-3 * (1 + bvh_range))
-    return np.where(usable, solved, bvh_range), cos_incidence
+        solved = height / along
+    usable = (np.abs(along) > 1e-3) & (np.abs(solved - engine_range) < 1e-3 * (1 + engine_range))
+    return np.where(usable, solved, engine_range), along
 
 
 @dataclass(frozen=True)
@@ -294,44 +305,71 @@ class Trace:
 
 
 def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bool = True,
-               cast_bounds: np.ndarray | None = None, engine: str = "bvh") -> Trace:
+               cast_bounds: np.ndarray | None = None, engine: str = "bvh", scale: np.ndarray | None = None) -> Trace:
     """Cast the rays of ``target`` placed by each of ``poses`` (T, 4, 4) sensor_from_object
     (or one (4, 4)) through ``engine``, all poses in one engine call (Gaussian targets:
-    gaussians.gaussian_hits, pose by pose, the same for every engine). With
-    ``cast_bounds`` ((T, 2, 3) or (2, 3), object frame) only the hits inside that padded
-    box count (a scan that wants part of the object), and the window is that box's."""
+    gaussians.gaussian_hits, pose by pose, the same for every engine). ``cast_bounds``
+    ((T, 2, 3) or (2, 3), object frame; default the geometry's): only the rays of that
+    box's window are cast (a scan that wants part of the object: its window's hits
+    anywhere on the geometry are returned; sweeps.scan_many crops them to the box).
+
+    ``scale`` (3,): the target stretched by it along its axes (a size variant of one
+    target: positions x scale; not for Gaussian targets). The rays are cast in the
+    target's own frame, origin / scale along direction / scale, which keeps the ray
+    parameter of a hit: its range in metres (the BVH casts along the unit direction, its
+    distance is divided by that direction's length); the incidence is the stretched
+    normal's, (n . direction / scale) / |n / scale|."""
     sensor.directions  # the cached ray table: built on first use, kept out of the timing
     start = time.perf_counter()
     poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
-    part = cast_bounds is not None
-    cast_bounds = np.broadcast_to(target.cast_bounds if cast_bounds is None else cast_bounds, (len(poses), 2, 3))
-    pose, cells, origins, directions = rays_to_cast(sensor, cast_bounds, poses, window)
-    if engine == "bvh" and len(cells):  # one Python call per ray: a slab test first costs far less
-        inside = _meets_box(origins, directions, _padded(cast_bounds)[pose], sensor.max_range)
+    stretch = np.ones(3) if scale is None else np.asarray(scale, np.float64)
+    whole = target.cast_bounds * stretch
+    cast_bounds = np.broadcast_to(whole if cast_bounds is None else cast_bounds, (len(poses), 2, 3))
+    pose, cells, origins, directions = rays_to_cast(sensor, cast_bounds, poses, window, stretch)
+    if engine == "bvh" and len(cells):
+        # One Python call per ray: a slab test first costs far less. Only against the
+        # whole geometry's box, the same hits: every engine casts a part's whole window.
+        whole_pose = np.all(cast_bounds == whole, axis=(1, 2))[pose]
+        inside = ~whole_pose | _meets_box(origins, directions, _padded(target.cast_bounds)[None], sensor.max_range)
         pose, cells, origins, directions = pose[inside], cells[inside], origins[inside], directions[inside]
     rays = np.bincount(pose, minlength=len(poses))
     engine_start = time.perf_counter()
     if target.gaussians is not None:  # splats: their own compositing, whatever the engine
+        if scale is not None:
+            raise ValueError("a Gaussian target is stretched as Gaussians (transform_gaussians), not by scale")
         polygons, ranges, cos_incidence = _gaussian_hits(target, sensor, poses, pose, cells, origins, directions)
         engine_seconds = time.perf_counter() - engine_start
     else:
         cast = _embree_hits if engine == "embree" else _bvh_hits
-        polygons, bvh_range = cast(target, origins, directions, sensor.max_range)
+        if scale is not None and engine == "bvh":
+            cast = _unit_cast(cast)
+        polygons, engine_range = cast(target, origins, directions, sensor.max_range)
         if target.see_through is not None:
-            polygons, bvh_range = _through_glass(target, cast, origins, directions, polygons, bvh_range,
-                                                 sensor.max_range)
+            polygons, engine_range = _through_glass(target, cast, origins, directions, polygons, engine_range,
+                                                    sensor.max_range)
         engine_seconds = time.perf_counter() - engine_start
         hit = np.flatnonzero(polygons >= 0)
         polygons, origins, directions = polygons[hit], origins[hit], directions[hit]
-        ranges, cos_incidence = _refined_ranges(target.planes[polygons], origins, directions, bvh_range[hit])
+        planes = target.planes[polygons]
+        ranges, cos_incidence = _refined_ranges(planes, origins, directions, engine_range[hit])
+        if scale is not None:
+            normals = planes[:, :3] / stretch
+            cos_incidence = cos_incidence / np.sqrt(np.einsum("ij,ij->i", normals, normals))
         pose, cells = pose[hit], cells[hit]
     hit = polygons >= 0
-    if part:  # the hits where the cast box wants them
-        points = origins + ranges[:, None] * directions
-        boxes = _padded(cast_bounds)[pose]
-        hit &= np.all((points >= boxes[:, 0]) & (points <= boxes[:, 1]), axis=1)
     return Trace(rays, pose[hit], cells[hit], ranges[hit], cos_incidence[hit], polygons[hit],
                  time.perf_counter() - start, engine_seconds)
+
+
+def _unit_cast(cast):
+    """``cast`` for directions of any length, as the BVH casts along unit ones: the
+    distances it returns (and its limits) are ray parameters again."""
+    def stretched(target, origins, directions, far):
+        length = np.sqrt(np.einsum("ij,ij->i", directions, directions))
+        polygons, distances = cast(target, origins, directions / length[:, None], far * length)
+        return polygons, distances / length
+
+    return stretched
 
 
 def _gaussian_hits(target: ScanTarget, sensor: Sensor, poses: np.ndarray, pose: np.ndarray, cells: np.ndarray,
@@ -348,7 +386,7 @@ def _gaussian_hits(target: ScanTarget, sensor: Sensor, poses: np.ndarray, pose: 
 
 
 def _through_glass(target: ScanTarget, cast, origins: np.ndarray, directions: np.ndarray, polygons: np.ndarray,
-                   ranges: np.ndarray, far: float) -> tuple:
+                   ranges: np.ndarray, far) -> tuple:
     """(polygons, ranges from ``origins``) after the rays that hit see-through polygons
     went on from just past them, up to MAX_SEE_THROUGH times (then they are lost)."""
     polygons, ranges, travelled = polygons.copy(), ranges.copy(), np.zeros(len(directions))
@@ -359,7 +397,8 @@ def _through_glass(target: ScanTarget, cast, origins: np.ndarray, directions: np
             return polygons, ranges
         travelled[passing] = ranges[passing] + SEE_THROUGH_STEP
         starts = origins[passing] + travelled[passing, None] * directions[passing]
-        found, further = cast(target, starts, directions[passing], far - travelled[passing])
+        found, further = cast(target, starts, directions[passing],
+                              np.broadcast_to(far, len(directions))[passing] - travelled[passing])
         polygons[passing], ranges[passing] = found, travelled[passing] + further
     polygons[(polygons >= 0) & target.see_through[np.maximum(polygons, 0)]] = -1
     return polygons, ranges
@@ -367,7 +406,7 @@ def _through_glass(target: ScanTarget, cast, origins: np.ndarray, directions: np
 
 def _bvh_hits(target: ScanTarget, origins: np.ndarray, directions: np.ndarray, far) -> tuple:
     """(M,) int64 polygon hit by each ray (-1: none) and (M,) float64 its distance;
-    ``origins`` (M, 3), ``far`` a distance or (M,) distances."""
+    ``origins`` (M, 3), unit ``directions`` (M, 3), ``far`` a distance or (M,) distances."""
     from mathutils import Vector
 
     limits = np.broadcast_to(far, len(directions)).tolist()

@@ -91,17 +91,18 @@ def _draw(model: tuple, rng: np.random.Generator) -> Motion:
 
 def scan_sweeps(target: ScanTarget, sensor: Sensor, x: float, y: float, heading: float, motion: Motion,
                 sweeps: int, options: ScanOptions = ScanOptions(), bounds: np.ndarray | None = None,
-                box_margin: float | None = None, ego: Motion = Motion(), ground: Ground = Ground()) -> Scan:
+                box_margin: float | None = None, ego: Motion = Motion(), ground: Ground = Ground(),
+                scale: np.ndarray | None = None) -> Scan:
     """``sweeps`` sweeps of ``target`` moving with ``motion``, seen from an ego vehicle
     moving with ``ego``, merged in the key frame, current sweep first: ``scan_many`` of
     one object, its noise seeded by ``options.seed``."""
     return scan_many(target, sensor, [x], [y], [heading], motion, sweeps, options, [options.seed], bounds,
-                     box_margin, ego, ground)[0]
+                     box_margin, ego, ground, scale)[0]
 
 
 def scan_many(target: ScanTarget, sensor: Sensor, x, y, heading, motion: Motion, sweeps: int,
               options: ScanOptions, seeds, bounds: np.ndarray | None = None, box_margin: float | None = None,
-              ego: Motion = Motion(), ground: Ground = Ground()) -> list:
+              ego: Motion = Motion(), ground: Ground = Ground(), scale: np.ndarray | None = None) -> list:
     """One Scan per object (E of them: ``x``, ``y`` (m), ``heading`` (rad), ``seeds`` (E,)
     and the fields of ``motion``, ``ego`` and ``ground`` arrays or scalars), each of
     ``sweeps`` sweeps of ``target`` moving with ``motion`` seen from an ego vehicle moving
@@ -114,12 +115,16 @@ def scan_many(target: ScanTarget, sensor: Sensor, x, y, heading, motion: Motion,
     Each object stands on ``ground`` (raycast.placement) and moves along its heading up
     or down its pitch. ``bounds`` (2, 3, object frame) is the box that stands on the
     ground and that the Scan reports (default: the geometry's bounds). ``box_margin``
-    (m): keep only the hits inside the current box grown by it, and cast only rays in
-    that box's window (a database keeps just those): older sweeps of a moving object
-    then cost only the part that overlaps the box."""
+    (m): keep only the returns whose hit (before range noise) lies within the object's
+    current box (the reported, yaw-only box) grown by it, as a database keeps a box's
+    points, and cast only the rays that can meet it: older sweeps of a moving object
+    then cost only the part that overlaps the box. ``scale`` (3,): scan ``target``
+    stretched by it along its axes (a size variant; raycast.trace_rays)."""
     if sweeps < 1:
         raise ValueError(f"sweeps must be at least 1, got {sweeps}")
-    bounds = target.bounds if bounds is None else bounds
+    stretch = np.ones(3) if scale is None else np.asarray(scale, np.float64)
+    geometry_bounds = target.cast_bounds * stretch
+    bounds = target.bounds * stretch if bounds is None else bounds
     start = time.perf_counter()
     x, y, heading, seeds = (np.atleast_1d(np.asarray(value)) for value in (x, y, heading, seeds))
     count = len(x)
@@ -137,24 +142,30 @@ def scan_many(target: ScanTarget, sensor: Sensor, x, y, heading, motion: Motion,
     origins[..., :2] = driven[..., None] * sensor.forward
     poses = placement(bounds, sensor, at_x, at_y, heading[:, None], under)  # (E, S, 4, 4), key frame
     seen_from = placement(bounds, sensor, at_x - origins[..., 0], at_y - origins[..., 1], heading[:, None], under)
-    cast_bounds = np.broadcast_to(target.cast_bounds, (count, sweeps, 2, 3))
+    cast_bounds = np.broadcast_to(geometry_bounds, (count, sweeps, 2, 3))
     if box_margin is not None:  # the current box in each sweep's object frame, met with the geometry's
         current = bounds + np.stack([np.stack([-travelled - box_margin, np.full_like(travelled, -box_margin),
                                                np.full_like(travelled, -box_margin)], -1),
                                      np.stack([-travelled + box_margin, np.full_like(travelled, box_margin),
                                                np.full_like(travelled, box_margin)], -1)], -2)
-        cast_bounds = np.stack([np.maximum(current[..., 0, :], target.cast_bounds[0]),
-                                np.minimum(current[..., 1, :], target.cast_bounds[1])], -2)
+        cast_bounds = np.stack([np.maximum(current[..., 0, :], geometry_bounds[0]),
+                                np.minimum(current[..., 1, :], geometry_bounds[1])], -2)
     # Sweeps alike in pose and cast box cast once.
     keys = np.concatenate([seen_from[..., :3, :].reshape(count, sweeps, 12), cast_bounds.reshape(count, sweeps, 6)],
                           -1).reshape(count * sweeps, 18)
     unique, first, shared = np.unique(keys, axis=0, return_index=True, return_inverse=True)
     trace = trace_rays(target, sensor, seen_from.reshape(-1, 4, 4)[first], options.window,
-                       cast_bounds.reshape(-1, 2, 3)[first], options.engine)
+                       cast_bounds.reshape(-1, 2, 3)[first], options.engine, scale)
     offsets = trace.of_pose()
     group = shared.ravel()  # (E * S,) the trace pose of each object's sweep
     hits = np.diff(offsets)[group]
     picked = np.repeat(offsets[:-1][group] - np.cumsum(hits) + hits, hits) + np.arange(hits.sum())
+    velocity = np.broadcast_to(motion.speed, count)[:, None] * np.column_stack([cos[:, 0], sin[:, 0]])
+    boxes = placed_box(bounds, poses[:, 0], velocity)  # (E, 9), key frame
+    if box_margin is not None:
+        inside = _in_current_box(sensor, trace, picked, hits, origins, boxes, box_margin)
+        picked = picked[inside]
+        hits = np.bincount(np.repeat(np.arange(count * sweeps), hits)[inside], minlength=count * sweeps)
     sweep_of = np.tile(np.arange(sweeps), count)
     draws = sensor_draws(options, sensor, hits.reshape(count, sweeps), seeds)
     returns, kept = trace_returns(target, sensor, trace, options, np.repeat(sweep_of, hits), picked, draws)
@@ -165,8 +176,22 @@ def scan_many(target: ScanTarget, sensor: Sensor, x, y, heading, motion: Motion,
     rays = trace.rays[group].reshape(count, sweeps).sum(axis=1)
     share = rays / max(rays.sum(), 1)  # the batch's time, shared by rays cast
     seconds = time.perf_counter() - start
-    velocity = np.broadcast_to(motion.speed, count)[:, None] * np.column_stack([cos[:, 0], sin[:, 0]])
-    return [Scan(returns[end - length:end], placed_box(bounds, poses[index, 0], velocity[index]), int(rays[index]),
-                 seconds * share[index], sensor.dataset, list(poses[index]), list(origins[index]),
-                 trace.engine_seconds * share[index])
+    return [Scan(returns[end - length:end], boxes[index], int(rays[index]), seconds * share[index], sensor.dataset,
+                 list(poses[index]), list(origins[index]), trace.engine_seconds * share[index])
             for index, (end, length) in enumerate(zip(ends, np.diff(ends, prepend=0)))]
+
+
+def _in_current_box(sensor: Sensor, trace, picked: np.ndarray, hits: np.ndarray, origins: np.ndarray,
+                    boxes: np.ndarray, margin: float) -> np.ndarray:
+    """(K,) bool: the hits ``picked`` (``hits`` (E * S,) of them per object sweep, in
+    order) that lie, where the ray hit in the key frame, within their object's current
+    box ``boxes`` (E, >= 7) grown by ``margin`` m: the yaw-only box3d_lidar, as the
+    datasets' database builders crop."""
+    group = np.repeat(np.arange(len(hits)), hits)
+    entry = group // origins.shape[1]
+    points = sensor.return_points(trace.cells[picked], trace.ranges[picked]) + origins.reshape(-1, 3)[group]
+    cos, sin = np.cos(boxes[:, 6])[entry], np.sin(boxes[:, 6])[entry]
+    dx, dy = points[:, 0] - boxes[entry, 0], points[:, 1] - boxes[entry, 1]
+    half = boxes[:, 3:6] / 2 + margin
+    return ((np.abs(dx * cos + dy * sin) <= half[entry, 0]) & (np.abs(dy * cos - dx * sin) <= half[entry, 1])
+            & (np.abs(points[:, 2] - boxes[entry, 2]) <= half[entry, 2]))
