@@ -70,6 +70,7 @@ bench: $(VENV)/.dev-installed
 	$(VENV)/bin/python headless_scripts/bench_gaussian_scan.py
 	$(VENV)/bin/python headless_scripts/bench_intensity.py
 	$(VENV)/bin/python headless_scripts/bench_bank.py
+	$(VENV)/bin/python headless_scripts/bench_cluster.py
 	$(VENV)/bin/python headless_scripts/bench_fidelity.py
 	$(VENV)/bin/python headless_scripts/bench_quality.py
 	$(VENV)/bin/python headless_scripts/bench_placement.py

@@ -37,6 +37,7 @@ thinned grid, all cores. Prints Markdown tables; writes <out>.json, <out>.md, <o
 """
 
 import argparse
+import hashlib
 import json
 import os
 import re
@@ -136,7 +137,8 @@ def child(spec: dict) -> dict:
         load, start, cpu = os.getloadavg()[0], time.perf_counter(), _cpu_s()
         stages = dict.fromkeys(export.CHUNK_STAGES, 0.0)
         poses = 0
-        for chunk in export.run_plan(plan, spec["workers"]):
+        address = spec.get("address")
+        for chunk in export.run_plan(plan, spec["workers"], "ray" if address else "local", address):
             poses += chunk.entries
             for stage, seconds in chunk.seconds.items():
                 stages[stage] += seconds
@@ -148,16 +150,21 @@ def child(spec: dict) -> dict:
         infos = load_infos(out / manifest["info_pickles"][config.formats[0]])
         points = [info["num_points_in_gt"] for entries in infos.values() for info in entries]
         return result | {"poses": poses, "kept": manifest["entries"], "disk": disk_usage(out),
+                         "manifest_sha256": hashlib.sha256((out / "manifest.json").read_bytes()).hexdigest(),
                          "parent_max_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
                          "workers_max_rss": poll.peak, "points_per_entry": float(np.mean(points or [0]))}
 
 
-def export_once(folders: list, config: dict, workers: int) -> dict:
-    """One measured export in a fresh Python process."""
+def export_once(folders: list, config: dict, workers: int, address: str | None = None, env: dict | None = None
+                ) -> dict:
+    """One measured export in a fresh Python process: on ``workers`` local processes, or
+    with ``address`` on that Ray cluster (``env``: the driver's environment, e.g. its
+    token settings)."""
     with tempfile.NamedTemporaryFile("r", suffix=".json") as result:
-        spec = {"folders": [str(f) for f in folders], "config": config, "workers": workers, "result": result.name}
+        spec = {"folders": [str(f) for f in folders], "config": config, "workers": workers, "result": result.name,
+                "address": address}
         done = subprocess.run([sys.executable, __file__, "--child", json.dumps(spec)], cwd=ROOT,
-                              capture_output=True, text=True)
+                              capture_output=True, text=True, env=env)
         if done.returncode:
             raise RuntimeError(f"export child failed:\n{done.stdout}\n{done.stderr}")
         return json.loads(Path(result.name).read_text())

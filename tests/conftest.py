@@ -41,8 +41,8 @@ def run_script(name: str, *args, check: bool = False, blender_style: bool = Fals
 
 
 TORCH_MODULES = {"test_intensity_model", "test_heading_classifier", "test_blender_intensity", "test_quality"}
-SLOW_MODULES = {"test_scripts", "test_bad_input", "test_detectors", "test_bank", "test_blender_bank",
-                "test_bank_report", "test_authoring", "test_quality"}
+SLOW_MODULES = {"test_scripts", "test_bad_input", "test_detectors", "test_bank", "test_bank_cluster",
+                "test_blender_bank", "test_bank_report", "test_authoring", "test_quality"}
 
 
 def pytest_collection_modifyitems(items):

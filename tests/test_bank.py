@@ -5,6 +5,7 @@ import json
 import os
 import pickle
 import resource
+import secrets
 import signal
 import subprocess
 import sys
@@ -395,8 +396,12 @@ def test_a_killed_run_resumes_to_the_same_bank(reference, prepared, tmp_path):
 def test_ray_executor_on_a_local_cluster(reference, prepared, tmp_path):
     pytest.importorskip("ray")
     out, config = reference
+    # A local Ray (2.59+) authenticates with a token, kept here rather than in ~/.ray/auth_token
+    # (where it would turn on authentication for every later `ray start --head` of the user).
+    token = tmp_path / "auth_token"
+    token.write_text(secrets.token_hex(32))
     run_export("--objects", prepared, "--config", config, "--out", tmp_path / "ray", "--executor", "ray",
-               timeout=300)
+               timeout=300, env=os.environ | {"RAY_AUTH_TOKEN_PATH": str(token)})
     assert bank_bytes(tmp_path / "ray") == bank_bytes(out)
 
 

@@ -164,6 +164,18 @@ def test_bench_bank_quick(tmp_path, shared_data):  # its trucks are the Chrono m
     assert "| chrono truck 11k |" in (tmp_path / "bank.md").read_text() and (tmp_path / "bank.png").stat().st_size > 0
 
 
+def test_bench_cluster_quick(tmp_path, shared_data):  # the Chrono truck on local Ray clusters of 1 and 2 nodes
+    pytest.importorskip("ray")
+    result = run_script("bench_cluster.py", "--quick", "--out", tmp_path / "cluster")
+    assert result.returncode == 0, result.stderr
+    results = json.loads((tmp_path / "cluster.json").read_text())
+    assert results["same_bank"] and results["efficiency"] > 0
+    (one,), (two,) = (row["chunks_per_node"] for row in results["setups"][1:])
+    assert len(one) == 1 and len(two) == 2 and sum(two) == one[0] > 0
+    assert "| Ray, 2 nodes x 1 CPU |" in (tmp_path / "cluster.md").read_text()
+    assert (tmp_path / "cluster.png").stat().st_size > 0
+
+
 def test_bench_intensity_quick(tmp_path):
     pytest.importorskip("torch")
     result = run_script("bench_intensity.py", "--quick", "--out", tmp_path / "intensity")

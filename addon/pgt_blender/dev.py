@@ -1,6 +1,7 @@
 """Helpers of the repository's scripts and tests, not shipped in the extension
-(build_extension.py leaves this file out): where the third-party test data lies, and
-how benchmarks state their machine and write <out>.json and <out>.png.
+(build_extension.py leaves this file out): where the third-party test data lies, how
+benchmarks state their machine and write <out>.json and <out>.png, and a Ray cluster of
+several nodes started on this machine (local_ray_cluster).
 
 The shared data (real scans, meshes, COLMAP, splats, calibration tables, the detector
 consumers) is ``$PGT_SHARED_DATA`` when set, else ``../shared/data`` beside the
@@ -10,6 +11,8 @@ repository: the one setting every script default and test reads.
 import json
 import os
 import platform
+import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 from .cli import markdown_table  # noqa: F401  (the benchmarks' tables: one home, in cli)
@@ -127,3 +130,162 @@ def scan_ground_gap(points, box):
         return fit["bottom_gap"], "ring"
     return None, "none"
 
+
+
+# A Ray cluster of several nodes on this machine (test_bank_cluster.py, bench_cluster.py).
+RAY_NODE_PORTS = ("--node-manager-port", "--object-manager-port", "--dashboard-agent-listen-port",
+                  "--dashboard-agent-grpc-port", "--runtime-env-agent-port", "--metrics-export-port")
+RAY_STOP_GRACE_S = 10.0
+
+
+@contextmanager
+def local_ray_cluster(node_cpus: tuple, object_store_bytes: int = 2**28):
+    """A Ray cluster of ``len(node_cpus)`` nodes on this machine, started as a user starts
+    one across machines: ``ray start --head``, then ``ray start --address`` for each other
+    node, each node its own processes with ``node_cpus[i]`` CPUs, its own --temp-dir and
+    free ports. Token authentication is on (RAY_AUTH_MODE=token on every node and driver,
+    as Ray requires) with a fresh token in a file of the cluster's own folder
+    (RAY_AUTH_TOKEN_PATH): ~/.ray is left alone. Yields (head address "ip:port", the
+    environment a driver needs: this one plus the token settings, the node folders by
+    node index). The folder is a short one in the system temp dir: Ray's Unix sockets
+    live under --temp-dir and a socket path may not exceed 107 bytes.
+
+    On exit, failure included, every process of these nodes and none other stops: each
+    ``ray start`` runs in a session of its own, which its daemons and their workers keep;
+    they get SIGTERM, then SIGKILL after RAY_STOP_GRACE_S (``ray stop`` would stop every
+    Ray on the machine). Linux only (the sessions are read from /proc)."""
+    import secrets
+    import shutil
+    import subprocess
+    import tempfile
+
+    ray = shutil.which("ray", path=str(Path(sys.executable).parent)) or shutil.which("ray")
+    folder = Path(tempfile.mkdtemp(prefix="pgt-ray-"))
+    sessions = []
+    try:
+        token = folder / "auth_token"
+        token.touch(mode=0o600)
+        token.write_text(secrets.token_hex(32))
+        env = {key: value for key, value in os.environ.items() if key not in ("RAY_ADDRESS", "RAY_AUTH_TOKEN")}
+        env |= {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN_PATH": str(token)}
+        head_port, dashboard_port, *ports = _free_ports(2 + len(RAY_NODE_PORTS) * len(node_cpus))
+        address = None
+        nodes = []
+        for index, cpus in enumerate(node_cpus):
+            nodes.append(folder / f"node{index}")
+            command = [ray, "start", "--num-cpus", str(cpus), "--temp-dir", str(nodes[-1]),
+                       "--object-store-memory", str(object_store_bytes), "--disable-usage-stats"]
+            command += [str(item) for flag, port in zip(RAY_NODE_PORTS, ports[index * len(RAY_NODE_PORTS):])
+                        for item in (flag, port)]
+            if address is None:
+                command += ["--head", "--port", str(head_port), "--include-dashboard", "false",
+                            "--dashboard-port", str(dashboard_port)]
+            else:
+                command += ["--address", address]
+            started = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                       start_new_session=True)
+            sessions.append(started.pid)
+            output = started.communicate()[0]
+            if started.returncode:
+                raise RuntimeError(f"{' '.join(command)} failed:\n{output}")
+            if address is None:
+                address = f"{_ray_node_ip(output)}:{head_port}"
+        _wait_for_ray_nodes(address, env, len(node_cpus))
+        yield address, env, nodes
+    finally:
+        _stop_sessions(sessions[::-1])
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _free_ports(count: int) -> list:
+    """``count`` distinct TCP ports free now (bound together, then released)."""
+    import socket
+
+    sockets = [socket.socket() for _ in range(count)]
+    try:
+        for sock in sockets:
+            sock.bind(("", 0))
+        return [sock.getsockname()[1] for sock in sockets]
+    finally:
+        for sock in sockets:
+            sock.close()
+
+
+def _ray_node_ip(output: str) -> str:
+    """The node IP ``ray start --head`` printed ("Local node IP: 10.0.0.2")."""
+    import re
+
+    found = re.search(r"Local node IP: (\S+)", output)
+    if not found:
+        raise RuntimeError(f"ray start --head printed no node IP:\n{output}")
+    return found.group(1)
+
+
+def _wait_for_ray_nodes(address: str, env: dict, count: int, timeout_s: float = 60.0) -> None:
+    """Until ``count`` nodes are alive in the cluster (``ray start --address`` returns
+    before its node has registered), by a driver of its own."""
+    import subprocess
+
+    code = ("import sys, time, ray; ray.init(address=sys.argv[1], log_to_driver=False, logging_level='ERROR')\n"
+            "deadline = time.monotonic() + float(sys.argv[3])\n"
+            "while sum(node['Alive'] for node in ray.nodes()) < int(sys.argv[2]):\n"
+            "    if time.monotonic() > deadline: sys.exit(f'{sys.argv[2]} nodes not alive in time: {ray.nodes()}')\n"
+            "    time.sleep(0.2)\n")
+    done = subprocess.run([sys.executable, "-c", code, address, str(count), str(timeout_s)], env=env,
+                          capture_output=True, text=True, timeout=timeout_s + 60)
+    if done.returncode:
+        raise RuntimeError(f"the Ray cluster at {address} did not come up:\n{done.stderr[-3000:]}")
+
+
+def _session_processes(sessions: list) -> dict:
+    """Live processes in any of ``sessions``: id -> name (Linux: /proc/PID/stat)."""
+    found = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            name, fields = (entry / "stat").read_text().rsplit(")", 1)
+        except (OSError, ValueError):
+            continue
+        fields = fields.split()
+        if fields[0] != "Z" and int(fields[3]) in sessions:
+            found[int(entry.name)] = name.split("(", 1)[1]
+    return found
+
+
+def _stop_sessions(sessions: list) -> None:
+    """Stop every process of ``sessions`` in ``ray stop``'s order: the raylets, then the
+    rest but the GCS, then the GCS (each: SIGTERM, then SIGKILL to those left after
+    RAY_STOP_GRACE_S)."""
+    import signal
+    import time
+
+    for bucket in (lambda name: name == "raylet", lambda name: name != "gcs_server", lambda name: True):
+        chosen = [pid for pid, name in _session_processes(sessions).items() if bucket(name)]
+        for pid in chosen:
+            _signal(pid, signal.SIGTERM)
+        deadline = time.monotonic() + RAY_STOP_GRACE_S
+        while set(chosen) & set(_session_processes(sessions)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        for pid in set(chosen) & set(_session_processes(sessions)):
+            _signal(pid, signal.SIGKILL)
+
+
+def _signal(pid: int, number: int) -> None:
+    try:
+        os.kill(pid, number)
+    except ProcessLookupError:  # gone meanwhile
+        pass
+
+
+RAY_CHUNK_TASK = "_ray_chunk"  # core.bank.executors' Ray task: one per chunk
+
+
+def ray_tasks_per_node(nodes: list, task: str = RAY_CHUNK_TASK) -> list:
+    """How many ``task`` tasks each node of ``local_ray_cluster`` (its folders) has run,
+    read from Ray's own per-node logs: a Ray worker writes the line ":task_name:<task>"
+    to its <temp-dir>/session_latest/logs/worker-*.out as each task starts (the log
+    monitor reads it to label output)."""
+    marker = f":task_name:{task}"
+    return [sum(line == marker for path in Path(node).glob("session_latest/logs/worker-*.out")
+                for line in path.read_text(errors="replace").splitlines()) for node in nodes]

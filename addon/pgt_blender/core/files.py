@@ -6,12 +6,13 @@ from pathlib import Path
 
 
 @contextmanager
-def atomic_output(path):
+def atomic_output(path, writer: str = ""):
     """A binary stream to a temporary file beside ``path``, renamed onto ``path`` when
     the block ends without error and removed otherwise. A failed write (disk full,
-    permission) raises OSError naming ``path``, not the temporary file."""
+    permission) raises OSError naming ``path``, not the temporary file. ``writer`` names
+    the temporary for processes that may write the same ``path`` at once (each its own)."""
     path = Path(path)
-    temporary = path.with_name(f".{path.name}.partial")
+    temporary = path.with_name(f".{path.name}{writer}.partial")
     try:
         with open(temporary, "wb") as stream:
             yield stream

@@ -15,7 +15,9 @@ policy (InputError naming the file).
 
 import hashlib
 import json
+import os
 import shutil
+import socket
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +40,9 @@ def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared
     marker = out / WORK / "identity.json"
     if out.exists() and not out.is_dir():
         raise InputError(out, "is a file, not an output folder")
+    if shared and not marker.is_file() and _unstarted(out):
+        _start_shared(out, ident)
+        return
     if _cut_short(out):
         shutil.rmtree(out / WORK)
     if out.is_dir() and any(out.iterdir()):
@@ -59,6 +64,24 @@ def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared
     (out / WORK / "chunks").mkdir(parents=True, exist_ok=True)
     with atomic_output(marker) as stream:
         stream.write(json.dumps(ident, indent=1).encode())
+
+
+def _unstarted(out: Path) -> bool:
+    """True for a folder that is missing, empty, or holds only a .work with no chunk
+    record yet: a bank not started, or being started by another shard right now."""
+    return not out.is_dir() or ({child.name for child in out.iterdir()} <= {WORK}
+                                and not any((out / WORK / "chunks").glob("*.json")))
+
+
+def _start_shared(out: Path, ident: dict) -> None:
+    """Start a bank that shards may start together (an array job's tasks): each makes the
+    folders and writes the same identity through a temporary of its own, and none
+    removes what another is making; a shard of other settings that wrote last is named."""
+    (out / WORK / "chunks").mkdir(parents=True, exist_ok=True)
+    with atomic_output(out / WORK / "identity.json", f".{socket.gethostname()}-{os.getpid()}") as stream:
+        stream.write(json.dumps(ident, indent=1).encode())
+    if read_identity(out) != ident:
+        raise InputError(out, "holds a bank of other objects or settings; use --overwrite or another --out")
 
 
 def _cut_short(out: Path) -> bool:
