@@ -128,8 +128,9 @@ def database_record(fmt: str, dataset: str, points: np.ndarray, box: np.ndarray,
     origin = box[:3].copy()
     if fmt == "mmdet3d":
         origin[2] -= box[5] / 2  # bottom centre
-    rows = points.copy()
-    rows[:, :3] -= origin
+    rows = np.empty(points.shape, np.float32)
+    np.subtract(points[:, :3], origin, out=rows[:, :3])  # in float64, rounded once
+    rows[:, 3:] = points[:, 3:]
     stored = box[:BOX_VALUES[dataset]].astype(np.float32) + np.float32(0)  # a still box has vx = +0, not -0
     stored[2] = origin[2]
     record = {key: info[key] for key in ("name", "path", "image_idx", "pgt_object", "gt_idx")}
@@ -141,4 +142,4 @@ def database_record(fmt: str, dataset: str, points: np.ndarray, box: np.ndarray,
         record.update(difficulty=difficulty, bbox=bbox, score=np.float32(-1.0))
     if fmt == "mmdet3d":
         record.update(group_id=info["image_idx"], difficulty=difficulty)
-    return rows.astype(np.float32), record
+    return rows, record

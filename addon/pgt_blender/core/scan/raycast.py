@@ -159,7 +159,7 @@ def cell_window(sensor: Sensor, bounds: np.ndarray, poses: np.ndarray) -> tuple:
     footprint distance, so overhead and close objects keep all the beams they need."""
     corners = np.take_along_axis(_padded(bounds), np.broadcast_to(_CORNERS, (len(bounds), 8, 3)), axis=1)
     placed = np.einsum("tij,tcj->tci", poses[:, :3, :3], corners) + poses[:, None, :3, 3]  # (T, 8, 3) sensor frame
-    r_min = _footprint_distance(placed[..., :2])
+    r_min = _footprint_distance(placed[..., :2], np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
     r_max = np.hypot(placed[..., 0], placed[..., 1]).max(axis=1)
     z_low, z_high = placed[..., 2].min(axis=1), placed[..., 2].max(axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -175,20 +175,16 @@ def cell_window(sensor: Sensor, bounds: np.ndarray, poses: np.ndarray) -> tuple:
     return first_ring, rings, first_column % sensor.columns, columns
 
 
-def _footprint_distance(corners: np.ndarray) -> np.ndarray:
-    """(T,) distance (m) from the sensor's z axis to the convex hull of each box's
-    corners' ``corners`` (T, 8, 2) sensor-frame xy (the footprint of a box however
-    tilted); 0 when the axis passes through it. The hull's distance is the largest
-    support value min(corners @ u) over unit directions u, attained at an edge normal or
-    a corner's direction: every pair's normals and every corner's direction are tried."""
-    first, second = np.triu_indices(corners.shape[1], 1)
-    edges = corners[:, second] - corners[:, first]
-    normal = edges[..., ::-1] * [1.0, -1.0]
-    directions = np.concatenate([corners, normal, -normal], axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        directions = directions / np.hypot(directions[..., 0], directions[..., 1])[..., None]
-    support = np.nan_to_num((corners @ directions.transpose(0, 2, 1)).min(axis=1), nan=-np.inf)
-    return np.maximum(support.max(axis=1), 0.0)
+def _footprint_distance(corners: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """(T,) distance (m) from the sensor's z axis to each box's footprint, 0 when the axis
+    passes through it: to the rectangle, along the box's ``heading`` (T,) rad, that
+    holds its corners' ``corners`` (T, 8, 2) sensor-frame xy (the footprint of an
+    upright box itself; for a tilted one a rectangle a little larger, so never farther)."""
+    cos, sin = np.cos(heading)[:, None], np.sin(heading)[:, None]
+    along = corners[..., 0] * cos + corners[..., 1] * sin
+    across = corners[..., 1] * cos - corners[..., 0] * sin
+    return np.hypot(np.maximum(np.maximum(along.min(1), -along.max(1)), 0.0),
+                    np.maximum(np.maximum(across.min(1), -across.max(1)), 0.0))
 
 
 def window_cells(sensor: Sensor, first_ring, rings, first_column, columns) -> np.ndarray:
@@ -348,17 +344,23 @@ def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bo
             polygons, engine_range = _through_glass(target, cast, origins, directions, polygons, engine_range,
                                                     sensor.max_range)
         engine_seconds = time.perf_counter() - engine_start
-        hit = np.flatnonzero(polygons >= 0)
-        polygons, origins, directions = polygons[hit], origins[hit], directions[hit]
-        planes = target.planes[polygons]
-        ranges, cos_incidence = _refined_ranges(planes, origins, directions, engine_range[hit])
+        polygon = np.maximum(polygons, 0)  # misses are solved too (elementwise, cheaper than sorting them out)
+        ranges, cos_incidence = _refined_ranges(target.planes[polygon], origins, directions, engine_range)
         if scale is not None:
-            normals = planes[:, :3] / stretch
-            cos_incidence = cos_incidence / np.sqrt(np.einsum("ij,ij->i", normals, normals))
-        pose, cells = pose[hit], cells[hit]
+            cos_incidence = cos_incidence * _stretched_normal_scale(target, stretch)[polygon]
     hit = polygons >= 0
     return Trace(rays, pose[hit], cells[hit], ranges[hit], cos_incidence[hit], polygons[hit],
                  time.perf_counter() - start, engine_seconds)
+
+
+def _stretched_normal_scale(target: ScanTarget, stretch: np.ndarray) -> np.ndarray:
+    """(P,) 1 / |n / stretch| of the target's polygon normals n, kept per stretch: the
+    factor from n . (direction / stretch) to the stretched polygon's cosine."""
+    key = stretch.tobytes()
+    if key not in target.stretched_normals:
+        normals = target.planes[:, :3] / stretch
+        target.stretched_normals[key] = 1.0 / np.sqrt(np.einsum("ij,ij->i", normals, normals))
+    return target.stretched_normals[key]
 
 
 def _unit_cast(cast):
@@ -462,18 +464,20 @@ def sensor_draws(options: ScanOptions, sensor: Sensor, counts: np.ndarray, seeds
     """The random draws of ``options``' sensor effects for E object scans' candidate
     returns, ``counts`` (E, S) per object and sweep, concatenated object by object and
     sweep by sweep: object e draws from its own generator ``default_rng(seeds[e])``,
-    sweep by sweep (current first), each sweep the drop's uniforms, then the range
-    noise's normals (m), then the intensity spread's standard normals for its
-    candidates in cell order. Returns (uniform, noise, spread), each (R,) or None when
-    that effect is off; None when no effect draws."""
-    if not (options.drop_rate or options.ray_drop or options.range_noise):
+    sweep by sweep (current first), each sweep the drop's uniforms (when a drop can
+    happen), then the range noise's normals (m), then the intensity spread's standard
+    normals for its candidates in cell order. Returns (uniform, noise, spread), each
+    (R,) or None when that effect is off; None when no effect draws."""
+    drops = bool(options.drop_rate or (options.ray_drop and sensor.ray_drop))
+    if not (drops or options.range_noise):
         return None
     spread = options.range_noise and len(sensor.intensity_law) == 3 and sensor.intensity_law[2] > 0
     uniform, noise, normal = [], [], []
     for seed, sweeps in zip(np.asarray(seeds).tolist(), np.asarray(counts).tolist()):
         rng = np.random.default_rng(seed)
         for count in sweeps:
-            uniform.append(rng.random(count))
+            if drops:
+                uniform.append(rng.random(count))
             if options.range_noise:
                 noise.append(rng.normal(0.0, sensor.range_noise_sigma, count))
                 if spread:
