@@ -24,12 +24,15 @@ runs; the full run also exports the full default grid (5,677 poses per truck, ch
 
 Every export runs in a fresh Python process (its memory is its own): it loads the
 objects, plans, exports (export.run_plan: the timed part; kept/s = entries that reach
-the bank), assembles, and reports its CPU seconds (user + system, with its workers), its
-own peak RSS (getrusage), its workers' peak (the largest VmHWM of its pool workers,
-polled from /proc every 50 ms) and the bank's bytes by part. Stages are the sum over
-chunks of export.ChunkDone.seconds (per worker wall time; with all cores they add up
-across workers); the engine ratio is the export's CPU per entry over its cast time per
-entry (Scan.cast_seconds), how far the pipeline runs from its ray engine.
+the bank), assembles, and reports its CPU seconds (user + system, with its workers; the
+system part apart), its own peak RSS (getrusage), its workers' peak (the largest VmHWM
+of its pool workers, polled from /proc every 0.2 s) and the bank's bytes by part. Stages
+are the sum over chunks of export.ChunkDone.seconds (per worker wall time; with all
+cores they add up across workers); the engine ratio is the export's CPU per entry over
+the time its ray engine's own calls took per entry (Scan.cast_seconds: the Embree or BVH
+call), how far the pipeline runs from its ray engine. Last, the machine's own cost of
+writing the bank's files (file_write_cost: as many new files of an entry's size as one
+run writes), the floor under the writes stage.
 
 Memory against the bank size: 1, 2, 4, 8 copies (--quick: 1, 2) of one object (the 176k
 truck; --quick: the 11k one) under other names (more entries, more objects) on the
@@ -81,29 +84,46 @@ def _vmhwm(pid) -> int:
     return int(found.group(1)) * 1024 if found else 0
 
 
-def _cpu_s() -> float:
-    """User + system CPU seconds of this process and its reaped children."""
-    return sum(u.ru_utime + u.ru_stime for u in map(resource.getrusage, (resource.RUSAGE_SELF,
-                                                                          resource.RUSAGE_CHILDREN)))
+def _cpu_s() -> tuple:
+    """(user, system) CPU seconds of this process and its reaped children."""
+    usages = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
+    return sum(u.ru_utime for u in usages), sum(u.ru_stime for u in usages)
 
 
 class WorkerPoll(threading.Thread):
-    """The largest VmHWM of this process's children, polled from /proc."""
+    """The largest VmHWM of this process's children (listed by /proc's per-thread
+    ``children`` files: cheap), polled every ``interval`` seconds."""
 
-    def __init__(self, interval: float = 0.05):
+    def __init__(self, interval: float = 0.2):
         super().__init__(daemon=True)
         self.interval, self.peak, self.stop = interval, 0, threading.Event()
 
     def run(self):
-        me = str(os.getpid())
+        tasks = Path(f"/proc/{os.getpid()}/task")
         while not self.stop.wait(self.interval):
-            for entry in os.scandir("/proc"):
+            for task in tasks.iterdir():
                 try:
-                    parent = Path(entry.path, "stat").read_text().rsplit(")", 1)[1].split()[1]
-                except (OSError, IndexError):
+                    children = (task / "children").read_text().split()
+                except OSError:
                     continue
-                if parent == me:
-                    self.peak = max(self.peak, _vmhwm(entry.name))
+                for pid in children:
+                    self.peak = max(self.peak, _vmhwm(pid))
+
+
+def file_write_cost(size: int, count: int = 2000) -> dict:
+    """This machine's cost of writing ``count`` new files of ``size`` bytes into a fresh
+    folder (as the bank writes its entries), µs per file: wall, user and system CPU. On
+    a virtual machine whose fresh page-cache memory is slow to touch, the system time
+    here is what every entry's files cost, whatever the exporter does."""
+    data = os.urandom(size)
+    with tempfile.TemporaryDirectory(prefix="bench_bank_files_") as folder:
+        start, (user, system) = time.perf_counter(), _cpu_s()
+        for index in range(count):
+            with open(Path(folder, f"{index}.bin"), "wb") as stream:
+                stream.write(data)
+        wall, (user_end, system_end) = time.perf_counter() - start, _cpu_s()
+    return {"bytes": size, "files": count, "wall_us": 1e6 * wall / count, "user_us": 1e6 * (user_end - user) / count,
+            "system_us": 1e6 * (system_end - system) / count}
 
 
 def disk_usage(out: Path) -> dict:
@@ -134,7 +154,7 @@ def child(spec: dict) -> dict:
         plan = export.plan_bank(objects, config, out)
         poll = WorkerPoll()
         poll.start()
-        load, start, cpu = os.getloadavg()[0], time.perf_counter(), _cpu_s()
+        load, start, (user, system) = os.getloadavg()[0], time.perf_counter(), _cpu_s()
         stages = dict.fromkeys(export.CHUNK_STAGES, 0.0)
         poses = 0
         address = spec.get("address")
@@ -142,8 +162,9 @@ def child(spec: dict) -> dict:
             poses += chunk.entries
             for stage, seconds in chunk.seconds.items():
                 stages[stage] += seconds
-        result = {"export_s": time.perf_counter() - start, "export_cpu_s": _cpu_s() - cpu, "load_1min": load,
-                  "stages_s": stages}
+        seconds, (user_end, system_end) = time.perf_counter() - start, _cpu_s()
+        result = {"export_s": seconds, "export_cpu_s": user_end - user + system_end - system,
+                  "export_system_s": system_end - system, "load_1min": load, "stages_s": stages}
         poll.stop.set()
         poll.join()
         manifest = export.assemble(out)
@@ -224,9 +245,11 @@ def throughput_row(name: str, grid: str, workers: int, runs: list) -> dict:
     first, seconds = runs[0], float(np.median([r["export_s"] for r in runs]))
     kept, stages = first["kept"], first["stages_s"]
     cpu_ms = 1e3 * float(np.median([r["export_cpu_s"] for r in runs])) / first["poses"]
+    system_ms = 1e3 * float(np.median([r["export_system_s"] for r in runs])) / first["poses"]
     cast_ms = 1e3 * stages["casts"] / first["poses"]
     return {"object": name, "grid": grid, "workers": workers, "poses": first["poses"], "kept": kept,
             "runs": len(runs), "export_s": seconds, "kept_per_s": kept / seconds, "cpu_ms_per_entry": cpu_ms,
+            "system_ms_per_entry": system_ms,
             "cast_ms_per_entry": cast_ms, "engine_ratio": cpu_ms / cast_ms if cast_ms else None,
             "stages_ms_per_entry": {stage: 1e3 * s / first["poses"] for stage, s in stages.items()},
             "load_1min": [round(r["load_1min"], 2) for r in runs], "parent_max_rss": first["parent_max_rss"],
@@ -271,16 +294,21 @@ def mb(value) -> str:
     return "-" if value is None else f"{value / MIB:,.0f}"
 
 
-def tables(throughput: list, series: list, projected: list) -> str:
+def tables(throughput: list, series: list, projected: list, files: dict) -> str:
     stages = list(export.CHUNK_STAGES)
     text = "## throughput\n\n" + dev.markdown_table(
-        ["object", "grid", "workers", "poses", "kept", "s (median of n)", "kept/s", "CPU ms/entry", "cast ms/entry",
-         "CPU / cast", "parent max RSS MB", "worker max RSS MB", "kB/entry"],
+        ["object", "grid", "workers", "poses", "kept", "s (median of n)", "kept/s", "CPU ms/entry",
+         "of which system", "cast ms/entry", "CPU / cast", "parent max RSS MB", "worker max RSS MB", "kB/entry"],
         [[r["object"], r["grid"], r["workers"], f"{r['poses']:,}", f"{r['kept']:,}",
           f"{r['export_s']:.2f} ({r['runs']})", f"{r['kept_per_s']:.0f}", f"{r['cpu_ms_per_entry']:.2f}",
-          f"{r['cast_ms_per_entry']:.2f}", "-" if r["engine_ratio"] is None else f"{r['engine_ratio']:.1f}x",
+          f"{r['system_ms_per_entry']:.2f}", f"{r['cast_ms_per_entry']:.2f}",
+          "-" if r["engine_ratio"] is None else f"{r['engine_ratio']:.1f}x",
           mb(r["parent_max_rss"]), mb(r["workers_max_rss"]), f"{r['bytes_per_entry'] / 1e3:,.1f}"]
-         for r in throughput], "ll" + "r" * 11)
+         for r in throughput], "ll" + "r" * 12)
+    text += (f"\n\nThis machine's cost of writing a new file of {files['bytes'] / 1e3:.0f} kB (one format's "
+             f"entry) into a fresh folder, {files['files']:,} files: {files['wall_us']:.0f} µs wall, "
+             f"{files['user_us']:.0f} µs user and {files['system_us']:.0f} µs system CPU per file (file_write_cost); "
+             f"an entry writes one file per format.")
     text += ("\n\n## where a worker's time goes (export.ChunkDone stages, ms per entry; casts are part of scans)\n\n"
              + dev.markdown_table(["object", "grid", "workers", *stages],
                                   [[r["object"], r["grid"], r["workers"],
@@ -371,13 +399,17 @@ def main(argv: list) -> int:
               "run": f"{time.perf_counter() - started:.0f} s; load average before {load_before}, after "
                      f"{dev.load_average()} (other work on the machine inflates the times: upper bounds)"}
     projected, target = projection(throughput), target_summary(throughput)
-    body, line = tables(throughput, series, projected), target_line(target, args.quick)
+    entry = next(r for r in throughput if r["object"] == series_object)
+    database = entry["disk"]["database .bin"]
+    files = file_write_cost(int(database["allocated"] / database["files"]))
+    body, line = tables(throughput, series, projected, files), target_line(target, args.quick)
     print("\n" + body + "\n" + line)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".md").write_text(dev.markdown_report(
         "Bank export: throughput, stages and memory at nuScenes settings", "bench_bank.py", machine, inputs,
         f"**{line}**\n\n{body}"))
     dev.write_results(args.out, {"machine": machine, "inputs": inputs, "throughput": throughput,
+                                 "file_writes": files,
                                  "memory_series": series, "projection": projected, "target": target},
                       plot(throughput, series, series_object))
     return 0
