@@ -153,7 +153,7 @@ def scan_many(target: ScanTarget, sensor: Sensor, x, y, heading, motion: Motion,
     # Sweeps alike in pose and cast box cast once.
     keys = np.concatenate([seen_from[..., :3, :].reshape(count, sweeps, 12), cast_bounds.reshape(count, sweeps, 6)],
                           -1).reshape(count * sweeps, 18)
-    unique, first, shared = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    _, first, shared = np.unique(keys, axis=0, return_index=True, return_inverse=True)
     trace = trace_rays(target, sensor, seen_from.reshape(-1, 4, 4)[first], options.window,
                        cast_bounds.reshape(-1, 2, 3)[first], options.engine, scale)
     offsets = trace.of_pose()
