@@ -48,35 +48,39 @@ class TargetCache:
 
     def __init__(self, objects: list, config: BankConfig):
         self.objects, self.config = objects, config
-        self._object, self._targets, self._rgb = None, {}, None
-        self.build_seconds = 0.0  # spent building targets, all told
+        self._object, self._variants, self._shared, self._rgb = None, {}, None, None
+        self.build_seconds = 0.0  # spent making variants (their targets), all told
 
     def _switch(self, object_index: int) -> None:
         if object_index != self._object:
-            self._object, self._targets, self._rgb = object_index, {}, None
+            self._object, self._variants, self._shared, self._rgb = object_index, {}, None, None
 
     def get(self, object_index: int, variant: int) -> Variant:
-        """The object's size variant ``variant``."""
+        """The object's size variant ``variant``, made once."""
         self._switch(object_index)
+        if variant not in self._variants:
+            start = time.perf_counter()
+            self._variants[variant] = self._make(object_index, variant)
+            self.build_seconds += time.perf_counter() - start
+        return self._variants[variant]
+
+    def _make(self, object_index: int, variant: int) -> Variant:
         obj: BankObject = self.objects[object_index]
         dims = size_variants(self.config, object_index, obj.dims)[variant]
         bounds = np.stack([-dims / 2, dims / 2])
         if not has_gaussians(obj.geometry.attributes):
-            return Variant(self._target(None, obj.geometry), bounds, dims / obj.dims)
+            if self._shared is None:
+                self._shared = self._target(obj.geometry)
+            return Variant(self._shared, bounds, dims / obj.dims)
         scale = (dims / obj.dims).astype(np.float32)
         shapes = transform_gaussians(obj.geometry.attributes["scale"], obj.geometry.attributes["rotation"],
                                      np.diag(scale.astype(np.float64)))  # the splats stretch with their means
         geometry = replace(obj.geometry, positions=obj.geometry.positions * scale,
                            attributes={**obj.geometry.attributes, "scale": shapes[0], "rotation": shapes[1]})
-        return Variant(self._target(variant, geometry), bounds, None)
+        return Variant(self._target(geometry), bounds, None)
 
-    def _target(self, key, geometry):
-        if key not in self._targets:
-            start = time.perf_counter()
-            self._targets[key] = target_from_reconstruction(geometry, self.config.radius_scale,
-                                                            self.config.engine == "bvh")
-            self.build_seconds += time.perf_counter() - start
-        return self._targets[key]
+    def _target(self, geometry):
+        return target_from_reconstruction(geometry, self.config.radius_scale, self.config.engine == "bvh")
 
     def element_rgb(self, object_index: int) -> np.ndarray:
         """(E, 3) float32 sRGB of what a return's ``face`` indexes (targets.element_colors),

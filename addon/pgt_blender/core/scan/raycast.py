@@ -1,19 +1,20 @@
-"""Ray-cast scan of one placed object with its BVH (mathutils), in Blender and headless.
+"""Ray-cast scans of placed objects with Embree or Blender's BVH (mathutils), in Blender
+and headless.
 
 Frames: the object frame of ScanTarget (box on the ground = its lowest point at z = 0
 after placement) and the sensor frame of sensors.py. ``sensor_from_object`` (4, 4)
 float64 places the object; the geometry never moves: every pose transforms the rays
-into the object frame instead, so one BVH serves all poses and the float32 BVH stays
-near its origin (accurate for objects far from the sensor).
+into the object frame instead, so one target serves all poses (and, stretched, all size
+variants) and the float32 geometry stays near its origin (accurate for objects far from
+the sensor). Many poses are cast in one engine call (``trace_rays``).
 
 A return lies exactly on its cell's ray: the laser's origin + range x the cell's float64
-direction, the range solved in float64 on the plane of the polygon the BVH hit. Rays
-share the sensor origin unless the sensor's lasers sit off it (sensors.py); ``origin``
-below is then one row per ray, (M, 3), else (3,).
+direction, the range solved in float64 on the plane of the polygon the engine hit.
 
 Only the rays a scene needs are cast: the (beam, column) cells inside the object's
-angular window, then only those whose ray meets its bounding box (exact float64 slab
-test). A full revolution casts every cell; both return the same rows, bit for bit.
+angular window (the BVH engine, one Python call per ray, only those whose ray meets the
+geometry's box: an exact float64 slab test). A full revolution casts every cell; both
+return the same rows, bit for bit.
 """
 
 import time
@@ -141,7 +142,6 @@ def placed_box(bounds: np.ndarray, sensor_from_object: np.ndarray, velocity=(0.0
 
 _MISS = (-1, 0.0)
 _CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-_AXES = np.arange(3)
 
 
 def _padded(bounds: np.ndarray) -> np.ndarray:
@@ -154,9 +154,10 @@ def cell_window(sensor: Sensor, bounds: np.ndarray, poses: np.ndarray) -> tuple:
     """(first ring, rings, first column, columns), (T,) int64 each: the block of cells
     whose rays' angles fall within the angular window of each box ``bounds`` (T, 2, 3)
     placed by ``poses`` (T, 4, 4) sensor_from_object; a superset of the cells whose rays
-    meet the box. A sensor inside the footprint (the hull of the corners seen from above,
-    tilted or not) opens every azimuth; elevations follow the nearest and farthest
-    footprint distance, so overhead and close objects keep all the beams they need."""
+    meet the box. A sensor inside the footprint (_footprint_distance: the rectangle along
+    the box's heading that holds its corners seen from above) opens every azimuth;
+    elevations follow the nearest and farthest footprint distance, so overhead and close
+    objects keep all the beams they need."""
     corners = np.take_along_axis(_padded(bounds), np.broadcast_to(_CORNERS, (len(bounds), 8, 3)), axis=1)
     placed = np.einsum("tij,tcj->tci", poses[:, :3, :3], corners) + poses[:, None, :3, 3]  # (T, 8, 3) sensor frame
     r_min = _footprint_distance(placed[..., :2], np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
@@ -226,14 +227,14 @@ def _in_object_frame(poses: np.ndarray, sizes: np.ndarray, cells: np.ndarray, se
     return origins, directions
 
 
-def _meets_box(origins: np.ndarray, directions: np.ndarray, boxes: np.ndarray, far: float) -> np.ndarray:
+def _meets_box(origins: np.ndarray, directions: np.ndarray, box: np.ndarray, far: float) -> np.ndarray:
     """Slab test: (M,) bool, rays from ``origins`` (M, 3) along ``directions`` (M, 3)
-    meeting their ``boxes`` (M, 2, 3) between range 0 and ``far``."""
+    meeting ``box`` (2, 3) between ray parameter 0 and ``far``."""
     enter, leave = np.zeros(len(directions)), np.full(len(directions), far)
     with np.errstate(divide="ignore", invalid="ignore"):
         for axis in range(3):
-            t0 = (boxes[:, 0, axis] - origins[:, axis]) / directions[:, axis]
-            t1 = (boxes[:, 1, axis] - origins[:, axis]) / directions[:, axis]
+            t0 = (box[0, axis] - origins[:, axis]) / directions[:, axis]
+            t1 = (box[1, axis] - origins[:, axis]) / directions[:, axis]
             # fmin/fmax skip the NaN of a ray lying in a slab plane: kept, as a superset must.
             enter = np.fmax(enter, np.fmin(t0, t1))
             leave = np.fmin(leave, np.fmax(t0, t1))
@@ -297,7 +298,13 @@ class Trace:
 
     def of_pose(self) -> np.ndarray:
         """(T + 1,) offsets: pose t's hits are rows [offsets[t], offsets[t + 1])."""
-        return np.searchsorted(self.pose, np.arange(len(self.rays) + 1))
+        return _pose_offsets(self.pose, len(self.rays))
+
+
+def _pose_offsets(pose: np.ndarray, count: int) -> np.ndarray:
+    """(count + 1,) offsets of the runs of a sorted pose index (M,): pose t is rows
+    [offsets[t], offsets[t + 1])."""
+    return np.searchsorted(pose, np.arange(count + 1))
 
 
 def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bool = True,
@@ -326,7 +333,7 @@ def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bo
         # One Python call per ray: a slab test first costs far less. Only against the
         # whole geometry's box, the same hits: every engine casts a part's whole window.
         whole_pose = np.all(cast_bounds == whole, axis=(1, 2))[pose]
-        inside = ~whole_pose | _meets_box(origins, directions, _padded(target.cast_bounds)[None], sensor.max_range)
+        inside = ~whole_pose | _meets_box(origins, directions, _padded(target.cast_bounds), sensor.max_range)
         pose, cells, origins, directions = pose[inside], cells[inside], origins[inside], directions[inside]
     rays = np.bincount(pose, minlength=len(poses))
     engine_start = time.perf_counter()
@@ -378,7 +385,7 @@ def _gaussian_hits(target: ScanTarget, sensor: Sensor, poses: np.ndarray, pose: 
                    origins: np.ndarray, directions: np.ndarray) -> tuple:
     """gaussians.gaussian_hits of each pose's rays: (M,) splat (-1: none), range, cosine."""
     found, ranges, cosines = np.full(len(cells), -1, np.int64), np.full(len(cells), np.nan), np.zeros(len(cells))
-    offsets = np.searchsorted(pose, np.arange(len(poses) + 1))
+    offsets = _pose_offsets(pose, len(poses))
     for index, (first, last) in enumerate(zip(offsets[:-1], offsets[1:])):
         if last > first:
             rays = slice(first, last)
@@ -494,7 +501,7 @@ def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflect
     candidate; ``draws``: sensor_draws for the candidates, by default those of one
     object scan seeded by options.seed."""
     keep = (ranges >= sensor.min_range) & (ranges <= sensor.max_range)
-    if draws is None and np.ndim(sweep) == 0:
+    if draws is None:
         draws = sensor_draws(options, sensor, [[len(cells)]], [options.seed])
     uniform, noise, normal = draws or (None, None, None)
     noisy = ranges
