@@ -137,7 +137,18 @@ class _CameraFile:
         return bpy.path.abspath(self.cameras_file) if self.cameras_file else None
 
 
-class IMPORT_SCENE_OT_pgt_colmap(_CaptureSettings, _ImportReconstruction, bpy.types.Operator):
+class _ChoosesFolder:
+    """Opens the file browser on folders for the operator's ``directory`` (as ImportHelper
+    does for a file)."""
+
+    filter_folder: BoolProperty(default=True, options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+
+class IMPORT_SCENE_OT_pgt_colmap(_ChoosesFolder, _CaptureSettings, _ImportReconstruction, bpy.types.Operator):
     """Import a COLMAP sparse model folder (points with color, track length and error)"""
 
     bl_idname = "import_scene.pgt_colmap"
@@ -147,16 +158,11 @@ class IMPORT_SCENE_OT_pgt_colmap(_CaptureSettings, _ImportReconstruction, bpy.ty
 
     directory: StringProperty(name="Model folder", subtype="DIR_PATH", options=properties.PATH_OPTIONS,
                               description="Folder with cameras, images and points3D (.bin or .txt)")
-    filter_folder: BoolProperty(default=True, options={"HIDDEN"})
     with_cameras: BoolProperty(name="Cameras", default=True,
                                description="Add the registered photos as cameras, children of the points")
 
     def input_path(self) -> str:
         return self.directory
-
-    def invoke(self, context, event):
-        context.window_manager.fileselect_add(self)
-        return {"RUNNING_MODAL"}
 
 
 class IMPORT_SCENE_OT_pgt_gaussian_splat(ImportHelper, _CaptureSettings, _CameraFile, _ImportReconstruction,
@@ -200,7 +206,7 @@ class IMPORT_SCENE_OT_pgt_mesh(ImportHelper, _ImportReconstruction, bpy.types.Op
     filter_glob: StringProperty(default="*.obj;*.ply;*.glb;*.gltf;*.stl", options={"HIDDEN"})
 
 
-class IMPORT_SCENE_OT_pgt_folder(bpy.types.Operator):
+class IMPORT_SCENE_OT_pgt_folder(_ChoosesFolder, bpy.types.Operator):
     """Import every reconstruction in a folder (files, 3DGS output folders, COLMAP model folders); one bad file imports none"""
 
     bl_idname = "import_scene.pgt_folder"
@@ -209,11 +215,6 @@ class IMPORT_SCENE_OT_pgt_folder(bpy.types.Operator):
 
     directory: StringProperty(name="Folder", subtype="DIR_PATH", options=properties.PATH_OPTIONS,
                               description="Folder whose reconstructions are imported")
-    filter_folder: BoolProperty(default=True, options={"HIDDEN"})
-
-    def invoke(self, context, event):
-        context.window_manager.fileselect_add(self)
-        return {"RUNNING_MODAL"}
 
     def execute(self, context):
         if not self.directory:
@@ -239,7 +240,7 @@ class IMPORT_SCENE_OT_pgt_folder(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class IMPORT_SCENE_OT_pgt_placed_scene(bpy.types.Operator):
+class IMPORT_SCENE_OT_pgt_placed_scene(_ChoosesFolder, bpy.types.Operator):
     """Load a placement folder (place_objects.py --out): the scene's points, each inserted object's points and every box"""
 
     bl_idname = "import_scene.pgt_placed_scene"
@@ -248,11 +249,6 @@ class IMPORT_SCENE_OT_pgt_placed_scene(bpy.types.Operator):
 
     directory: StringProperty(name="Placement folder", subtype="DIR_PATH", options=properties.PATH_OPTIONS,
                               description="Folder with scan.bin and boxes.json, as place_objects.py writes it")
-    filter_folder: BoolProperty(default=True, options={"HIDDEN"})
-
-    def invoke(self, context, event):
-        context.window_manager.fileselect_add(self)
-        return {"RUNNING_MODAL"}
 
     def execute(self, context):
         if not self.directory:
