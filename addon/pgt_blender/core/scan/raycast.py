@@ -469,27 +469,29 @@ def trace_returns(target: ScanTarget, sensor: Sensor, trace: Trace, options: Sca
 
 def sensor_draws(options: ScanOptions, sensor: Sensor, counts: np.ndarray, seeds) -> tuple | None:
     """The random draws of ``options``' sensor effects for E object scans' candidate
-    returns, ``counts`` (E, S) per object and sweep, concatenated object by object and
-    sweep by sweep: object e draws from its own generator ``default_rng(seeds[e])``,
-    sweep by sweep (current first), each sweep the drop's uniforms (when a drop can
-    happen), then the range noise's normals (m), then the intensity spread's standard
-    normals for its candidates in cell order. Returns (uniform, noise, spread), each
-    (R,) or None when that effect is off; None when no effect draws."""
+    returns, ``counts`` (E, S) per object and sweep, concatenated object by object (and
+    within an object sweep by sweep, current first, cells ascending): object e draws
+    from its own generator ``default_rng(seeds[e])``, first the drop's uniforms for all
+    its candidates (when a drop can happen), then standard normals for all of them: the
+    range noise's (times the sensor's sigma, m), then, when the intensity spread is on,
+    the spread's. Returns (uniform, noise, spread), each (R,) or None when that effect is
+    off; None when no effect draws."""
     drops = bool(options.drop_rate or (options.ray_drop and sensor.ray_drop))
     if not (drops or options.range_noise):
         return None
     spread = options.range_noise and len(sensor.intensity_law) == 3 and sensor.intensity_law[2] > 0
     uniform, noise, normal = [], [], []
-    for seed, sweeps in zip(np.asarray(seeds).tolist(), np.asarray(counts).tolist()):
+    for seed, count in zip(np.asarray(seeds).tolist(), np.sum(counts, axis=1).tolist()):
         rng = np.random.default_rng(seed)
-        for count in sweeps:
-            if drops:
-                uniform.append(rng.random(count))
-            if options.range_noise:
-                noise.append(rng.normal(0.0, sensor.range_noise_sigma, count))
-                if spread:
-                    normal.append(rng.standard_normal(count))
-    return tuple(np.concatenate(part) if part else None for part in (uniform, noise, normal))
+        if drops:
+            uniform.append(rng.random(count))
+        if options.range_noise:
+            normals = rng.standard_normal((2 if spread else 1, count))
+            noise.append(normals[0])
+            normal.append(normals[1:].ravel())
+    noise = np.concatenate(noise) * sensor.range_noise_sigma if noise else None
+    return (np.concatenate(uniform) if uniform else None, noise,
+            np.concatenate(normal) if spread else None)
 
 
 def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflectivity: np.ndarray,
