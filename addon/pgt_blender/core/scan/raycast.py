@@ -219,7 +219,9 @@ def _in_object_frame(poses: np.ndarray, sizes: np.ndarray, cells: np.ndarray, se
     sensor_origin = -np.einsum("tji,tj->ti", rotation, translation) / stretch
     x, y, z = (axis[cells] for axis in sensor.direction_axes)
     columns = [[np.repeat(rotation[:, row, i] / stretch[i], sizes) for row in range(3)] for i in range(3)]
-    directions = np.column_stack([x * c[0] + y * c[1] + z * c[2] for c in columns])
+    directions = np.empty((len(cells), 3))
+    for axis, c in enumerate(columns):
+        directions[:, axis] = x * c[0] + y * c[1] + z * c[2]
     origins = np.repeat(sensor_origin, sizes, axis=0)
     if sensor.cell_origins is not None:
         ox, oy, oz = sensor.cell_origins[cells].T

@@ -187,11 +187,11 @@ def _in_current_box(sensor: Sensor, trace, picked: np.ndarray, hits: np.ndarray,
     order) that lie, where the ray hit in the key frame, within their object's current
     box ``boxes`` (E, >= 7) grown by ``margin`` m: the yaw-only box3d_lidar, as the
     datasets' database builders crop."""
-    group = np.repeat(np.arange(len(hits)), hits)
-    entry = group // origins.shape[1]
-    points = sensor.return_points(trace.cells[picked], trace.ranges[picked]) + origins.reshape(-1, 3)[group]
-    cos, sin = np.cos(boxes[:, 6])[entry], np.sin(boxes[:, 6])[entry]
-    dx, dy = points[:, 0] - boxes[entry, 0], points[:, 1] - boxes[entry, 1]
-    half = boxes[:, 3:6] / 2 + margin
-    return ((np.abs(dx * cos + dy * sin) <= half[entry, 0]) & (np.abs(dy * cos - dx * sin) <= half[entry, 1])
-            & (np.abs(points[:, 2] - boxes[entry, 2]) <= half[entry, 2]))
+    sweeps = origins.shape[1]
+    centres = np.repeat(boxes[:, :3], sweeps, axis=0) - origins.reshape(-1, 3)  # (E * S, 3) in each sweep's frame
+    points = sensor.return_points(trace.cells[picked], trace.ranges[picked])  # each sweep's sensor frame
+    dx, dy, dz = (points[:, axis] - np.repeat(centres[:, axis], hits) for axis in range(3))
+    cos, sin = (np.repeat(np.repeat(turn(boxes[:, 6]), sweeps), hits) for turn in (np.cos, np.sin))
+    half = np.repeat(boxes[:, 3:6] / 2 + margin, sweeps, axis=0)
+    return ((np.abs(dx * cos + dy * sin) <= np.repeat(half[:, 0], hits))
+            & (np.abs(dy * cos - dx * sin) <= np.repeat(half[:, 1], hits)) & (np.abs(dz) <= np.repeat(half[:, 2], hits)))
