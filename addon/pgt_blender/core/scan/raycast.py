@@ -354,11 +354,12 @@ def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bo
                                                     sensor.max_range)
         engine_seconds = time.perf_counter() - engine_start
         polygon = np.maximum(polygons, 0)  # misses are solved too (elementwise, cheaper than sorting them out)
-        ranges, cos_incidence = _refined_ranges(target.planes[polygon], origins, directions, engine_range)
+        ranges, cos_incidence = _refined_ranges(np.take(target.planes, polygon, axis=0), origins, directions,
+                                                engine_range)
         if scale is not None:
-            cos_incidence = cos_incidence * _stretched_normal_scale(target, stretch)[polygon]
-    hit = polygons >= 0
-    return Trace(rays, pose[hit], cells[hit], ranges[hit], cos_incidence[hit], polygons[hit],
+            cos_incidence = cos_incidence * np.take(_stretched_normal_scale(target, stretch), polygon)
+    hit = np.flatnonzero(polygons >= 0)
+    return Trace(rays, *(np.take(values, hit) for values in (pose, cells, ranges, cos_incidence, polygons)),
                  time.perf_counter() - start, engine_seconds)
 
 
