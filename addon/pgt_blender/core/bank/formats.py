@@ -131,7 +131,7 @@ def database_record(fmt: str, dataset: str, points: np.ndarray, box: np.ndarray,
     origin = box[:3].copy()
     if fmt == "mmdet3d":
         origin[2] -= box[5] / 2  # bottom centre
-    offset = np.zeros(points.shape[1])
+    offset = np.zeros(points.shape[1])  # intensity and time_lag pass unchanged
     offset[:3] = origin
     rows = (points - offset).astype(np.float32)  # in float64, rounded once
     stored = box[:BOX_VALUES[dataset]].astype(np.float32) + np.float32(0)  # a still box has vx = +0, not -0
