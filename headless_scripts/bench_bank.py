@@ -441,14 +441,11 @@ def main(argv: list) -> int:
 
     body, line = tables(throughput, series, projected, files), target_line(target, args.quick)
     print("\n" + body + "\n" + line)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(dev.markdown_report(
-        "Bank export: throughput, stages and memory at nuScenes settings", "bench_bank.py", machine, inputs,
-        f"**{line}**\n\n{body}"))
-    dev.write_results(args.out, {"machine": machine, "inputs": inputs, "throughput": throughput,
-                                 "file_writes": files,
-                                 "memory_series": series, "projection": projected, "target": target},
-                      plot(throughput, series, series_object))
+    dev.write_report(args.out, "Bank export: throughput, stages and memory at nuScenes settings", "bench_bank.py",
+                     machine, inputs, f"**{line}**\n\n{body}",
+                     {"machine": machine, "inputs": inputs, "throughput": throughput, "file_writes": files,
+                      "memory_series": series, "projection": projected, "target": target},
+                     plot(throughput, series, series_object))
     return 0
 
 

@@ -127,12 +127,10 @@ def main(argv: list) -> int:
               "run": f"{time.perf_counter() - started:.0f} s; load average before {load_before}, after "
                      f"{dev.load_average()} (a machine shared with other work: the times are upper bounds)"}
     print(f"\n{body}\n{line}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(dev.markdown_report(
-        "Bank export on a Ray cluster: parallel efficiency", "bench_cluster.py", machine, inputs,
-        f"**{line}**\n\n{body}"))
-    dev.write_results(args.out, {"machine": machine, "inputs": inputs, "setups": rows, "efficiency": efficiency,
-                                 "speed_up": one / many, "same_bank": same}, plot(rows, efficiency, args.nodes))
+    dev.write_report(args.out, "Bank export on a Ray cluster: parallel efficiency", "bench_cluster.py", machine,
+                     inputs, f"**{line}**\n\n{body}",
+                     {"machine": machine, "inputs": inputs, "setups": rows, "efficiency": efficiency,
+                      "speed_up": one / many, "same_bank": same}, plot(rows, efficiency, args.nodes))
     return 0 if same else 1
 
 
