@@ -490,11 +490,10 @@ def sensor_draws(options: ScanOptions, sensor: Sensor, counts: np.ndarray, seeds
             uniform.append(rng.random(count))
         if options.range_noise:
             normals = rng.standard_normal((2 if spread else 1, count))
-            noise.append(normals[0])
-            normal.append(normals[1:].ravel())
-    noise = np.concatenate(noise) * sensor.range_noise_sigma if noise else None
-    return (np.concatenate(uniform) if uniform else None, noise,
-            np.concatenate(normal) if spread else None)
+            noise.append(normals[0] * sensor.range_noise_sigma)
+            if spread:
+                normal.append(normals[1])
+    return tuple(np.concatenate(part) if part else None for part in (uniform, noise, normal))
 
 
 def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflectivity: np.ndarray,
