@@ -119,6 +119,10 @@ def number(value, digits=2) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+def rounded(values: tuple) -> str:
+    return ", ".join(f"{value:.4g}" for value in values)
+
+
 def table(rows: list) -> str:
     return dev.markdown_table(
         ["class", "mesh", "distance m", "points real / sim", "ratio", "ring Jaccard", "columns/ring real / sim",
@@ -192,8 +196,10 @@ def main(argv: list) -> int:
     markdown_inputs = {"real frames": f"{args.folder}: {len(rows)} labelled objects with >= {args.min_points} real "
                                       "points",
                        "meshes": f"{args.meshes} (glass {'solid' if args.no_glass else 'seen through'})",
-                       "scan": f"sensor {sensor.name}, one revolution from the origin, range noise, ray drop "
-                               f"{'off' if args.no_drop else 'on'}, seed {args.seed}",
+                       "scan": f"sensor {sensor.name}, one revolution from the origin, range noise, seed {args.seed}",
+                       "ray drop (a, k)": "off" if args.no_drop else rounded(sensor.ray_drop) or "none (no model)",
+                       "intensity law (scale, range exponent, spread)": rounded(sensor.intensity_law)
+                       or "the unfitted default",
                        "run": f"{seconds:.1f} s on a shared machine (the load average above is taken at the end)"}
     print(f"machine: {machine}", *(f"{key}: {value}" for key, value in markdown_inputs.items()), "", body, sep="\n")
     dev.write_report(args.out, "Fidelity: simulated objects against real KITTI scans", "bench_fidelity.py", machine,
