@@ -31,9 +31,11 @@ from /proc every 0.2 s) and the bank's bytes by part. Stages
 are the sum over chunks of export.ChunkDone.seconds (per worker wall time; with all
 cores they add up across workers); the engine ratio is the export's CPU per entry over
 the time its ray engine's own calls took per entry (Scan.cast_seconds: the Embree or BVH
-call), how far the pipeline runs from its ray engine. Last, the machine's own cost of
-writing the bank's files (file_write_cost: new files of an entry's size, then again
-right after deleting them), the floor under the writes stage. Every bank stays on disk
+call), how far the pipeline runs from its ray engine; the user-CPU ratio leaves out the
+kernel's part (making files, first touches of memory). Last, the machine's own cost of
+writing the bank's files (file_write_cost: new files of an entry's size by one process,
+by all cores at once, and by one right after deleting), the floor under the writes
+stage. Every bank stays on disk
 until the benchmark ends: on ext4 without a journal, files made within minutes of
 deleting many cost several times more (measured there), which would charge one
 export for the cleanup of the one before.
@@ -125,29 +127,40 @@ class WorkerPoll(threading.Thread):
                     self.peak, self.private = max(self.peak, _vmhwm(pid)), max(self.private, _private(pid))
 
 
-def file_write_cost(size: int, folder: Path, count: int = 2000) -> dict:
+def file_write_cost(size: int, folder: Path, processes: int, count: int = 2000) -> dict:
     """This machine's cost of writing ``count`` new files of ``size`` bytes into a new
     folder in ``folder`` (as the bank writes its entries), µs per file: wall, user and
-    system CPU; then again there right after deleting them (``after_deleting``): ext4
-    without a journal skips the inodes freed in the last minutes one by one when it
-    makes a file, so writing soon after deleting many files costs more, whatever writes."""
-    data = os.urandom(size)
-
-    def write(name: str) -> dict:
-        start, (user, system) = time.perf_counter(), _cpu_s()
-        for index in range(count):
-            with open(files / f"{name}{index}.bin", "wb") as stream:
-                stream.write(data)
-        wall, (user_end, system_end) = time.perf_counter() - start, _cpu_s()
-        return {"wall_us": 1e6 * wall / count, "user_us": 1e6 * (user_end - user) / count,
-                "system_us": 1e6 * (system_end - system) / count}
+    system CPU; by one process, then by ``processes`` at once into one folder (as the
+    exporter's workers do: ``concurrent``), then by one right after deleting the first
+    files (``after_deleting``): ext4 without a journal skips the inodes freed in the
+    last minutes one by one when it makes a file, so writing soon after deleting many
+    files costs more, whatever writes."""
+    from concurrent.futures import ProcessPoolExecutor
 
     files = folder / "file_write_cost"
     files.mkdir()
-    first = write("a")
-    for path in files.iterdir():
+    alone = _write_files(files, "a", size, count)
+    with ProcessPoolExecutor(processes) as pool:
+        runs = list(pool.map(_write_files, [files] * processes, [f"c{i}_" for i in range(processes)],
+                             [size] * processes, [count] * processes))
+    together = {key: float(np.mean([run[key] for run in runs])) for key in alone}
+    for path in files.glob("a*"):
         path.unlink()
-    return {"bytes": size, "files": count, **first, "after_deleting": write("b")}
+    return {"bytes": size, "files": count, **alone, "concurrent": together | {"processes": processes},
+            "after_deleting": _write_files(files, "b", size, count)}
+
+
+def _write_files(files: Path, prefix: str, size: int, count: int) -> dict:
+    """Write ``count`` files of ``size`` random bytes named ``prefix``<i>.bin into
+    ``files``: µs per file of wall, user and system CPU of this process."""
+    data = os.urandom(size)
+    start, before = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
+    for index in range(count):
+        with open(files / f"{prefix}{index}.bin", "wb") as stream:
+            stream.write(data)
+    wall, after = time.perf_counter() - start, resource.getrusage(resource.RUSAGE_SELF)
+    return {"wall_us": 1e6 * wall / count, "user_us": 1e6 * (after.ru_utime - before.ru_utime) / count,
+            "system_us": 1e6 * (after.ru_stime - before.ru_stime) / count}
 
 
 def disk_usage(out: Path) -> dict:
@@ -276,6 +289,7 @@ def throughput_row(name: str, grid: str, workers: int, runs: list) -> dict:
             "runs": len(runs), "export_s": seconds, "kept_per_s": kept / seconds, "cpu_ms_per_entry": cpu_ms,
             "system_ms_per_entry": system_ms,
             "cast_ms_per_entry": cast_ms, "engine_ratio": cpu_ms / cast_ms if cast_ms else None,
+            "user_engine_ratio": (cpu_ms - system_ms) / cast_ms if cast_ms else None,
             "stages_ms_per_entry": {stage: 1e3 * s / first["poses"] for stage, s in stages.items()},
             "load_1min": [round(r["load_1min"], 2) for r in runs], "parent_max_rss": first["parent_max_rss"],
             "workers_max_rss": first["workers_max_rss"] if workers > 1 else None,
@@ -324,21 +338,23 @@ def tables(throughput: list, series: list, projected: list, files: dict) -> str:
     stages = list(export.CHUNK_STAGES)
     text = "## throughput\n\n" + dev.markdown_table(
         ["object", "grid", "workers", "poses", "kept", "s (median of n)", "kept/s", "CPU ms/entry",
-         "of which system", "cast ms/entry", "CPU / cast", "parent max RSS MB", "worker max RSS MB",
-         "worker max private MB", "kB/entry"],
+         "of which system", "cast ms/entry", "CPU / cast", "user CPU / cast", "parent max RSS MB",
+         "worker max RSS MB", "worker max private MB", "kB/entry"],
         [[r["object"], r["grid"], r["workers"], f"{r['poses']:,}", f"{r['kept']:,}",
           f"{r['export_s']:.2f} ({r['runs']})", f"{r['kept_per_s']:.0f}", f"{r['cpu_ms_per_entry']:.2f}",
           f"{r['system_ms_per_entry']:.2f}", f"{r['cast_ms_per_entry']:.2f}",
-          "-" if r["engine_ratio"] is None else f"{r['engine_ratio']:.1f}x",
+          *("-" if r[ratio] is None else f"{r[ratio]:.1f}x" for ratio in ("engine_ratio", "user_engine_ratio")),
           mb(r["parent_max_rss"]), mb(r["workers_max_rss"]), mb(r["workers_max_private"]),
-          f"{r['bytes_per_entry'] / 1e3:,.1f}"] for r in throughput], "ll" + "r" * 13)
-    again = files["after_deleting"]
+          f"{r['bytes_per_entry'] / 1e3:,.1f}"] for r in throughput], "ll" + "r" * 14)
+    together, again = files["concurrent"], files["after_deleting"]
     text += (f"\n\nThis machine's cost of writing a new file of {files['bytes'] / 1e3:.0f} kB (one format's "
              f"entry) into a new folder, {files['files']:,} files: {files['wall_us']:.0f} µs wall, "
-             f"{files['user_us']:.0f} µs user and {files['system_us']:.0f} µs system CPU per file; right after "
-             f"deleting them, {again['wall_us']:.0f} µs wall and {again['system_us']:.0f} µs system "
-             f"(file_write_cost: ext4 without a journal steps over recently freed inodes; so the benchmark "
-             f"deletes its banks only at its end). An entry writes one file per format.")
+             f"{files['user_us']:.0f} µs user and {files['system_us']:.0f} µs system CPU per file by one process; "
+             f"{together['wall_us']:.0f} µs wall and {together['system_us']:.0f} µs system each by "
+             f"{together['processes']} processes at once; by one right after deleting the first files, "
+             f"{again['wall_us']:.0f} µs wall and {again['system_us']:.0f} µs system (file_write_cost: ext4 "
+             f"without a journal steps over recently freed inodes; so the benchmark deletes its banks only at "
+             f"its end). An entry writes one file per format.")
     text += ("\n\n## where a worker's time goes (export.ChunkDone stages, ms per entry; casts are part of scans)\n\n"
              + dev.markdown_table(["object", "grid", "workers", *stages],
                                   [[r["object"], r["grid"], r["workers"],
@@ -427,7 +443,7 @@ def main(argv: list) -> int:
                               scratch)
             series.append(run | {"objects": count})
         database = next(r for r in throughput if r["object"] == series_object)["disk"]["database .bin"]
-        files = file_write_cost(int(database["allocated"] / database["files"]), scratch)
+        files = file_write_cost(int(database["allocated"] / database["files"]), scratch, workers[-1])
     inputs = {"objects": {name: f"{o['source']}; {o['points']:,} points; box {o['dims_m']} m"
                           for name, o in objects.items()},
               "config": f"BankConfig() with engine {args.engine}; {grid} grid: headings {subset['headings_deg']}, "
