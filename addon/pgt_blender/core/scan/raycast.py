@@ -255,11 +255,11 @@ def rays_to_cast(sensor: Sensor, cast_bounds: np.ndarray, poses: np.ndarray, win
                  stretch: np.ndarray = np.ones(3)) -> tuple:
     """The rays of the poses ``poses`` (T, 4, 4) sensor_from_object: (pose (M,), cells
     (M,), origins (M, 3), directions (M, 3)), float64, pose by pose and cells
-    ascending, in the object frame shrunk by ``stretch`` ((3,) or (T, 3); _in_object_frame: unit
-    directions without one). ``window``: the cells of the angular window of the padded
-    ``cast_bounds`` (T, 2, 3), object frame (lasers off the origin widen it by their
-    offset); else every cell. Poses whose cast box is empty (a max below its min) cast
-    nothing."""
+    ascending, in the object frame shrunk by ``stretch`` ((3,) or (T, 3) per pose;
+    _in_object_frame: unit directions without one). ``window``: the cells of the angular
+    window of the padded ``cast_bounds`` (T, 2, 3), object frame (lasers off the origin
+    widen it by their offset); else every cell. Poses whose cast box is empty (a max
+    below its min) cast nothing."""
     if window:
         widened = cast_bounds + np.array([[-1.0], [1.0]]) * sensor.max_origin_offset
         blocks = cell_window(sensor, widened, poses)
@@ -327,11 +327,11 @@ def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bo
     anywhere on the geometry are returned; sweeps.scan_many crops them to the box).
 
     ``scale`` (3,) or (T, 3) per pose: the target stretched by it along its axes (size
-    variants of one target: positions x scale; not for Gaussian targets). The rays are cast in the
-    target's own frame, origin / scale along direction / scale, which keeps the ray
-    parameter of a hit: its range in metres (the BVH casts along the unit direction, its
-    distance is divided by that direction's length); the incidence is the stretched
-    normal's, (n . direction / scale) / |n / scale|."""
+    variants of one target: positions x scale; not for Gaussian targets). The rays are
+    cast in the target's own frame, origin / scale along direction / scale, which keeps
+    the ray parameter of a hit: its range in metres (the BVH casts along the unit
+    direction, its distance is divided by that direction's length); the incidence is the
+    stretched normal's, (n . direction / scale) / |n / scale|."""
     sensor.directions  # the cached ray table: built on first use, kept out of the timing
     start = time.perf_counter()
     poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)

@@ -115,11 +115,10 @@ def scan_many(target: ScanTarget, sensor: Sensor, x, y, heading, motion: Motion,
     Each object stands on ``ground`` (raycast.placement) and moves along its heading up
     or down its pitch. ``bounds`` ((2, 3) or (E, 2, 3), object frame) is the box that
     stands on the ground and that the Scan reports (default: the geometry's bounds, times
-    ``scale``). ``box_margin``
-    (m): keep only the returns whose hit (before range noise) lies within the object's
-    current box (the reported, yaw-only box) grown by it, as a database keeps a box's
-    points, and cast only the rays that can meet it: older sweeps of a moving object
-    then cost only the part that overlaps the box. ``scale`` ((3,) or (E, 3)): scan
+    ``scale``). ``box_margin`` (m): keep only the returns whose hit (before range noise)
+    lies within the object's current box (the reported, yaw-only box) grown by it, as a
+    database keeps a box's points, and cast only the rays that can meet it: older sweeps
+    of a moving object then cost only the part that overlaps the box. ``scale`` ((3,) or (E, 3)): scan
     ``target`` stretched by it along its axes (size variants of one target, all cast in
     the one call; raycast.trace_rays)."""
     if sweeps < 1:
@@ -147,10 +146,11 @@ def scan_many(target: ScanTarget, sensor: Sensor, x, y, heading, motion: Motion,
                           under)
     cast_bounds = np.broadcast_to(geometry_bounds[:, None], (count, sweeps, 2, 3))
     if box_margin is not None:  # the current box in each sweep's object frame, met with the geometry's
-        current = bounds[:, None] + np.stack([np.stack([-travelled - box_margin, np.full_like(travelled, -box_margin),
-                                               np.full_like(travelled, -box_margin)], -1),
-                                     np.stack([-travelled + box_margin, np.full_like(travelled, box_margin),
-                                               np.full_like(travelled, box_margin)], -1)], -2)
+        low = np.stack([-travelled - box_margin, np.full_like(travelled, -box_margin),
+                        np.full_like(travelled, -box_margin)], -1)
+        high = np.stack([-travelled + box_margin, np.full_like(travelled, box_margin),
+                         np.full_like(travelled, box_margin)], -1)
+        current = bounds[:, None] + np.stack([low, high], -2)
         cast_bounds = np.stack([np.maximum(current[..., 0, :], geometry_bounds[:, None, 0]),
                                 np.minimum(current[..., 1, :], geometry_bounds[:, None, 1])], -2)
     # Sweeps alike in pose, cast box and stretch cast once.
