@@ -95,9 +95,9 @@ class TargetCache:
 def scan_entries(cache: TargetCache, sensor, entries: np.ndarray, config: BankConfig) -> list:
     """The Scan of every sweep of each grid.ENTRY_DTYPE row, in their order, its returns
     those inside the current box (``scan.box``, (9,) sensor frame), with the columns of
-    the dataset's files (all of them for a learned intensity, which reads more). The entries that
-    share a ray target (an object's size variants, or one splat variant) are cast
-    together (sweeps.scan_many)."""
+    the dataset's files (all of them for a learned intensity, which reads more). The
+    entries that share a ray target (an object's size variants, or one splat variant)
+    are cast together (sweeps.scan_many)."""
     options = ScanOptions(range_noise=config.range_noise, max_incidence_deg=config.max_incidence_deg,
                           drop_rate=config.drop_rate, ray_drop=config.ray_drop, engine=config.engine,
                           columns=None if config.intensity_checkpoint else BIN_COLUMNS[config.dataset])
