@@ -192,7 +192,9 @@ def main(argv: list) -> int:
             f"{number(totals['mean_w1_sim'], 3)} simulated vs {number(totals['mean_w1_constant'], 3)} constant mean "
             f"({totals['constant_intensity']:.3f})")
     inputs = {"folder": str(args.folder), "meshes": args.meshes, "glass": not args.no_glass, "sensor": sensor.name,
-              "seed": args.seed}
+              "seed": args.seed, "min_points": args.min_points,
+              "ray_drop": None if args.no_drop or not sensor.ray_drop else list(sensor.ray_drop),
+              "intensity_law": list(sensor.intensity_law) if sensor.intensity_law else None}
     markdown_inputs = {"real frames": f"{args.folder}: {len(rows)} labelled objects with >= {args.min_points} real "
                                       "points",
                        "meshes": f"{args.meshes} (glass {'solid' if args.no_glass else 'seen through'})",
