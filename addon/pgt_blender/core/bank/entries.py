@@ -109,7 +109,8 @@ def scan_entries(cache: TargetCache, sensor, entries: np.ndarray, config: BankCo
         alike = [number for number, variant in enumerate(variants) if variant.target is target]
         index = np.flatnonzero(np.isin(which, alike))
         batch, own = entries[index], which[index]
-        scale = None if variants[alike[0]].scale is None else np.array([variant.scale for variant in variants])[own]
+        # a splat variant is a target of its own (no scale); a mesh's variants all stretch one target
+        scale = None if variants[alike[0]].scale is None else np.array([variants[number].scale for number in own])
         found = scan_many(target, sensor, batch["x"], batch["y"], batch["heading"],
                           Motion(batch["speed"], batch["acceleration"]), sweeps_of(config), options,
                           batch["noise_seed"], bounds[own], BOX_TOLERANCE,
