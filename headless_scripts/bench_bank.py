@@ -35,10 +35,9 @@ call), how far the pipeline runs from its ray engine; the user-CPU ratio leaves 
 kernel's part (making files, first touches of memory). Last, the machine's own cost of
 writing the bank's files (file_write_cost: new files of an entry's size by one process,
 by all cores at once, and by one right after deleting), the floor under the writes
-stage. Every bank stays on disk
-until the benchmark ends: on ext4 without a journal, files made within minutes of
-deleting many cost several times more (measured there), which would charge one
-export for the cleanup of the one before.
+stage. Every bank stays on disk until the benchmark ends: on ext4 without a journal,
+files made within minutes of deleting many cost several times more (measured there),
+which would charge one export for the cleanup of the one before.
 
 Memory against the bank size: 1, 2, 4, 8 copies (--quick: 1, 2) of one object (the 176k
 truck; --quick: the 11k one) under other names (more entries, more objects) on the

@@ -118,9 +118,9 @@ def scan_many(target: ScanTarget, sensor: Sensor, x, y, heading, motion: Motion,
     ``scale``). ``box_margin`` (m): keep only the returns whose hit (before range noise)
     lies within the object's current box (the reported, yaw-only box) grown by it, as a
     database keeps a box's points, and cast only the rays that can meet it: older sweeps
-    of a moving object then cost only the part that overlaps the box. ``scale`` ((3,) or (E, 3)): scan
-    ``target`` stretched by it along its axes (size variants of one target, all cast in
-    the one call; raycast.trace_rays)."""
+    of a moving object then cost only the part that overlaps the box. ``scale`` ((3,) or
+    (E, 3)): scan ``target`` stretched by it along its axes (size variants of one target,
+    all cast in the one call; raycast.trace_rays)."""
     if sweeps < 1:
         raise ValueError(f"sweeps must be at least 1, got {sweeps}")
     start = time.perf_counter()
