@@ -240,7 +240,7 @@ def make_objects(scratch: Path, chrono: Path, subdivided: bool) -> dict:
 
     sources = {}
     if chrono.is_file():
-        shown = f"../{chrono.relative_to(ROOT.parent)}" if chrono.is_relative_to(ROOT.parent) else str(chrono)
+        shown = dev.shown_path(chrono)
         sources["chrono truck 11k"] = (chrono, shown, dict(up="+z", heading_method="none", size="keep"))
         if subdivided:
             mesh = trimesh.load(chrono, force="mesh", process=False)

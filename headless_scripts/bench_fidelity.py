@@ -191,13 +191,14 @@ def main(argv: list) -> int:
             f"mean ring Jaccard {number(totals['mean_ring_jaccard'])}; intensity W1, mean over objects, "
             f"{number(totals['mean_w1_sim'], 3)} simulated vs {number(totals['mean_w1_constant'], 3)} constant mean "
             f"({totals['constant_intensity']:.3f})")
-    inputs = {"folder": str(args.folder), "meshes": args.meshes, "glass": not args.no_glass, "sensor": sensor.name,
-              "seed": args.seed, "min_points": args.min_points,
+    shown_meshes = dev.shown_path(args.meshes) if Path(args.meshes).exists() else args.meshes
+    inputs = {"folder": dev.shown_path(args.folder), "meshes": shown_meshes, "glass": not args.no_glass,
+              "sensor": sensor.name, "seed": args.seed, "min_points": args.min_points,
               "ray_drop": None if args.no_drop or not sensor.ray_drop else list(sensor.ray_drop),
               "intensity_law": list(sensor.intensity_law) if sensor.intensity_law else None}
-    markdown_inputs = {"real frames": f"{args.folder}: {len(rows)} labelled objects with >= {args.min_points} real "
-                                      "points",
-                       "meshes": f"{args.meshes} (glass {'solid' if args.no_glass else 'seen through'})",
+    markdown_inputs = {"real frames": f"{dev.shown_path(args.folder)}: {len(rows)} labelled objects with >= "
+                                      f"{args.min_points} real points",
+                       "meshes": f"{shown_meshes} (glass {'solid' if args.no_glass else 'seen through'})",
                        "scan": f"sensor {sensor.name}, one revolution from the origin, range noise, seed {args.seed}",
                        "ray drop (a, k)": "off" if args.no_drop else rounded(sensor.ray_drop) or "none (no model)",
                        "intensity law (scale, range exponent, spread)": rounded(sensor.intensity_law)

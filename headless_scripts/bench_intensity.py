@@ -214,7 +214,7 @@ def main(argv: list) -> int:
     train_config = vars(config) | {"checkpoint": str(args.checkpoint) if args.checkpoint else "trained"}
     results = {
         "machine": machine,
-        "inputs": {"real": str(args.kitti), "folds": folds, "rgb_objects_per_fold": len(rgb),
+        "inputs": {"real": dev.shown_path(args.kitti), "folds": folds, "rgb_objects_per_fold": len(rgb),
                    "merged_classes": merged, "min_points": args.min_points, "train_config": train_config},
         "seconds": seconds,
         "rows": rows,
@@ -229,7 +229,7 @@ def main(argv: list) -> int:
             + table(rows) + "\n\nPer class: W1 per point averaged over the folds that scored it, and its ratio "
             "to the constant class mean's.\n\n" + summary_table(averaged))
     print("\n" + body)
-    inputs = {"real objects": f"{args.kitti}, cut by their labels; held out in turn: {', '.join(scans)}",
+    inputs = {"real objects": f"{dev.shown_path(args.kitti)}, cut by their labels; held out in turn: {', '.join(scans)}",
               "folds": fold_lines,
               "RGB objects": f"{len(rgb)} per fold: the Chrono meshes "
                              f"{'(the first per class)' if args.quick else 'and the built-in samples'}, scanned at "

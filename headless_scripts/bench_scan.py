@@ -197,7 +197,7 @@ def load_objects(chrono: Path, quick: bool) -> list:
     objects = []
     if chrono.is_file():
         mesh = trimesh.load(chrono, force="mesh", process=False)
-        source = f"../{chrono.relative_to(ROOT.parent)}" if chrono.is_relative_to(ROOT.parent) else str(chrono)
+        source = dev.shown_path(chrono)
         truck = Object("chrono truck 11k", centred(np.asarray(mesh.vertices, np.float64)), mesh.faces, source)
         vertices, faces = trimesh.remesh.subdivide(*trimesh.remesh.subdivide(truck.vertices, truck.faces))
         objects += [truck, Object(TARGET_OBJECT, vertices, faces, "chrono truck 11k, trimesh.remesh.subdivide x2 "

@@ -17,8 +17,16 @@ from pathlib import Path
 
 from .cli import markdown_table  # noqa: F401  (the benchmarks' tables: one home, in cli)
 
-SHARED_DATA = Path(os.environ.get("PGT_SHARED_DATA") or Path(__file__).resolve().parents[3] / "shared" / "data")
+REPOSITORY = Path(__file__).resolve().parents[2]
+SHARED_DATA = Path(os.environ.get("PGT_SHARED_DATA") or REPOSITORY.parent / "shared" / "data")
 CHRONO_VEHICLES = SHARED_DATA / "chrono_vehicles" / "data" / "vehicle"
+
+
+def shown_path(path) -> str:
+    """``path`` as reports print it: relative to the repository (``../shared/...``) when it
+    lies beside it, so a report names no one machine's folders; else as given."""
+    path = Path(path).resolve()
+    return f"../{path.relative_to(REPOSITORY.parent).as_posix()}" if path.is_relative_to(REPOSITORY.parent) else str(path)
 
 
 def machine(**details) -> dict:
