@@ -49,9 +49,10 @@ without enough planar structure (less than ``MIN_PLANAR_SHARE`` of the weight as
 to an axis: spheres, cylinders) keep the unrefined frame (``refined`` is False).
 
 The refined box is taken from the surface estimate, not the raw points: each point is
-moved towards its neighbourhood plane by at most six times the estimated noise (the
-10th percentile of the neighbourhoods' out-of-plane spread; 0 for a noise-free
-sampling of flat faces, which then moves nothing), so noise inflates the box less
+moved towards its neighbourhood plane by at most ``DENOISE_CLAMP`` times the
+estimated noise (the standard deviation :func:`_plane_noise` reads from the flattest
+small neighbourhoods; 0 for a noise-free sampling of flat faces, which then moves
+nothing), so noise inflates the box less
 while thin parts with too few points for a plane stay where they are. A side where a
 wall faces outwards is then the median of the wall's points, not their extreme
 (:func:`_surface_bounds`). Any other side (a tyre, a rounded roof, a handlebar end,
@@ -85,13 +86,16 @@ ISOTROPY = 0.05
 BOX_TRIM = 0.001
 NEIGHBOURS = 8
 NORMAL_NEIGHBOURS = 48
+NOISE_NEIGHBOURS = 24
+NOISE_PERCENTILE = 10
+DENOISE_CLAMP = 5.2
 REFINE_CONES_DEG = (20.0, 12.0, 8.0, 5.0, 5.0)
 MIN_PLANAR_SHARE = 0.05
 MIRROR_SAMPLE = 4000
 FACING_DEG = 30.0
-SIDE_BAND = 2.0
+SIDE_BAND = 1.75
 WALL_RATIO = 2.0
-PROTRUSION_BAND = 2.5
+PROTRUSION_BAND = 2.2
 WHEEL_BAND = 0.05
 MESH_SAMPLES = 20000
 LENGTH_BINS = 50
@@ -253,9 +257,9 @@ class SurfaceEstimate:
     normals:   (N, 3) unit normal of the plane through each point's neighbourhood.
     planarity: (N,) (l2 - l1) / l3 of the neighbourhood's covariance eigenvalues
                l1 <= l2 <= l3, in [0, 1]: 1 for a flat patch, 0 for a line or a blob.
-    denoised:  (N, 3) points moved towards their plane by at most 6 x ``noise``.
-    noise:     the surface noise, the 10th percentile of sqrt(l1) over the points (flat
-               patches exist on every vehicle; their out-of-plane spread is the noise).
+    denoised:  (N, 3) points moved towards their plane by at most ``DENOISE_CLAMP`` x ``noise``.
+    noise:     the surface noise (standard deviation) from the ``NOISE_NEIGHBOURS``
+               nearest of each neighbourhood (:func:`_plane_noise`).
     samples:   (MESH_SAMPLES, 3) points spread evenly over a mesh's area (None for a
                cloud): its moments, which the vertices (dense where the detail is) are not.
     """
@@ -281,10 +285,27 @@ def surface_estimate(points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) ->
     values = np.maximum(values, 0)
     normals = vectors[:, :, 0]
     planarity = (values[:, 1] - values[:, 0]) / np.maximum(values[:, 2], np.finfo(float).tiny)
-    noise = float(np.percentile(np.sqrt(values[:, 0]), 10))
+    noise = _plane_noise(spread[:, :NOISE_NEIGHBOURS])
     offsets = np.einsum("ni,ni->n", points - centres, normals)
-    denoised = points - np.clip(offsets, -6 * noise, 6 * noise)[:, None] * normals
+    denoised = points - np.clip(offsets, -DENOISE_CLAMP * noise, DENOISE_CLAMP * noise)[:, None] * normals
     return SurfaceEstimate(normals, planarity, denoised, noise)
+
+
+def _plane_noise(spread: np.ndarray) -> float:
+    """The surface noise (standard deviation, source units) from neighbourhoods
+    ``spread`` (N, k, 3), each centred on its mean: the out-of-plane spread sqrt(l1) of a
+    flat patch is sigma x sqrt(chi2(k - 3) / k) (the plane takes three degrees of
+    freedom), so the ``NOISE_PERCENTILE``th percentile over the points (flat patches
+    exist on every vehicle; curved ones and edges spread more) divided by that law's is
+    sigma. Small neighbourhoods (``NOISE_NEIGHBOURS``) see less of a surface's curvature."""
+    from scipy.stats import chi2
+
+    k = spread.shape[1]
+    values = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", spread, spread) / k)[:, 0]
+    if k <= 3:
+        return 0.0
+    law = np.sqrt(chi2.ppf(NOISE_PERCENTILE / 100, k - 3) / k)
+    return float(np.percentile(np.sqrt(np.maximum(values, 0)), NOISE_PERCENTILE) / law)
 
 
 def mesh_surface(kept: np.ndarray, vertices: np.ndarray, faces, source="points") -> SurfaceEstimate:
