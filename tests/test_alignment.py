@@ -421,7 +421,8 @@ def prism(profile, length) -> trimesh.Trimesh:
     vertices = np.r_[np.c_[np.full(n, -length / 2), profile], np.c_[np.full(n, length / 2), profile],
                      [[-length / 2, *centre], [length / 2, *centre]]]
     sides = np.r_[np.c_[ring, (ring + 1) % n, n + ring], np.c_[(ring + 1) % n, n + (ring + 1) % n, n + ring]]
-    ends = np.r_[np.c_[np.full(n, 2 * n), (ring + 1) % n, ring], np.c_[np.full(n, 2 * n + 1), n + ring, n + (ring + 1) % n]]
+    ends = np.r_[np.c_[np.full(n, 2 * n), (ring + 1) % n, ring],
+                 np.c_[np.full(n, 2 * n + 1), n + ring, n + (ring + 1) % n]]
     return trimesh.Trimesh(vertices, np.r_[sides, ends])
 
 

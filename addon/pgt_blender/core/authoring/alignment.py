@@ -88,6 +88,9 @@ NEIGHBOURS = 8
 NORMAL_NEIGHBOURS = 48
 NOISE_NEIGHBOURS = 24
 NOISE_PERCENTILE = 10
+# DENOISE_CLAMP, SIDE_BAND and PROTRUSION_BAND are in units of the noise estimate, which
+# reads sigma itself since it is chi-corrected; they keep the widths they had in units
+# of the former estimate (6, 2 and 2.5 x the plain percentile, about 0.87 sigma)
 DENOISE_CLAMP = 5.2
 REFINE_CONES_DEG = (20.0, 12.0, 8.0, 5.0, 5.0)
 MIN_PLANAR_SHARE = 0.05
@@ -301,9 +304,9 @@ def _plane_noise(spread: np.ndarray) -> float:
     from scipy.stats import chi2
 
     k = spread.shape[1]
-    values = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", spread, spread) / k)[:, 0]
     if k <= 3:
         return 0.0
+    values = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", spread, spread) / k)[:, 0]
     law = np.sqrt(chi2.ppf(NOISE_PERCENTILE / 100, k - 3) / k)
     return float(np.percentile(np.sqrt(np.maximum(values, 0)), NOISE_PERCENTILE) / law)
 
@@ -505,7 +508,9 @@ def _deblurred_edge(outward: np.ndarray, noise: float, share: float = BOX_TRIM) 
     from scipy.special import ndtr
 
     mass = max(1, int(share * len(outward)))
-    trimmed = np.partition(outward, len(outward) - 1 - mass)[len(outward) - 1 - mass] if len(outward) > mass else outward.max()
+    if len(outward) <= mass:
+        return float(outward.max())
+    trimmed = np.partition(outward, len(outward) - 1 - mass)[len(outward) - 1 - mass]
     if noise <= 0:
         return float(trimmed)
     inner, outer = EDGE_WINDOW
