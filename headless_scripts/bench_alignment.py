@@ -192,13 +192,12 @@ def main(argv: list) -> int:
     print(f"machine: {machine}\n\ninputs (box l x w x h m): {inputs}\n\nsettings: {config}\n")
     body = tables(rows, per_object)
     print(body)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(dev.markdown_report(
-        "Axis alignment: PCA and the refinement to the surface planes", "bench_alignment.py", machine,
-        {"objects (box l x w x h m)": {name: " x ".join(map(str, dims)) for name, dims in inputs.items()},
-         "settings": {key: str(value) for key, value in config.items()}}, body))
-    dev.write_results(args.out, {"machine": machine, "inputs": inputs, "settings": config, "rows": rows,
-                                 "per_object": per_object}, lambda plt: plot(plt, rows))
+    markdown_inputs = {"objects (box l x w x h m)": {name: " x ".join(map(str, dims)) for name, dims in inputs.items()},
+                       "settings": {key: str(value) for key, value in config.items()}}
+    dev.write_report(args.out, "Axis alignment: PCA and the refinement to the surface planes", "bench_alignment.py",
+                     machine, markdown_inputs, body,
+                     {"machine": machine, "inputs": inputs, "settings": config, "rows": rows, "per_object": per_object},
+                     lambda plt: plot(plt, rows))
     return 0
 
 

@@ -25,14 +25,19 @@ runs; the full run also exports the full default grid (5,677 poses per truck, ch
 Every export runs in a fresh Python process (its memory is its own): it loads the
 objects, plans, exports (export.run_plan: the timed part; kept/s = entries that reach
 the bank), assembles, and reports its CPU seconds (user + system, with its workers; the
-system part apart), its own peak RSS (getrusage), its workers' peak (the largest VmHWM
-of its pool workers, polled from /proc every 0.2 s) and the bank's bytes by part. Stages
+system part apart), its own peak RSS (getrusage), its workers' peaks (the largest VmHWM
+of its pool workers, and their largest private resident memory, smaps_rollup, polled
+from /proc every 0.2 s) and the bank's bytes by part. Stages
 are the sum over chunks of export.ChunkDone.seconds (per worker wall time; with all
 cores they add up across workers); the engine ratio is the export's CPU per entry over
 the time its ray engine's own calls took per entry (Scan.cast_seconds: the Embree or BVH
-call), how far the pipeline runs from its ray engine. Last, the machine's own cost of
-writing the bank's files (file_write_cost: as many new files of an entry's size as one
-run writes), the floor under the writes stage.
+call), how far the pipeline runs from its ray engine; the user-CPU ratio leaves out the
+kernel's part (making files, first touches of memory). Last, the machine's own cost of
+writing the bank's files (file_write_cost: new files of an entry's size by one process,
+by all cores at once, and by one right after deleting), the floor under the writes
+stage. Every bank stays on disk until the benchmark ends: on ext4 without a journal,
+files made within minutes of deleting many cost several times more (measured there),
+which would charge one export for the cleanup of the one before.
 
 Memory against the bank size: 1, 2, 4, 8 copies (--quick: 1, 2) of one object (the 176k
 truck; --quick: the 11k one) under other names (more entries, more objects) on the
@@ -84,6 +89,16 @@ def _vmhwm(pid) -> int:
     return int(found.group(1)) * 1024 if found else 0
 
 
+def _private(pid) -> int:
+    """Resident bytes of a process that no other process shares (0 when it is gone): a
+    forked worker's RSS also counts the parent's pages it shares, the objects among them."""
+    try:
+        rollup = Path(f"/proc/{pid}/smaps_rollup").read_text()
+    except OSError:
+        return 0
+    return 1024 * sum(int(kb) for kb in re.findall(r"^Private_(?:Clean|Dirty):\s+(\d+) kB", rollup, re.M))
+
+
 def _cpu_s() -> tuple:
     """(user, system) CPU seconds of this process and its reaped children."""
     usages = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
@@ -91,12 +106,13 @@ def _cpu_s() -> tuple:
 
 
 class WorkerPoll(threading.Thread):
-    """The largest VmHWM of this process's children (listed by /proc's per-thread
-    ``children`` files: cheap), polled every ``interval`` seconds."""
+    """The largest VmHWM and the largest private resident memory of this process's
+    children (listed by /proc's per-thread ``children`` files: cheap), polled every
+    ``interval`` seconds."""
 
     def __init__(self, interval: float = 0.2):
         super().__init__(daemon=True)
-        self.interval, self.peak, self.stop = interval, 0, threading.Event()
+        self.interval, self.peak, self.private, self.stop = interval, 0, 0, threading.Event()
 
     def run(self):
         tasks = Path(f"/proc/{os.getpid()}/task")
@@ -107,23 +123,43 @@ class WorkerPoll(threading.Thread):
                 except OSError:
                     continue
                 for pid in children:
-                    self.peak = max(self.peak, _vmhwm(pid))
+                    self.peak, self.private = max(self.peak, _vmhwm(pid)), max(self.private, _private(pid))
 
 
-def file_write_cost(size: int, count: int = 2000) -> dict:
-    """This machine's cost of writing ``count`` new files of ``size`` bytes into a fresh
-    folder (as the bank writes its entries), µs per file: wall, user and system CPU. On
-    a virtual machine whose fresh page-cache memory is slow to touch, the system time
-    here is what every entry's files cost, whatever the exporter does."""
+def file_write_cost(size: int, folder: Path, processes: int, count: int = 2000) -> dict:
+    """This machine's cost of writing ``count`` new files of ``size`` bytes into a new
+    folder in ``folder`` (as the bank writes its entries), µs per file: wall, user and
+    system CPU; by one process, then by ``processes`` at once into one folder (as the
+    exporter's workers do: ``concurrent``), then by one right after deleting the first
+    files (``after_deleting``): ext4 without a journal skips the inodes freed in the
+    last minutes one by one when it makes a file, so writing soon after deleting many
+    files costs more, whatever writes."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    files = folder / "file_write_cost"
+    files.mkdir()
+    alone = _write_files(files, "a", size, count)
+    with ProcessPoolExecutor(processes) as pool:
+        runs = list(pool.map(_write_files, [files] * processes, [f"c{i}_" for i in range(processes)],
+                             [size] * processes, [count] * processes))
+    together = {key: float(np.mean([run[key] for run in runs])) for key in alone}
+    for path in files.glob("a*"):
+        path.unlink()
+    return {"bytes": size, "files": count, **alone, "concurrent": together | {"processes": processes},
+            "after_deleting": _write_files(files, "b", size, count)}
+
+
+def _write_files(files: Path, prefix: str, size: int, count: int) -> dict:
+    """Write ``count`` files of ``size`` random bytes named ``prefix``<i>.bin into
+    ``files``: µs per file of wall, user and system CPU of this process."""
     data = os.urandom(size)
-    with tempfile.TemporaryDirectory(prefix="bench_bank_files_") as folder:
-        start, (user, system) = time.perf_counter(), _cpu_s()
-        for index in range(count):
-            with open(Path(folder, f"{index}.bin"), "wb") as stream:
-                stream.write(data)
-        wall, (user_end, system_end) = time.perf_counter() - start, _cpu_s()
-    return {"bytes": size, "files": count, "wall_us": 1e6 * wall / count, "user_us": 1e6 * (user_end - user) / count,
-            "system_us": 1e6 * (system_end - system) / count}
+    start, before = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
+    for index in range(count):
+        with open(files / f"{prefix}{index}.bin", "wb") as stream:
+            stream.write(data)
+    wall, after = time.perf_counter() - start, resource.getrusage(resource.RUSAGE_SELF)
+    return {"wall_us": 1e6 * wall / count, "user_us": 1e6 * (after.ru_utime - before.ru_utime) / count,
+            "system_us": 1e6 * (after.ru_stime - before.ru_stime) / count}
 
 
 def disk_usage(out: Path) -> dict:
@@ -149,41 +185,42 @@ def child(spec: dict) -> dict:
     objects = []
     for source in spec["folders"]:
         objects += checked_objects(*prepared_objects(source), False, source)
-    with tempfile.TemporaryDirectory(prefix="bench_bank_") as scratch:
-        out = Path(scratch) / "bank"
-        plan = export.plan_bank(objects, config, out)
-        poll = WorkerPoll()
-        poll.start()
-        load, start, (user, system) = os.getloadavg()[0], time.perf_counter(), _cpu_s()
-        stages = dict.fromkeys(export.CHUNK_STAGES, 0.0)
-        poses = 0
-        address = spec.get("address")
-        for chunk in export.run_plan(plan, spec["workers"], "ray" if address else "local", address):
-            poses += chunk.entries
-            for stage, seconds in chunk.seconds.items():
-                stages[stage] += seconds
-        seconds, (user_end, system_end) = time.perf_counter() - start, _cpu_s()
-        result = {"export_s": seconds, "export_cpu_s": user_end - user + system_end - system,
-                  "export_system_s": system_end - system, "load_1min": load, "stages_s": stages}
-        poll.stop.set()
-        poll.join()
-        manifest = export.assemble(out)
-        infos = load_infos(out / manifest["info_pickles"][config.formats[0]])
-        points = [info["num_points_in_gt"] for entries in infos.values() for info in entries]
-        return result | {"poses": poses, "kept": manifest["entries"], "disk": disk_usage(out),
-                         "manifest_sha256": hashlib.sha256((out / "manifest.json").read_bytes()).hexdigest(),
-                         "parent_max_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
-                         "workers_max_rss": poll.peak, "points_per_entry": float(np.mean(points or [0]))}
+    out = Path(spec["out"])  # kept until the benchmark ends (file_write_cost says why)
+    plan = export.plan_bank(objects, config, out)
+    poll = WorkerPoll()
+    poll.start()
+    load, start, (user, system) = os.getloadavg()[0], time.perf_counter(), _cpu_s()
+    stages = dict.fromkeys(export.CHUNK_STAGES, 0.0)
+    poses = 0
+    address = spec.get("address")
+    for chunk in export.run_plan(plan, spec["workers"], "ray" if address else "local", address):
+        poses += chunk.entries
+        for stage, seconds in chunk.seconds.items():
+            stages[stage] += seconds
+    seconds, (user_end, system_end) = time.perf_counter() - start, _cpu_s()
+    result = {"export_s": seconds, "export_cpu_s": user_end - user + system_end - system,
+              "export_system_s": system_end - system, "load_1min": load, "stages_s": stages}
+    poll.stop.set()
+    poll.join()
+    manifest = export.assemble(out)
+    infos = load_infos(out / manifest["info_pickles"][config.formats[0]])
+    points = [info["num_points_in_gt"] for entries in infos.values() for info in entries]
+    return result | {"poses": poses, "kept": manifest["entries"], "disk": disk_usage(out),
+                     "manifest_sha256": hashlib.sha256((out / "manifest.json").read_bytes()).hexdigest(),
+                     "parent_max_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+                     "workers_max_rss": poll.peak, "workers_max_private": poll.private,
+                     "points_per_entry": float(np.mean(points or [0]))}
 
 
-def export_once(folders: list, config: dict, workers: int, address: str | None = None, env: dict | None = None
-                ) -> dict:
-    """One measured export in a fresh Python process: on ``workers`` local processes, or
-    with ``address`` on that Ray cluster (``env``: the driver's environment, e.g. its
-    token settings)."""
+def export_once(folders: list, config: dict, workers: int, scratch: Path, address: str | None = None,
+                env: dict | None = None) -> dict:
+    """One measured export in a fresh Python process into a new folder in ``scratch``:
+    on ``workers`` local processes, or with ``address`` on that Ray cluster (``env``:
+    the driver's environment, e.g. its token settings). The bank stays until the caller
+    removes ``scratch`` (file_write_cost: deleting files slows the next export's writes)."""
     with tempfile.NamedTemporaryFile("r", suffix=".json") as result:
         spec = {"folders": [str(f) for f in folders], "config": config, "workers": workers, "result": result.name,
-                "address": address}
+                "address": address, "out": tempfile.mkdtemp(prefix="bank_", dir=scratch)}
         done = subprocess.run([sys.executable, __file__, "--child", json.dumps(spec)], cwd=ROOT,
                               capture_output=True, text=True, env=env)
         if done.returncode:
@@ -251,9 +288,11 @@ def throughput_row(name: str, grid: str, workers: int, runs: list) -> dict:
             "runs": len(runs), "export_s": seconds, "kept_per_s": kept / seconds, "cpu_ms_per_entry": cpu_ms,
             "system_ms_per_entry": system_ms,
             "cast_ms_per_entry": cast_ms, "engine_ratio": cpu_ms / cast_ms if cast_ms else None,
+            "user_engine_ratio": (cpu_ms - system_ms) / cast_ms if cast_ms else None,
             "stages_ms_per_entry": {stage: 1e3 * s / first["poses"] for stage, s in stages.items()},
             "load_1min": [round(r["load_1min"], 2) for r in runs], "parent_max_rss": first["parent_max_rss"],
             "workers_max_rss": first["workers_max_rss"] if workers > 1 else None,
+            "workers_max_private": first["workers_max_private"] if workers > 1 else None,
             "points_per_entry": first["points_per_entry"],
             "bytes_per_entry": sum(p["allocated"] for p in first["disk"].values()) / max(kept, 1), "disk": first["disk"]}
 
@@ -298,26 +337,37 @@ def tables(throughput: list, series: list, projected: list, files: dict) -> str:
     stages = list(export.CHUNK_STAGES)
     text = "## throughput\n\n" + dev.markdown_table(
         ["object", "grid", "workers", "poses", "kept", "s (median of n)", "kept/s", "CPU ms/entry",
-         "of which system", "cast ms/entry", "CPU / cast", "parent max RSS MB", "worker max RSS MB", "kB/entry"],
+         "of which system", "cast ms/entry", "CPU / cast", "user CPU / cast", "parent max RSS MB",
+         "worker max RSS MB", "worker max private MB", "kB/entry"],
         [[r["object"], r["grid"], r["workers"], f"{r['poses']:,}", f"{r['kept']:,}",
           f"{r['export_s']:.2f} ({r['runs']})", f"{r['kept_per_s']:.0f}", f"{r['cpu_ms_per_entry']:.2f}",
           f"{r['system_ms_per_entry']:.2f}", f"{r['cast_ms_per_entry']:.2f}",
-          "-" if r["engine_ratio"] is None else f"{r['engine_ratio']:.1f}x",
-          mb(r["parent_max_rss"]), mb(r["workers_max_rss"]), f"{r['bytes_per_entry'] / 1e3:,.1f}"]
-         for r in throughput], "ll" + "r" * 12)
+          *("-" if r[ratio] is None else f"{r[ratio]:.1f}x" for ratio in ("engine_ratio", "user_engine_ratio")),
+          mb(r["parent_max_rss"]), mb(r["workers_max_rss"]), mb(r["workers_max_private"]),
+          f"{r['bytes_per_entry'] / 1e3:,.1f}"] for r in throughput], "ll" + "r" * 14)
+    together, again = files["concurrent"], files["after_deleting"]
     text += (f"\n\nThis machine's cost of writing a new file of {files['bytes'] / 1e3:.0f} kB (one format's "
-             f"entry) into a fresh folder, {files['files']:,} files: {files['wall_us']:.0f} µs wall, "
-             f"{files['user_us']:.0f} µs user and {files['system_us']:.0f} µs system CPU per file (file_write_cost); "
-             f"an entry writes one file per format.")
+             f"entry) into a new folder, {files['files']:,} files: {files['wall_us']:.0f} µs wall, "
+             f"{files['user_us']:.0f} µs user and {files['system_us']:.0f} µs system CPU per file by one process; "
+             f"{together['wall_us']:.0f} µs wall and {together['system_us']:.0f} µs system each by "
+             f"{together['processes']} processes at once; by one right after deleting the first files, "
+             f"{again['wall_us']:.0f} µs wall and {again['system_us']:.0f} µs system (file_write_cost: ext4 "
+             f"without a journal steps over recently freed inodes; so the benchmark deletes its banks only at "
+             f"its end). An entry writes one file per format.")
     text += ("\n\n## where a worker's time goes (export.ChunkDone stages, ms per entry; casts are part of scans)\n\n"
              + dev.markdown_table(["object", "grid", "workers", *stages],
                                   [[r["object"], r["grid"], r["workers"],
                                     *(f"{r['stages_ms_per_entry'][s]:.3f}" for s in stages)]
                                    for r in throughput], "ll" + "r" * (1 + len(stages))))
     text += "\n\n## memory against the bank size (all cores)\n\n" + dev.markdown_table(
-        ["objects", "kept", "s", "parent max RSS MB", "worker max RSS MB", "bank on disk MB"],
+        ["objects", "kept", "s", "parent max RSS MB", "worker max RSS MB", "worker max private MB",
+         "bank on disk MB"],
         [[r["objects"], f"{r['kept']:,}", f"{r['export_s']:.1f}", mb(r["parent_max_rss"]), mb(r["workers_max_rss"]),
-          f"{sum(p['allocated'] for p in r['disk'].values()) / MIB:,.1f}"] for r in series])
+          mb(r["workers_max_private"]), f"{sum(p['allocated'] for p in r['disk'].values()) / MIB:,.1f}"]
+         for r in series])
+    text += ("\n\nA forked worker's RSS counts the pages it shares with the parent (the objects' geometry: "
+             "they grow with the objects, not with the entries); its private memory is its own: the "
+             "runtime, its object's ray target and one chunk's arrays (they grow with chunk_size).")
     text += (f"\n\n## the paper's nuScenes bank ({sum(PAPER_BANK.values()):,} entries) on this machine\n\n"
              + dev.markdown_table(["entries like", "grid", "kept/s", "minutes", "disk GB"],
                                   [[r["object"], r["grid"], f"{r['kept_per_s']:.0f}", f"{r['minutes']:.1f}",
@@ -336,7 +386,8 @@ def plot(throughput: list, series: list, series_object: str):
         axes[0].set(ylabel="kept entries per second (median of runs)", title="bank export, nuScenes settings")
         axes[0].legend(fontsize=8)
         kept = [r["kept"] for r in series]
-        for key, label in (("parent_max_rss", "parent max RSS"), ("workers_max_rss", "worker max RSS (VmHWM)")):
+        for key, label in (("parent_max_rss", "parent max RSS"), ("workers_max_rss", "worker max RSS (VmHWM)"),
+                           ("workers_max_private", "worker max private")):
             axes[1].plot(kept, [r[key] / MIB for r in series], "o-", label=label)
         axes[1].set(xlabel=f"bank size, kept entries (copies of {series_object})", ylabel="MiB",
                     title="peak memory against the bank size (all cores)")
@@ -377,18 +428,21 @@ def main(argv: list) -> int:
         throughput = []
         for name, entry in objects.items():
             for count in workers:
-                runs = [export_once([entry["folder"]], subset, count) for _ in range(repeats)]
+                runs = [export_once([entry["folder"]], subset, count, scratch) for _ in range(repeats)]
                 throughput.append(throughput_row(name, grid, count, runs))
                 print(f"{name}, {count} worker(s): {throughput[-1]['kept_per_s']:.0f} kept/s", flush=True)
             if not args.quick:
-                run = export_once([entry["folder"]], {"engine": args.engine}, workers[-1])
+                run = export_once([entry["folder"]], {"engine": args.engine}, workers[-1], scratch)
                 throughput.append(throughput_row(name, "full", workers[-1], [run]))
                 print(f"{name}, full grid: {throughput[-1]['kept_per_s']:.0f} kept/s", flush=True)
         series_object = TARGET_OBJECT if TARGET_OBJECT in objects else next(iter(objects))
         series = []
         for count in (1, 2) if args.quick else (1, 2, 4, 8):
-            run = export_once([copies(objects[series_object]["folder"], count, scratch)], subset, workers[-1])
+            run = export_once([copies(objects[series_object]["folder"], count, scratch)], subset, workers[-1],
+                              scratch)
             series.append(run | {"objects": count})
+        database = next(r for r in throughput if r["object"] == series_object)["disk"]["database .bin"]
+        files = file_write_cost(int(database["allocated"] / database["files"]), scratch, workers[-1])
     inputs = {"objects": {name: f"{o['source']}; {o['points']:,} points; box {o['dims_m']} m"
                           for name, o in objects.items()},
               "config": f"BankConfig() with engine {args.engine}; {grid} grid: headings {subset['headings_deg']}, "
@@ -399,19 +453,14 @@ def main(argv: list) -> int:
               "run": f"{time.perf_counter() - started:.0f} s; load average before {load_before}, after "
                      f"{dev.load_average()} (other work on the machine inflates the times: upper bounds)"}
     projected, target = projection(throughput), target_summary(throughput)
-    entry = next(r for r in throughput if r["object"] == series_object)
-    database = entry["disk"]["database .bin"]
-    files = file_write_cost(int(database["allocated"] / database["files"]))
+
     body, line = tables(throughput, series, projected, files), target_line(target, args.quick)
     print("\n" + body + "\n" + line)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(dev.markdown_report(
-        "Bank export: throughput, stages and memory at nuScenes settings", "bench_bank.py", machine, inputs,
-        f"**{line}**\n\n{body}"))
-    dev.write_results(args.out, {"machine": machine, "inputs": inputs, "throughput": throughput,
-                                 "file_writes": files,
-                                 "memory_series": series, "projection": projected, "target": target},
-                      plot(throughput, series, series_object))
+    dev.write_report(args.out, "Bank export: throughput, stages and memory at nuScenes settings", "bench_bank.py",
+                     machine, inputs, f"**{line}**\n\n{body}",
+                     {"machine": machine, "inputs": inputs, "throughput": throughput, "file_writes": files,
+                      "memory_series": series, "projection": projected, "target": target},
+                     plot(throughput, series, series_object))
     return 0
 
 

@@ -95,9 +95,6 @@ def main(argv: list) -> int:
     inputs = {"objects": "a 1.3M-triangle icosphere (r 2 m) and 1M points on the Chrono truck's surface (seed 0)",
               "scan": f"bpy.ops.object.pgt_scan, nuScenes, 15 m, engine {engine}; median of {args.repeats} after the "
                       "first", "load average": f"before {load_before}, after {dev.load_average()} (upper bounds)"}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(dev.markdown_report("Blender Scan operator on big objects",
-                                                               "bench_blender_scan.py", machine, inputs, table))
 
     def plot(plt):
         figure, axis = plt.subplots(figsize=(8, 4))
@@ -106,7 +103,8 @@ def main(argv: list) -> int:
         axis.set_xlabel("Scan operator, ms (median, target built)")
         return figure
 
-    dev.write_results(args.out, {"machine": machine, "inputs": inputs, "rows": rows}, plot)
+    dev.write_report(args.out, "Blender Scan operator on big objects", "bench_blender_scan.py", machine, inputs, table,
+                     {"machine": machine, "inputs": inputs, "rows": rows}, plot)
     return 0
 
 

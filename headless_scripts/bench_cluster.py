@@ -26,7 +26,6 @@ the CPUs ran slower (other work on the cores), not that Ray left nodes idle.
 """
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -56,13 +55,13 @@ def measure(name: str, runs: list, nodes: int, chunks_per_node: list) -> dict:
             "manifest_sha256": sorted({run["manifest_sha256"] for run in runs})}
 
 
-def on_cluster(name: str, nodes: int, folders: list, config: dict, repeats: int) -> dict:
-    """``repeats`` exports on a fresh cluster of ``nodes`` one-CPU nodes."""
+def on_cluster(name: str, nodes: int, folders: list, config: dict, repeats: int, scratch: Path) -> dict:
+    """``repeats`` exports into ``scratch`` on a fresh cluster of ``nodes`` one-CPU nodes."""
     with dev.local_ray_cluster((1,) * nodes) as (address, env, node_folders):
         runs, per_node = [], []
         for _ in range(repeats):
             before = dev.ray_tasks_per_node(node_folders)
-            runs.append(export_once(folders, config, 1, address, env))
+            runs.append(export_once(folders, config, 1, scratch, address, env))
             per_node.append([after - earlier for after, earlier in zip(dev.ray_tasks_per_node(node_folders), before)])
     return measure(name, runs, nodes, per_node)
 
@@ -97,13 +96,16 @@ def main(argv: list) -> int:
     print(f"machine: {machine}\n", flush=True)
     load_before, started = dev.load_average(), time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench_cluster_objects_") as scratch:
-        objects = make_objects(Path(scratch), bench_bank.CHRONO_TRUCK, subdivided=False)
+        scratch = Path(scratch)
+        objects = make_objects(scratch, bench_bank.CHRONO_TRUCK, subdivided=False)
         name = next(iter(objects))
         folders = [objects[name]["folder"]]
-        rows = [measure("local, 1 process", [export_once(folders, config, 1) for _ in range(repeats)], 1, [])]
+        local = [export_once(folders, config, 1, scratch) for _ in range(repeats)]
+        rows = [measure("local, 1 process", local, 1, [])]
         print(f"{rows[-1]['setup']}: {rows[-1]['export_s']:.1f} s", flush=True)
         for nodes in (1, args.nodes):
-            rows.append(on_cluster(f"Ray, {nodes} node{'s' * (nodes > 1)} x 1 CPU", nodes, folders, config, repeats))
+            rows.append(on_cluster(f"Ray, {nodes} node{'s' * (nodes > 1)} x 1 CPU", nodes, folders, config, repeats,
+                                   scratch))
             print(f"{rows[-1]['setup']}: {rows[-1]['export_s']:.1f} s", flush=True)
     one, many = rows[1]["export_s"], rows[2]["export_s"]
     efficiency = one / (args.nodes * many)
@@ -125,12 +127,10 @@ def main(argv: list) -> int:
               "run": f"{time.perf_counter() - started:.0f} s; load average before {load_before}, after "
                      f"{dev.load_average()} (a machine shared with other work: the times are upper bounds)"}
     print(f"\n{body}\n{line}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(dev.markdown_report(
-        "Bank export on a Ray cluster: parallel efficiency", "bench_cluster.py", machine, inputs,
-        f"**{line}**\n\n{body}"))
-    dev.write_results(args.out, {"machine": machine, "inputs": inputs, "setups": rows, "efficiency": efficiency,
-                                 "speed_up": one / many, "same_bank": same}, plot(rows, efficiency, args.nodes))
+    dev.write_report(args.out, "Bank export on a Ray cluster: parallel efficiency", "bench_cluster.py", machine,
+                     inputs, f"**{line}**\n\n{body}",
+                     {"machine": machine, "inputs": inputs, "setups": rows, "efficiency": efficiency,
+                      "speed_up": one / many, "same_bank": same}, plot(rows, efficiency, args.nodes))
     return 0 if same else 1
 
 

@@ -20,7 +20,12 @@ off its mesh): points and their ratio sim / real; rings hit (real rings from sca
 sensor_fit.py) and their Jaccard index; columns per ring hit; the share of points in the
 top 40 % of the box height (windows and roofs); intensity mean and Wasserstein-1 to the
 real intensities, beside W1 of a constant equal to the mean of every real object point
-(the constant-mean baseline). Totals: median ratio, share within +-35 %, mean Jaccard.
+(the constant-mean baseline). Totals: median ratio, share within +-35 %, mean Jaccard,
+mean W1 of the simulated and of the constant intensities.
+
+Prints the per-object table and the totals and writes them to <out>.md (with the
+machine and the inputs), the rows and totals to <out>.json and two plots (points per
+object, intensity W1) to <out>.png.
 """
 
 import argparse
@@ -114,6 +119,10 @@ def number(value, digits=2) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+def rounded(values: tuple) -> str:
+    return ", ".join(f"{value:.4g}" for value in values)
+
+
 def table(rows: list) -> str:
     return dev.markdown_table(
         ["class", "mesh", "distance m", "points real / sim", "ratio", "ring Jaccard", "columns/ring real / sim",
@@ -172,21 +181,32 @@ def main(argv: list) -> int:
     if not objects:
         raise InputError(args.folder, f"no labelled object has {args.min_points} real points")
     rows, totals = measure(objects)
+    seconds = time.perf_counter() - start
     import scipy
 
-    machine = dev.machine(numpy=np.__version__, scipy=scipy.__version__)
-    print(f"machine: {machine}\ninputs: {args.folder}, meshes {args.meshes} (glass "
-          f"{'solid' if args.no_glass else 'seen through'}), sensor {sensor.name}, seed {args.seed}; "
-          f"{time.perf_counter() - start:.1f} s\n")
-    print(table(rows))
-    print(f"\n{totals['objects']} objects: median points ratio sim / real {number(totals['median_ratio'])}, "
-          f"{number(100 * totals['within_35_percent'], 0)} % within +-35 %, mean ring Jaccard "
-          f"{number(totals['mean_ring_jaccard'])}; intensity W1 {number(totals['mean_w1_sim'], 3)} simulated vs "
-          f"{number(totals['mean_w1_constant'], 3)} constant mean ({totals['constant_intensity']:.3f})")
-    dev.write_results(args.out, {"machine": machine, "inputs": {"folder": str(args.folder), "meshes": args.meshes,
-                                                                "glass": not args.no_glass, "sensor": sensor.name,
-                                                                "seed": args.seed},
-                                 "objects": rows, "totals": totals}, draw(rows))
+    machine = dev.machine(numpy=np.__version__, scipy=scipy.__version__, load_average=dev.load_average())
+    body = ("Per object: real = the scan's points inside its labelled box, sim = the simulated returns off its mesh "
+            "(box frame).\n\n" + table(rows) + f"\n\n{totals['objects']} objects: median points ratio sim / real "
+            f"{number(totals['median_ratio'])}, {number(100 * totals['within_35_percent'], 0)} % within +-35 %, "
+            f"mean ring Jaccard {number(totals['mean_ring_jaccard'])}; intensity W1, mean over objects, "
+            f"{number(totals['mean_w1_sim'], 3)} simulated vs {number(totals['mean_w1_constant'], 3)} constant mean "
+            f"({totals['constant_intensity']:.3f})")
+    inputs = {"folder": str(args.folder), "meshes": args.meshes, "glass": not args.no_glass, "sensor": sensor.name,
+              "seed": args.seed, "min_points": args.min_points,
+              "ray_drop": None if args.no_drop or not sensor.ray_drop else list(sensor.ray_drop),
+              "intensity_law": list(sensor.intensity_law) if sensor.intensity_law else None}
+    markdown_inputs = {"real frames": f"{args.folder}: {len(rows)} labelled objects with >= {args.min_points} real "
+                                      "points",
+                       "meshes": f"{args.meshes} (glass {'solid' if args.no_glass else 'seen through'})",
+                       "scan": f"sensor {sensor.name}, one revolution from the origin, range noise, seed {args.seed}",
+                       "ray drop (a, k)": "off" if args.no_drop else rounded(sensor.ray_drop) or "none (no model)",
+                       "intensity law (scale, range exponent, spread)": rounded(sensor.intensity_law)
+                       or "the unfitted default",
+                       "run": f"{seconds:.1f} s on a shared machine (the load average above is taken at the end)"}
+    print(f"machine: {machine}", *(f"{key}: {value}" for key, value in markdown_inputs.items()), "", body, sep="\n")
+    dev.write_report(args.out, "Fidelity: simulated objects against real KITTI scans", "bench_fidelity.py", machine,
+                     markdown_inputs, body, {"machine": machine, "inputs": inputs, "objects": rows, "totals": totals},
+                     draw(rows))
     return 0
 
 

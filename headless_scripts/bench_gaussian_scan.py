@@ -164,11 +164,9 @@ def main(argv: list) -> int:
               "run": f"{elapsed:.0f} s; load average before {load_before}, after {load_after} (2 shared cores: "
                      "other work on the machine inflates the times)"}
     print("\n" + body)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(dev.markdown_report(
-        "Gaussian splats scanned as Gaussians against surfels", "bench_gaussian_scan.py", machine, inputs, body))
-    dev.write_results(args.out, {"machine": machine, "inputs": inputs, "overall": overall, "rows": rows},
-                      lambda plt: plot(plt, rows))
+    dev.write_report(args.out, "Gaussian splats scanned as Gaussians against surfels", "bench_gaussian_scan.py",
+                     machine, inputs, body, {"machine": machine, "inputs": inputs, "overall": overall, "rows": rows},
+                     lambda plt: plot(plt, rows))
     return 0
 
 

@@ -148,14 +148,13 @@ def main(argv: list) -> int:
     print(f"\nmachine: {machine}\nsettings: {settings}\ninputs: {', '.join(s.split(' sha256:')[0] for s in inputs)}\n")
     body = tables(cells, scan_cells, per_mesh, samplings, args.sensor)
     print(body)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(dev.markdown_report(
-        "Heading: geometric baseline against the classifier, leave one mesh out", "bench_heading.py", machine,
-        {"settings": {key: str(value) for key, value in settings.items()},
-         "inputs": [source.split(" sha256:")[0] for source in inputs]}, body))
-    dev.write_results(args.out, {"machine": machine, "settings": settings, "inputs": inputs, "cells": cells,
-                                 "scan_cells": scan_cells, "per_mesh": per_mesh, "rows": rows,
-                                 "scan_rows": scan_rows}, lambda plt: plot(plt, cells, len(meshes)))
+    markdown_inputs = {"settings": {key: str(value) for key, value in settings.items()},
+                       "inputs": [source.split(" sha256:")[0] for source in inputs]}
+    dev.write_report(args.out, "Heading: geometric baseline against the classifier, leave one mesh out",
+                     "bench_heading.py", machine, markdown_inputs, body,
+                     {"machine": machine, "settings": settings, "inputs": inputs, "cells": cells,
+                      "scan_cells": scan_cells, "per_mesh": per_mesh, "rows": rows, "scan_rows": scan_rows},
+                     lambda plt: plot(plt, cells, len(meshes)))
     print(f"in {seconds:.0f} s")
     return 0
 

@@ -4,7 +4,10 @@ Gaussian-splat PLY (62 floats per splat, SH degree 3).
 
     .venv/bin/python headless_scripts/bench_import.py [--sizes 1e4 1e5 1e6 1e7] [--repeats 5] [--out bench/import]
 
-Prints a Markdown table of medians and writes <out>.json and <out>.png.
+Inputs: seeded random clouds (seed = the point count) written as binary PLY; each size
+is imported ``--repeats`` times, each on a fresh empty scene. Prints a Markdown table of
+the medians and writes it to <out>.md (with the machine and the inputs), the rows to
+<out>.json and median seconds against points to <out>.png.
 """
 
 import argparse
@@ -63,6 +66,7 @@ def main(argv: list) -> int:
     parser.add_argument("--out", type=Path, default=Path("bench/import"))
     args = parser.parse_args(argv)
     headless.ensure_registered()
+    start = time.perf_counter()
     rows = []
     with tempfile.TemporaryDirectory() as temporary:
         for kind in ("point_ply", "gaussian_splat"):
@@ -76,14 +80,23 @@ def main(argv: list) -> int:
                              "points_per_s": count / (read + build)})
                 path.unlink()
     machine = dev.machine(blender=bpy.app.version_string, numpy=np.__version__, repeats=args.repeats,
-                          statistic="median")
-    print(f"machine: {machine}\n")
-    print("| input | points | file MB | read s | Blender build s | total s | points/s |")
-    print("|---|---:|---:|---:|---:|---:|---:|")
-    for r in rows:
-        print(f"| {r['kind']} | {r['points']:,} | {r['file_mb']:.1f} | {r['read_s']:.4f} | "
-              f"{r['build_s']:.4f} | {r['total_s']:.4f} | {r['points_per_s']:,.0f} |")
-    dev.write_results(args.out, {"machine": machine, "rows": rows}, lambda plt: plot(plt, rows))
+                          statistic="median", load_average=dev.load_average())
+    table = dev.markdown_table(
+        ["input", "points", "file MB", "read s", "Blender build s", "total s", "points/s"],
+        [[r["kind"], f"{r['points']:,}", f"{r['file_mb']:.1f}", f"{r['read_s']:.4f}", f"{r['build_s']:.4f}",
+          f"{r['total_s']:.4f}", f"{r['points_per_s']:,.0f}"] for r in rows])
+    body = (f"read s, Blender build s: medians of {args.repeats} imports each; total s: their sum; points/s: points / "
+            "total s.\n\n" + table)
+    inputs = {"clouds": "seeded random (numpy default_rng(points)) binary PLY: point_ply xyz float + uchar RGB; "
+                        "gaussian_splat 62 floats per splat (SH degree 3)",
+              "sizes": ", ".join(f"{int(size):,}" for size in args.sizes) + f" (splats up to {int(args.splat_max):,})",
+              "timed": "read = load_reconstruction (core parse, checks, sha256); build = objects.add_reconstruction "
+                       "(foreach_set); each repeat on a fresh empty scene (read_factory_settings)",
+              "run": f"{time.perf_counter() - start:.0f} s on a shared machine (the load average above is taken at "
+                     "the end)"}
+    print(f"machine: {machine}\n\n{body}")
+    dev.write_report(args.out, "Import throughput: point and Gaussian-splat PLY", "bench_import.py", machine, inputs,
+                     body, {"machine": machine, "rows": rows}, lambda plt: plot(plt, rows))
     return 0
 
 

@@ -21,7 +21,11 @@ sample's 100-point subsets hold no point of a labelled object.
 Metric, per class and fold: Wasserstein-1 between the pooled per-point intensities of
 the predictions (on that class's RGB objects) and of the held-out real objects, and W1
 between their ball-patch mean intensities (16 farthest-point centres, radius 0.5 in the
-[-1, 1]^3 box frame). Intensities are KITTI's 0..1. Lower is better.
+[-1, 1]^3 box frame). Intensities are KITTI's 0..1. Lower is better. The summary
+averages each method's W1 per point over the folds that scored the class.
+
+Prints the per-fold and summary tables and writes them to <out>.md (with the machine
+and the inputs), the rows to <out>.json and a bar chart to <out>.png.
 """
 
 import argparse
@@ -204,23 +208,37 @@ def main(argv: list) -> int:
                                                                         for o in held_out],
                       "scored_classes": sorted({row["class"] for row in fold_rows})})
     averaged = summary(rows)
+    seconds = time.perf_counter() - start
+    machine = dev.machine(numpy=np.__version__, torch=__import__("torch").__version__,
+                          load_average=dev.load_average())
+    train_config = vars(config) | {"checkpoint": str(args.checkpoint) if args.checkpoint else "trained"}
     results = {
-        "machine": dev.machine(numpy=np.__version__, torch=__import__("torch").__version__),
+        "machine": machine,
         "inputs": {"real": str(args.kitti), "folds": folds, "rgb_objects_per_fold": len(rgb),
-                   "merged_classes": merged, "min_points": args.min_points,
-                   "train_config": vars(config) | {"checkpoint": str(args.checkpoint) if args.checkpoint else "trained"}},
-        "seconds": time.perf_counter() - start,
+                   "merged_classes": merged, "min_points": args.min_points, "train_config": train_config},
+        "seconds": seconds,
         "rows": rows,
         "summary": averaged,
     }
-    for fold in folds:
-        print(f"held out {fold['held_out']}: {', '.join(fold['held_out_objects'])}; law fitted on the others "
-              f"{tuple(round(value, 4) for value in fold['law'])}; scored classes "
-              f"{', '.join(fold['scored_classes']) or 'none (no RGB object of its classes)'}")
-    print("\n" + table(rows) + "\n\n" + summary_table(averaged))
-    dev.write_results(args.out, results, draw(averaged))
-    args.out.with_suffix(".md").write_text("# LiDAR intensity: estimates against held-out real objects\n\n"
-                                           + table(rows) + "\n\n" + summary_table(averaged) + "\n")
+    fold_lines = [f"held out {fold['held_out']}: {', '.join(fold['held_out_objects'])}; law fitted on the others "
+                  f"{tuple(round(value, 4) for value in fold['law'])}; scored classes "
+                  f"{', '.join(fold['scored_classes']) or 'none (no RGB object of its classes)'}" for fold in folds]
+    print("\n".join(fold_lines))
+    body = ("Per fold: W1 between the predicted and the held-out real per-point intensities and between their "
+            "ball-patch means (KITTI 0..1, lower is better); mean: the predictions' mean intensity.\n\n"
+            + table(rows) + "\n\nPer class: W1 per point averaged over the folds that scored it, and its ratio "
+            "to the constant class mean's.\n\n" + summary_table(averaged))
+    print("\n" + body)
+    inputs = {"real objects": f"{args.kitti}, cut by their labels; held out in turn: {', '.join(scans)}",
+              "folds": fold_lines,
+              "RGB objects": f"{len(rgb)} per fold: the Chrono meshes "
+                             f"{'(the first per class)' if args.quick else 'and the built-in samples'}, scanned at "
+                             f"{len(objects.RGB_POSES)} poses with the fold's law and the KITTI sensor's noise",
+              "training": {"classes": "merged into one" if merged else "apart", "min real points": args.min_points,
+                           **{key: str(value) for key, value in train_config.items()}},
+              "run": f"{seconds:.0f} s on a shared machine (the load average above is taken at the end)"}
+    dev.write_report(args.out, "LiDAR intensity: estimates against held-out real objects", "bench_intensity.py",
+                     machine, inputs, body, results, draw(averaged))
     return 0
 
 

@@ -261,9 +261,6 @@ def main(argv: list) -> int:
               "landing": f"{args.repeats} samplings per scene and method (3 Truck + 3 Cyclist / truck + bicycle each)",
               "load average": f"before {load_before}, after {dev.load_average()} (times are upper bounds)"}
     body = "## Speed (one core)\n\n" + speed_table + "\n\n## Where objects land\n\n" + landing_table
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(dev.markdown_report("Placement into real scenes", "bench_placement.py",
-                                                               machine, inputs, body))
 
     def plot(plt):
         figure, (left, right) = plt.subplots(1, 2, figsize=(14, 4.5))
@@ -287,7 +284,8 @@ def main(argv: list) -> int:
         right.legend(fontsize="small")
         return figure
 
-    dev.write_results(args.out, {"machine": machine, "inputs": inputs, "speed": speed_rows, "landing": landing}, plot)
+    dev.write_report(args.out, "Placement into real scenes", "bench_placement.py", machine, inputs, body,
+                     {"machine": machine, "inputs": inputs, "speed": speed_rows, "landing": landing}, plot)
     return 0
 
 

@@ -143,9 +143,6 @@ def main(argv: list) -> int:
                      f"{', '.join(f'{label} {seconds:.0f} s' for label, seconds in training.items())}; the defects "
                      f"reuse its encoder); load average before {load_before}, after "
                      f"{dev.load_average()} (other work on the machine inflates the times: upper bounds)"}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(dev.markdown_report(
-        "Bank quality score: ranking deliberate defects", "bench_quality.py", machine, inputs, body))
     record = {"machine": machine, "inputs": inputs, "loadavg": dev.load_average(), "quick": args.quick,
               "build_seconds": build_seconds, "score_seconds_median": float(np.median(score_seconds)),
               "worse_than_matched": summary, "results": results}
@@ -161,7 +158,8 @@ def main(argv: list) -> int:
                 axis.set_title(f"{HEADINGS[metric]} ({label})", fontsize=9)
         return figure
 
-    dev.write_results(args.out, record, draw)
+    dev.write_report(args.out, "Bank quality score: ranking deliberate defects", "bench_quality.py", machine, inputs,
+                     body, record, draw)
     return 0
 
 

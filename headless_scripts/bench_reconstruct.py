@@ -113,11 +113,8 @@ def main(argv: list) -> int:
               "run": f"load average before {load_before}, after {load_after} (2 shared cores: other work on the "
                      "machine inflates the times)"}
     print("\n" + table)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(dev.markdown_report(
-        "Frames to a COLMAP model on the CPU", "bench_reconstruct.py", machine, inputs, table))
-    dev.write_results(args.out, {"machine": machine, "inputs": inputs, "rows": rows},
-                      lambda plt: plot(plt, rows, reference))
+    dev.write_report(args.out, "Frames to a COLMAP model on the CPU", "bench_reconstruct.py", machine, inputs, table,
+                     {"machine": machine, "inputs": inputs, "rows": rows}, lambda plt: plot(plt, rows, reference))
     return 0
 
 

@@ -497,11 +497,9 @@ def main(argv: list) -> int:
     body = tables(rows)
     line = target_line(target)
     print("\n" + body + "\n" + line)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(dev.markdown_report(
-        "LiDAR object scan: time against error", "bench_scan.py", machine, inputs, f"**{line}**\n\n{body}"))
-    dev.write_results(args.out, {"machine": machine, "inputs": inputs, "target": target, "rows": rows},
-                      lambda plt: plot(plt, rows))
+    dev.write_report(args.out, "LiDAR object scan: time against error", "bench_scan.py", machine, inputs,
+                     f"**{line}**\n\n{body}", {"machine": machine, "inputs": inputs, "target": target, "rows": rows},
+                     lambda plt: plot(plt, rows))
     return 0
 
 

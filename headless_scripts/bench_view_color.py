@@ -94,10 +94,8 @@ def main(argv: list) -> int:
               "views": f"{args.views} orbit views, 4 m, 30 deg elevation, {CAMERA}",
               "splats": "SH degree 3, opacity 0.9", "seed": args.seed}
     print(f"machine: {machine}\n\n{body}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(dev.markdown_report(
-        "View-agnostic color (Algorithm 1) at scale", "bench_view_color.py", machine, inputs, body))
-    dev.write_results(args.out, {"machine": machine, "inputs": inputs, "rows": rows}, lambda plt: plot(plt, rows))
+    dev.write_report(args.out, "View-agnostic color (Algorithm 1) at scale", "bench_view_color.py", machine, inputs,
+                     body, {"machine": machine, "inputs": inputs, "rows": rows}, lambda plt: plot(plt, rows))
     return 0
 
 

@@ -290,7 +290,8 @@ def test_importers_without_a_file_say_so(scene):
     """Run with nothing picked (a script, or Redo), each importer names what is missing."""
     before = datablock_counts(bpy)
     for name, missing in (("pgt_colmap", "model folder"), ("pgt_gaussian_splat", "file"), ("pgt_plenoxels", "file"),
-                          ("pgt_point_cloud", "file"), ("pgt_mesh", "file")):
+                          ("pgt_point_cloud", "file"), ("pgt_mesh", "file"), ("pgt_folder", "folder"),
+                          ("pgt_placed_scene", "placement folder")):
         with pytest.raises(RuntimeError, match=f"Import .*: no {missing} chosen$"):
             getattr(bpy.ops.import_scene, name)()
     assert datablock_counts(bpy) == before

@@ -161,6 +161,9 @@ def test_bench_bank_quick(tmp_path, shared_data):  # its trucks are the Chrono m
     # the export's own stage clock: every stage reported, casts part of scans
     assert all(set(row["stages_ms_per_entry"]) == set(CHUNK_STAGES) and
                0 < row["stages_ms_per_entry"]["casts"] <= row["stages_ms_per_entry"]["scans"] for row in rows)
+    assert all(0 < row["user_engine_ratio"] <= row["engine_ratio"] for row in rows)
+    writes = results["file_writes"]  # the floor under the writes stage: alone, all cores at once, after deleting
+    assert all(writes[case]["system_us"] > 0 for case in ("concurrent", "after_deleting")) and writes["system_us"] > 0
     assert "| chrono truck 11k |" in (tmp_path / "bank.md").read_text() and (tmp_path / "bank.png").stat().st_size > 0
 
 

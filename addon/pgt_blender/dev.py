@@ -53,6 +53,16 @@ def write_results(out: Path, results: dict, draw) -> None:
     print(f"\nwrote {out.with_suffix('.json')} and {out.with_suffix('.png')}")
 
 
+def write_report(out: Path, title: str, script: str, machine: dict, inputs: dict, body: str, results: dict,
+                 draw) -> None:
+    """A benchmark's whole output: <out>.md (markdown_report of ``title`` ... ``body``),
+    then <out>.json and <out>.png (write_results of ``results`` and ``draw``)."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".md").write_text(markdown_report(title, script, machine, inputs, body))
+    write_results(out, results, draw)
+
+
 def load_average() -> list:
     """The 1, 5 and 15 minute load averages: other work on the machine inflates timings."""
     return [round(value, 2) for value in os.getloadavg()]

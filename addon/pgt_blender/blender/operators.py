@@ -43,6 +43,15 @@ def _select_only(context, obj):
     context.view_layer.objects.active = obj
 
 
+def _nothing_chosen(operator, path: str, noun: str) -> bool:
+    """True, with "<label>: no <noun> chosen" reported, when ``path`` is empty: the
+    operator ran without its file browser (a script, Redo with nothing picked)."""
+    if path:
+        return False
+    operator.report({"ERROR"}, f"{operator.bl_label}: no {noun} chosen")
+    return True
+
+
 class _ImportReconstruction:
     """Shared execute of the importers: core read, then one bulk object build.
     Bad input is reported as an ERROR and leaves the scene untouched."""
@@ -63,8 +72,7 @@ class _ImportReconstruction:
         return None
 
     def execute(self, context):
-        if not self.input_path():  # run without the file browser (a script, Redo with nothing picked)
-            self.report({"ERROR"}, f"{self.bl_label}: no {self.input_noun} chosen")
+        if _nothing_chosen(self, self.input_path(), self.input_noun):
             return {"CANCELLED"}
         try:
             capture = self.capture_options()
@@ -217,8 +225,7 @@ class IMPORT_SCENE_OT_pgt_folder(_ChoosesFolder, bpy.types.Operator):
                               description="Folder whose reconstructions are imported")
 
     def execute(self, context):
-        if not self.directory:
-            self.report({"ERROR"}, f"{self.bl_label}: no folder chosen")
+        if _nothing_chosen(self, self.directory, "folder"):
             return {"CANCELLED"}
         folder = Path(bpy.path.abspath(self.directory))
         try:  # every file is read before any Blender data is made: a bad one leaves the scene as it was
@@ -251,8 +258,7 @@ class IMPORT_SCENE_OT_pgt_placed_scene(_ChoosesFolder, bpy.types.Operator):
                               description="Folder with scan.bin and boxes.json, as place_objects.py writes it")
 
     def execute(self, context):
-        if not self.directory:
-            self.report({"ERROR"}, f"{self.bl_label}: no placement folder chosen")
+        if _nothing_chosen(self, self.directory, "placement folder"):
             return {"CANCELLED"}
         try:
             shown = placement.load_placement(context.scene, bpy.path.abspath(self.directory))

@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..scan.raycast import Ground, ScanOptions
+from ..scan.sensors import BIN_COLUMNS
 from ..scan.sweeps import Motion, scan_many
 from ..scan.gaussians import transform_gaussians
 from ..scan.targets import element_colors, has_gaussians, target_from_reconstruction
@@ -93,21 +94,28 @@ class TargetCache:
 
 def scan_entries(cache: TargetCache, sensor, entries: np.ndarray, config: BankConfig) -> list:
     """The Scan of every sweep of each grid.ENTRY_DTYPE row, in their order, its returns
-    those inside the current box (``scan.box``, (9,) sensor frame). The entries of each
-    (object, size variant) are cast together (sweeps.scan_many)."""
+    those inside the current box (``scan.box``, (9,) sensor frame), with the columns of
+    the dataset's files (all of them for a learned intensity, which reads more). The
+    entries that share a ray target (an object's size variants, or one splat variant)
+    are cast together (sweeps.scan_many)."""
     options = ScanOptions(range_noise=config.range_noise, max_incidence_deg=config.max_incidence_deg,
-                          drop_rate=config.drop_rate, ray_drop=config.ray_drop, engine=config.engine)
+                          drop_rate=config.drop_rate, ray_drop=config.ray_drop, engine=config.engine,
+                          columns=None if config.intensity_checkpoint else BIN_COLUMNS[config.dataset])
+    pairs, which = np.unique(entries[["object", "variant"]], return_inverse=True)
+    variants = [cache.get(int(pair["object"]), int(pair["variant"])) for pair in pairs]
+    bounds = np.array([variant.bounds for variant in variants])  # (V, 2, 3)
     scans = [None] * len(entries)
-    pairs = entries[["object", "variant"]]
-    for pair in np.unique(pairs):
-        index = np.flatnonzero(pairs == pair)
-        batch = entries[index]
-        variant = cache.get(int(pair["object"]), int(pair["variant"]))
-        found = scan_many(variant.target, sensor, batch["x"], batch["y"], batch["heading"],
+    for target in {id(variant.target): variant.target for variant in variants}.values():
+        alike = [number for number, variant in enumerate(variants) if variant.target is target]
+        index = np.flatnonzero(np.isin(which, alike))
+        batch, own = entries[index], which[index]
+        # a splat variant is a target of its own (no scale); a mesh's variants all stretch one target
+        scale = None if variants[alike[0]].scale is None else np.array([variants[number].scale for number in own])
+        found = scan_many(target, sensor, batch["x"], batch["y"], batch["heading"],
                           Motion(batch["speed"], batch["acceleration"]), sweeps_of(config), options,
-                          batch["noise_seed"], variant.bounds, BOX_TOLERANCE,
+                          batch["noise_seed"], bounds[own], BOX_TOLERANCE,
                           Motion(batch["ego_speed"], batch["ego_acceleration"]),
-                          Ground(batch["ground_height"], batch["pitch"], batch["roll"]), variant.scale)
+                          Ground(batch["ground_height"], batch["pitch"], batch["roll"]), scale)
         for position, scan in zip(index, found):
             scans[position] = scan
     return scans

@@ -118,7 +118,10 @@ def kitti_image_box(box: np.ndarray) -> tuple:
 
 def entry_points(rows: np.ndarray, dataset: str) -> np.ndarray:
     """(N, C) float64 sensor-frame points in the dataset's columns (sensors.BIN_COLUMNS)."""
-    return np.column_stack([rows[name] for name in BIN_COLUMNS[dataset]]).astype(np.float64)
+    points = np.empty((len(rows), len(BIN_COLUMNS[dataset])))
+    for column, name in enumerate(BIN_COLUMNS[dataset]):
+        points[:, column] = rows[name]
+    return points
 
 
 def database_record(fmt: str, dataset: str, points: np.ndarray, box: np.ndarray, info: dict) -> tuple:
@@ -128,9 +131,9 @@ def database_record(fmt: str, dataset: str, points: np.ndarray, box: np.ndarray,
     origin = box[:3].copy()
     if fmt == "mmdet3d":
         origin[2] -= box[5] / 2  # bottom centre
-    rows = np.empty(points.shape, np.float32)
-    np.subtract(points[:, :3], origin, out=rows[:, :3])  # in float64, rounded once
-    rows[:, 3:] = points[:, 3:]
+    offset = np.zeros(points.shape[1])  # intensity and time_lag pass unchanged
+    offset[:3] = origin
+    rows = (points - offset).astype(np.float32)  # in float64, rounded once
     stored = box[:BOX_VALUES[dataset]].astype(np.float32) + np.float32(0)  # a still box has vx = +0, not -0
     stored[2] = origin[2]
     record = {key: info[key] for key in ("name", "path", "image_idx", "pgt_object", "gt_idx")}

@@ -19,16 +19,15 @@ return the same rows, bit for bit.
 
 import time
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache, lru_cache
 from itertools import chain
 
 import numpy as np
-from numpy.lib.recfunctions import structured_to_unstructured
 
 from .gaussians import gaussian_hits
 from .physical_intensity import dataset_intensity, relative_intensity
 from .ray_drop import drop_probability
-from .returns import RETURN_DTYPE, Scan
+from .returns import Scan, return_dtype
 from .sensors import Sensor
 from .targets import ScanTarget
 
@@ -69,6 +68,8 @@ class ScanOptions:
                        the rays; it may pick the other polygon at a shared edge) or
                        "auto" (the default: embree where embreex imports, which the
                        package and the extension ship, else bvh); resolved on creation.
+    columns:           the return columns to fill besides x, y, z (returns.return_dtype);
+                       None: all of them. A bank asks only for what its files hold.
     """
 
     range_noise: bool = False
@@ -79,10 +80,12 @@ class ScanOptions:
     seed: int = 0
     window: bool = True
     engine: str = "auto"
+    columns: tuple | None = None
 
     def __post_init__(self):
         if self.engine not in ENGINES:
             raise ValueError(f"scan options: engine must be one of {', '.join(ENGINES)}")
+        return_dtype(self.columns)  # names only known columns
         object.__setattr__(self, "engine", resolve_engine(self.engine))
         if not 0 < self.max_incidence_deg <= 90 or not 0 <= self.min_intensity <= 1 \
                 or not 0 <= self.drop_rate < 1:
@@ -107,14 +110,15 @@ def placement(bounds: np.ndarray, sensor: Sensor, x, y, heading, ground: Ground 
     turned by ``heading`` (rad, counter-clockwise from +x), its lowest point on the
     ground z = -mounting_height (+ ``ground.height``); on sloped ground the object is
     tilted by pitch and roll about the bottom centre of ``bounds``' z axis. Arrays of
-    x, y, heading (and of the ground's fields) give (..., 4, 4), one per element."""
-    x, y, heading, height, pitch, roll = np.broadcast_arrays(*(np.asarray(value, np.float64) for value in (
-        x, y, heading, ground.height, ground.pitch, ground.roll)))
+    x, y, heading (and of the ground's fields, and (..., 2, 3) bounds) give (..., 4, 4),
+    one per element."""
+    x, y, heading, height, pitch, roll, bottom = np.broadcast_arrays(*(np.asarray(value, np.float64) for value in (
+        x, y, heading, ground.height, ground.pitch, ground.roll, np.asarray(bounds)[..., 0, 2])))
     cos, sin = np.cos(heading), np.sin(heading)
     matrix = np.zeros(x.shape + (4, 4))
     matrix[..., 0, 0], matrix[..., 0, 1], matrix[..., 1, 0], matrix[..., 1, 1] = cos, -sin, sin, cos
     matrix[..., 2, 2] = matrix[..., 3, 3] = 1.0
-    matrix[..., 0, 3], matrix[..., 1, 3], matrix[..., 2, 3] = x, y, -sensor.mounting_height - bounds[0, 2]
+    matrix[..., 0, 3], matrix[..., 1, 3], matrix[..., 2, 3] = x, y, -sensor.mounting_height - bottom
     tilted = (height != 0.0) | (pitch != 0.0) | (roll != 0.0)
     if not tilted.any():
         return matrix
@@ -124,19 +128,22 @@ def placement(bounds: np.ndarray, sensor: Sensor, x, y, heading, ground: Ground 
     tilt = np.stack([cp, zero, -sp, zero, one, zero, sp, zero, cp], -1).reshape(x.shape + (3, 3)) @ \
         np.stack([one, zero, zero, zero, cr, -sr, zero, sr, cr], -1).reshape(x.shape + (3, 3))
     rotation = matrix[..., :3, :3] @ tilt
-    pivot = np.array([0.0, 0.0, bounds[0, 2]])  # object frame; it lands on the ground at (x, y)
-    lifted = np.stack([x, y, -sensor.mounting_height + height], -1) - rotation @ pivot
+    pivot = rotation[..., 2] * bottom[..., None]  # the bottom centre (0, 0, bottom) turned: it lands at (x, y)
+    lifted = np.stack([x, y, -sensor.mounting_height + height], -1) - pivot
     matrix[tilted, :3, :3], matrix[tilted, :3, 3] = rotation[tilted], lifted[tilted]
     return matrix
 
 
 def placed_box(bounds: np.ndarray, sensor_from_object: np.ndarray, velocity=(0.0, 0.0)) -> np.ndarray:
-    """(9,) OpenPCDet box x, y, z, dx, dy, dz, heading, vx, vy of ``bounds`` placed by
-    ``sensor_from_object`` (4, 4); (E, 4, 4) poses and (E, 2) velocities give (E, 9)."""
-    centre = sensor_from_object[..., :3, :3] @ bounds.mean(axis=0) + sensor_from_object[..., :3, 3]
+    """(9,) OpenPCDet box x, y, z, dx, dy, dz, heading, vx, vy of ``bounds`` (2, 3) placed
+    by ``sensor_from_object`` (4, 4); (E, 4, 4) poses, (E, 2) velocities and (E, 2, 3)
+    bounds give (E, 9)."""
+    bounds = np.asarray(bounds)
+    middle = bounds.mean(axis=-2)[..., None]
+    centre = (sensor_from_object[..., :3, :3] @ middle)[..., 0] + sensor_from_object[..., :3, 3]
     heading = np.arctan2(sensor_from_object[..., 1, 0], sensor_from_object[..., 0, 0])
     velocity = np.broadcast_to(velocity, centre.shape[:-1] + (2,))
-    dims = np.broadcast_to(bounds[1] - bounds[0], centre.shape)
+    dims = np.broadcast_to(bounds[..., 1, :] - bounds[..., 0, :], centre.shape)
     return np.concatenate([centre, dims, heading[..., None], velocity], axis=-1)
 
 
@@ -212,14 +219,17 @@ def _in_object_frame(poses: np.ndarray, sizes: np.ndarray, cells: np.ndarray, se
                      stretch: np.ndarray) -> tuple:
     """Ray origins (M, 3) and directions (M, 3), float64, of ``cells`` (M,) cast from
     ``poses`` (T, 4, 4), ``sizes[t]`` rays from pose t, in the object frame shrunk by
-    ``stretch`` (3,) (the frame of a target that the object is stretched from; the
-    directions are unit ones over stretch). Written out elementwise (no BLAS), so a
-    ray's bits depend on its pose and cell only, never on its batch."""
+    ``stretch`` (3,) or (T, 3) per pose (the frame of a target that the object is
+    stretched from; the directions are unit ones over stretch). Written out elementwise
+    (no BLAS), so a ray's bits depend on its pose and cell only, never on its batch."""
     rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
+    stretch = np.broadcast_to(stretch, (len(poses), 3))
     sensor_origin = -np.einsum("tji,tj->ti", rotation, translation) / stretch
     x, y, z = (axis[cells] for axis in sensor.direction_axes)
-    columns = [[np.repeat(rotation[:, row, i] / stretch[i], sizes) for row in range(3)] for i in range(3)]
-    directions = np.column_stack([x * c[0] + y * c[1] + z * c[2] for c in columns])
+    columns = [[np.repeat(rotation[:, row, i] / stretch[:, i], sizes) for row in range(3)] for i in range(3)]
+    directions = np.empty((len(cells), 3))
+    for axis, c in enumerate(columns):
+        directions[:, axis] = x * c[0] + y * c[1] + z * c[2]
     origins = np.repeat(sensor_origin, sizes, axis=0)
     if sensor.cell_origins is not None:
         ox, oy, oz = sensor.cell_origins[cells].T
@@ -245,11 +255,11 @@ def rays_to_cast(sensor: Sensor, cast_bounds: np.ndarray, poses: np.ndarray, win
                  stretch: np.ndarray = np.ones(3)) -> tuple:
     """The rays of the poses ``poses`` (T, 4, 4) sensor_from_object: (pose (M,), cells
     (M,), origins (M, 3), directions (M, 3)), float64, pose by pose and cells
-    ascending, in the object frame shrunk by ``stretch`` (_in_object_frame: unit
-    directions without one). ``window``: the cells of the angular window of the padded
-    ``cast_bounds`` (T, 2, 3), object frame (lasers off the origin widen it by their
-    offset); else every cell. Poses whose cast box is empty (a max below its min) cast
-    nothing."""
+    ascending, in the object frame shrunk by ``stretch`` ((3,) or (T, 3) per pose;
+    _in_object_frame: unit directions without one). ``window``: the cells of the angular
+    window of the padded ``cast_bounds`` (T, 2, 3), object frame (lasers off the origin
+    widen it by their offset); else every cell. Poses whose cast box is empty (a max
+    below its min) cast nothing."""
     if window:
         widened = cast_bounds + np.array([[-1.0], [1.0]]) * sensor.max_origin_offset
         blocks = cell_window(sensor, widened, poses)
@@ -316,18 +326,18 @@ def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bo
     box's window are cast (a scan that wants part of the object: its window's hits
     anywhere on the geometry are returned; sweeps.scan_many crops them to the box).
 
-    ``scale`` (3,): the target stretched by it along its axes (a size variant of one
-    target: positions x scale; not for Gaussian targets). The rays are cast in the
-    target's own frame, origin / scale along direction / scale, which keeps the ray
-    parameter of a hit: its range in metres (the BVH casts along the unit direction, its
-    distance is divided by that direction's length); the incidence is the stretched
-    normal's, (n . direction / scale) / |n / scale|."""
+    ``scale`` (3,) or (T, 3) per pose: the target stretched by it along its axes (size
+    variants of one target: positions x scale; not for Gaussian targets). The rays are
+    cast in the target's own frame, origin / scale along direction / scale, which keeps
+    the ray parameter of a hit: its range in metres (the BVH casts along the unit
+    direction, its distance is divided by that direction's length); the incidence is the
+    stretched normal's, (n . direction / scale) / |n / scale|."""
     sensor.directions  # the cached ray table: built on first use, kept out of the timing
     start = time.perf_counter()
     poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
-    stretch = np.ones(3) if scale is None else np.asarray(scale, np.float64)
-    whole = target.cast_bounds * stretch
-    cast_bounds = np.broadcast_to(whole if cast_bounds is None else cast_bounds, (len(poses), 2, 3))
+    stretch = np.broadcast_to(np.ones(3) if scale is None else np.asarray(scale, np.float64), (len(poses), 3))
+    whole = target.cast_bounds * stretch[:, None]
+    cast_bounds = whole if cast_bounds is None else np.broadcast_to(cast_bounds, (len(poses), 2, 3))
     pose, cells, origins, directions = rays_to_cast(sensor, cast_bounds, poses, window, stretch)
     if engine == "bvh" and len(cells):
         # One Python call per ray: a slab test first costs far less. Only against the
@@ -352,22 +362,16 @@ def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bo
                                                     sensor.max_range)
         engine_seconds = time.perf_counter() - engine_start
         polygon = np.maximum(polygons, 0)  # misses are solved too (elementwise, cheaper than sorting them out)
-        ranges, cos_incidence = _refined_ranges(target.planes[polygon], origins, directions, engine_range)
-        if scale is not None:
-            cos_incidence = cos_incidence * _stretched_normal_scale(target, stretch)[polygon]
-    hit = polygons >= 0
-    return Trace(rays, pose[hit], cells[hit], ranges[hit], cos_incidence[hit], polygons[hit],
-                 time.perf_counter() - start, engine_seconds)
-
-
-def _stretched_normal_scale(target: ScanTarget, stretch: np.ndarray) -> np.ndarray:
-    """(P,) 1 / |n / stretch| of the target's polygon normals n, kept per stretch: the
-    factor from n . (direction / stretch) to the stretched polygon's cosine."""
-    key = stretch.tobytes()
-    if key not in target.stretched_normals:
-        normals = target.planes[:, :3] / stretch
-        target.stretched_normals[key] = 1.0 / np.sqrt(np.einsum("ij,ij->i", normals, normals))
-    return target.stretched_normals[key]
+        ranges, cos_incidence = _refined_ranges(np.take(target.planes, polygon, axis=0), origins, directions,
+                                                engine_range)
+    hit = np.flatnonzero(polygons >= 0)
+    pose, cells, ranges, cos_incidence, polygons = (np.take(values, hit) for values in (
+        pose, cells, ranges, cos_incidence, polygons))
+    if scale is not None:  # n . (direction / stretch) over |n / stretch|: the stretched polygon's cosine
+        # hits only: gathering their planes again costs less than this over every ray (measured)
+        normals = np.take(target.planes, polygons, axis=0)[:, :3] / np.take(stretch, pose, axis=0)
+        cos_incidence *= 1.0 / np.sqrt(np.einsum("ij,ij->i", normals, normals))
+    return Trace(rays, pose, cells, ranges, cos_incidence, polygons, time.perf_counter() - start, engine_seconds)
 
 
 def _unit_cast(cast):
@@ -469,37 +473,38 @@ def trace_returns(target: ScanTarget, sensor: Sensor, trace: Trace, options: Sca
 
 def sensor_draws(options: ScanOptions, sensor: Sensor, counts: np.ndarray, seeds) -> tuple | None:
     """The random draws of ``options``' sensor effects for E object scans' candidate
-    returns, ``counts`` (E, S) per object and sweep, concatenated object by object and
-    sweep by sweep: object e draws from its own generator ``default_rng(seeds[e])``,
-    sweep by sweep (current first), each sweep the drop's uniforms (when a drop can
-    happen), then the range noise's normals (m), then the intensity spread's standard
-    normals for its candidates in cell order. Returns (uniform, noise, spread), each
-    (R,) or None when that effect is off; None when no effect draws."""
+    returns, ``counts`` (E, S) per object and sweep, concatenated object by object (and
+    within an object sweep by sweep, current first, cells ascending): object e draws
+    from its own generator ``default_rng(seeds[e])``, first the drop's uniforms for all
+    its candidates (when a drop can happen), then standard normals for all of them: the
+    range noise's (times the sensor's sigma, m), then, when the intensity spread is on,
+    the spread's. Returns (uniform, noise, spread), each (R,) or None when that effect is
+    off; None when no effect draws."""
     drops = bool(options.drop_rate or (options.ray_drop and sensor.ray_drop))
     if not (drops or options.range_noise):
         return None
     spread = options.range_noise and len(sensor.intensity_law) == 3 and sensor.intensity_law[2] > 0
     uniform, noise, normal = [], [], []
-    for seed, sweeps in zip(np.asarray(seeds).tolist(), np.asarray(counts).tolist()):
+    for seed, count in zip(np.asarray(seeds).tolist(), np.sum(counts, axis=1).tolist()):
         rng = np.random.default_rng(seed)
-        for count in sweeps:
-            if drops:
-                uniform.append(rng.random(count))
-            if options.range_noise:
-                noise.append(rng.normal(0.0, sensor.range_noise_sigma, count))
-                if spread:
-                    normal.append(rng.standard_normal(count))
+        if drops:
+            uniform.append(rng.random(count))
+        if options.range_noise:
+            normals = rng.standard_normal((2 if spread else 1, count))
+            noise.append(normals[0] * sensor.range_noise_sigma)
+            if spread:
+                normal.append(normals[1])
     return tuple(np.concatenate(part) if part else None for part in (uniform, noise, normal))
 
 
 def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflectivity: np.ndarray,
                   cos_incidence: np.ndarray, faces: np.ndarray, options: ScanOptions, sweep=0,
                   draws=None) -> tuple:
-    """(rows, kept): RETURN_DTYPE rows for returns at ``ranges`` (M,) m along the rays of
-    ``cells`` (M,) after the min/max range gate and the options' drops and noise, and
-    (K,) int64 the candidates they come from. ``sweep``: the sweep index, or (M,) one per
-    candidate; ``draws``: sensor_draws for the candidates, by default those of one
-    object scan seeded by options.seed."""
+    """(rows, kept): rows (returns.return_dtype of options.columns) for returns at
+    ``ranges`` (M,) m along the rays of ``cells`` (M,) after the min/max range gate and
+    the options' drops and noise, and (K,) int64 the candidates they come from.
+    ``sweep``: the sweep index, or (M,) one per candidate; ``draws``: sensor_draws for
+    the candidates, by default those of one object scan seeded by options.seed."""
     keep = (ranges >= sensor.min_range) & (ranges <= sensor.max_range)
     if draws is None:
         draws = sensor_draws(options, sensor, [[len(cells)]], [options.seed])
@@ -520,20 +525,25 @@ def build_returns(sensor: Sensor, cells: np.ndarray, ranges: np.ndarray, reflect
         keep &= relative >= options.min_intensity
     keep = np.flatnonzero(keep)
     cells, noisy = cells[keep], noisy[keep]
-    points = sensor.return_points(cells, noisy)
-    rings, columns = np.divmod(cells, sensor.columns)
-    rows = np.zeros(len(cells), RETURN_DTYPE)
-    structured_to_unstructured(rows[["x", "y", "z"]], copy=False)[:] = points  # a view: one strided copy
-    rows["intensity"] = dataset_intensity(relative[keep], sensor.dataset)
-    rows["ring"], rows["column"] = rings, columns
-    rows["azimuth"] = sensor.cell_azimuths.ravel()[cells]
-    rows["time"] = sensor.cell_times(rings, columns)
-    rows["range"] = noisy
-    rows["true_range"] = ranges[keep]
-    rows["face"] = faces[keep]
     sweep = sweep if np.ndim(sweep) == 0 else sweep[keep]
-    rows["time_lag"] = sweep * sensor.sweep_interval
-    rows["sweep"] = sweep
+    ring_and_column = cache(lambda: np.divmod(cells, sensor.columns))  # ring, column and time share it
+    column = {  # each made only when asked for
+        "intensity": lambda: dataset_intensity(relative[keep], sensor.dataset),
+        "ring": lambda: ring_and_column()[0],
+        "column": lambda: ring_and_column()[1],
+        "azimuth": lambda: sensor.cell_azimuths.ravel()[cells],
+        "time": lambda: sensor.cell_times(*ring_and_column()),
+        "range": lambda: noisy,
+        "true_range": lambda: ranges[keep],
+        "face": lambda: faces[keep],
+        "time_lag": lambda: sweep * sensor.sweep_interval,
+        "sweep": lambda: sweep,
+    }
+    rows = np.empty(len(cells), return_dtype(options.columns))
+    for axis, values in enumerate(sensor.return_points(cells, noisy).T):
+        rows["xyz"[axis]] = values
+    for name in rows.dtype.names[3:]:
+        rows[name] = column[name]()
     return rows, keep
 
 

@@ -33,11 +33,24 @@ RETURN_DTYPE = np.dtype([
 OUTPUT_SUFFIXES = (".bin", ".ply", ".npy")
 
 
+def return_dtype(columns=None) -> np.dtype:
+    """RETURN_DTYPE, or its x, y, z and the ``columns`` named (in its order): the rows
+    of a scan that asks only for those (raycast.ScanOptions.columns)."""
+    if columns is None:
+        return RETURN_DTYPE
+    unknown = set(columns) - set(RETURN_DTYPE.names)
+    if unknown:
+        raise ValueError(f"scan options: no return column {', '.join(sorted(unknown))}")
+    return np.dtype([(name, RETURN_DTYPE[name]) for name in RETURN_DTYPE.names
+                     if name in ("x", "y", "z") or name in columns])
+
+
 @dataclass
 class Scan:
     """Returns of one object scan plus what it cost.
 
-    returns: (N,) RETURN_DTYPE rows sorted by (sweep, ring, column).
+    returns: (N,) RETURN_DTYPE rows sorted by (sweep, ring, column) (only x, y, z and
+             the columns the scan asked for: return_dtype).
     box:     (9,) float64 x, y, z (box centre), dx, dy, dz (length along the heading,
              width, height), heading (rad, from +x counter-clockwise), vx, vy (m/s),
              sensor frame, for the current sweep (OpenPCDet's box3d_lidar layout).

@@ -192,7 +192,8 @@ class Sensor:
     def return_points(self, cells: np.ndarray, ranges: np.ndarray) -> np.ndarray:
         """(M, 3) float64 sensor frame: the returns at ``ranges`` (M,) m along the rays of
         ``cells`` (M,), each from its laser's origin."""
-        points = self.directions[cells] * np.asarray(ranges, np.float64)[:, None]
+        points = np.take(self.directions, cells, axis=0)
+        points *= np.asarray(ranges, np.float64)[:, None]
         if self.cell_origins is not None:
             points += self.cell_origins[cells]
         return points

@@ -113,21 +113,22 @@ def scan_many(target: ScanTarget, sensor: Sensor, x, y, heading, motion: Motion,
     (raycast.sensor_draws), so its scan is the same whatever else is in the batch.
 
     Each object stands on ``ground`` (raycast.placement) and moves along its heading up
-    or down its pitch. ``bounds`` (2, 3, object frame) is the box that stands on the
-    ground and that the Scan reports (default: the geometry's bounds). ``box_margin``
-    (m): keep only the returns whose hit (before range noise) lies within the object's
-    current box (the reported, yaw-only box) grown by it, as a database keeps a box's
-    points, and cast only the rays that can meet it: older sweeps of a moving object
-    then cost only the part that overlaps the box. ``scale`` (3,): scan ``target``
-    stretched by it along its axes (a size variant; raycast.trace_rays)."""
+    or down its pitch. ``bounds`` ((2, 3) or (E, 2, 3), object frame) is the box that
+    stands on the ground and that the Scan reports (default: the geometry's bounds, times
+    ``scale``). ``box_margin`` (m): keep only the returns whose hit (before range noise)
+    lies within the object's current box (the reported, yaw-only box) grown by it, as a
+    database keeps a box's points, and cast only the rays that can meet it: older sweeps
+    of a moving object then cost only the part that overlaps the box. ``scale`` ((3,) or
+    (E, 3)): scan ``target`` stretched by it along its axes (size variants of one target,
+    all cast in the one call; raycast.trace_rays)."""
     if sweeps < 1:
         raise ValueError(f"sweeps must be at least 1, got {sweeps}")
-    stretch = np.ones(3) if scale is None else np.asarray(scale, np.float64)
-    geometry_bounds = target.cast_bounds * stretch
-    bounds = target.bounds * stretch if bounds is None else bounds
     start = time.perf_counter()
     x, y, heading, seeds = (np.atleast_1d(np.asarray(value)) for value in (x, y, heading, seeds))
     count = len(x)
+    stretch = np.broadcast_to(np.ones(3) if scale is None else np.asarray(scale, np.float64), (count, 3))
+    geometry_bounds = target.cast_bounds * stretch[:, None]  # (E, 2, 3)
+    bounds = target.bounds * stretch[:, None] if bounds is None else np.broadcast_to(bounds, (count, 2, 3))
     at = -np.arange(sweeps) * sensor.sweep_interval  # (S,) s, each sweep's time
     travelled = np.broadcast_to(Motion(np.reshape(motion.speed, (-1, 1)),
                                        np.reshape(motion.acceleration, (-1, 1))).displacement(at), (count, sweeps))
@@ -140,22 +141,26 @@ def scan_many(target: ScanTarget, sensor: Sensor, x, y, heading, motion: Motion,
     at_x, at_y = x[:, None] + travelled * cos, y[:, None] + travelled * sin
     origins = np.zeros((count, sweeps, 3))  # where the sensor fired each sweep from, key frame
     origins[..., :2] = driven[..., None] * sensor.forward
-    poses = placement(bounds, sensor, at_x, at_y, heading[:, None], under)  # (E, S, 4, 4), key frame
-    seen_from = placement(bounds, sensor, at_x - origins[..., 0], at_y - origins[..., 1], heading[:, None], under)
-    cast_bounds = np.broadcast_to(geometry_bounds, (count, sweeps, 2, 3))
+    poses = placement(bounds[:, None], sensor, at_x, at_y, heading[:, None], under)  # (E, S, 4, 4), key frame
+    seen_from = placement(bounds[:, None], sensor, at_x - origins[..., 0], at_y - origins[..., 1], heading[:, None],
+                          under)
+    cast_bounds = np.broadcast_to(geometry_bounds[:, None], (count, sweeps, 2, 3))
     if box_margin is not None:  # the current box in each sweep's object frame, met with the geometry's
-        current = bounds + np.stack([np.stack([-travelled - box_margin, np.full_like(travelled, -box_margin),
-                                               np.full_like(travelled, -box_margin)], -1),
-                                     np.stack([-travelled + box_margin, np.full_like(travelled, box_margin),
-                                               np.full_like(travelled, box_margin)], -1)], -2)
-        cast_bounds = np.stack([np.maximum(current[..., 0, :], geometry_bounds[0]),
-                                np.minimum(current[..., 1, :], geometry_bounds[1])], -2)
-    # Sweeps alike in pose and cast box cast once.
-    keys = np.concatenate([seen_from[..., :3, :].reshape(count, sweeps, 12), cast_bounds.reshape(count, sweeps, 6)],
-                          -1).reshape(count * sweeps, 18)
+        low = np.stack([-travelled - box_margin, np.full_like(travelled, -box_margin),
+                        np.full_like(travelled, -box_margin)], -1)
+        high = np.stack([-travelled + box_margin, np.full_like(travelled, box_margin),
+                         np.full_like(travelled, box_margin)], -1)
+        current = bounds[:, None] + np.stack([low, high], -2)
+        cast_bounds = np.stack([np.maximum(current[..., 0, :], geometry_bounds[:, None, 0]),
+                                np.minimum(current[..., 1, :], geometry_bounds[:, None, 1])], -2)
+    # Sweeps alike in pose, cast box and stretch cast once.
+    stretches = np.broadcast_to(stretch[:, None], (count, sweeps, 3))
+    keys = np.concatenate([seen_from[..., :3, :].reshape(count, sweeps, 12), cast_bounds.reshape(count, sweeps, 6),
+                           stretches], -1).reshape(count * sweeps, 21)
     _, first, shared = np.unique(keys, axis=0, return_index=True, return_inverse=True)
     trace = trace_rays(target, sensor, seen_from.reshape(-1, 4, 4)[first], options.window,
-                       cast_bounds.reshape(-1, 2, 3)[first], options.engine, scale)
+                       cast_bounds.reshape(-1, 2, 3)[first], options.engine,
+                       None if scale is None else stretches.reshape(-1, 3)[first])
     offsets = trace.of_pose()
     group = shared.ravel()  # (E * S,) the trace pose of each object's sweep
     hits = np.diff(offsets)[group]
@@ -187,11 +192,11 @@ def _in_current_box(sensor: Sensor, trace, picked: np.ndarray, hits: np.ndarray,
     order) that lie, where the ray hit in the key frame, within their object's current
     box ``boxes`` (E, >= 7) grown by ``margin`` m: the yaw-only box3d_lidar, as the
     datasets' database builders crop."""
-    group = np.repeat(np.arange(len(hits)), hits)
-    entry = group // origins.shape[1]
-    points = sensor.return_points(trace.cells[picked], trace.ranges[picked]) + origins.reshape(-1, 3)[group]
-    cos, sin = np.cos(boxes[:, 6])[entry], np.sin(boxes[:, 6])[entry]
-    dx, dy = points[:, 0] - boxes[entry, 0], points[:, 1] - boxes[entry, 1]
-    half = boxes[:, 3:6] / 2 + margin
-    return ((np.abs(dx * cos + dy * sin) <= half[entry, 0]) & (np.abs(dy * cos - dx * sin) <= half[entry, 1])
-            & (np.abs(points[:, 2] - boxes[entry, 2]) <= half[entry, 2]))
+    sweeps = origins.shape[1]
+    centres = np.repeat(boxes[:, :3], sweeps, axis=0) - origins.reshape(-1, 3)  # (E * S, 3) in each sweep's frame
+    points = sensor.return_points(trace.cells[picked], trace.ranges[picked])  # each sweep's sensor frame
+    dx, dy, dz = (points[:, axis] - np.repeat(centres[:, axis], hits) for axis in range(3))
+    cos, sin = (np.repeat(np.repeat(turn(boxes[:, 6]), sweeps), hits) for turn in (np.cos, np.sin))
+    half = np.repeat(boxes[:, 3:6] / 2 + margin, sweeps, axis=0)
+    return ((np.abs(dx * cos + dy * sin) <= np.repeat(half[:, 0], hits))
+            & (np.abs(dy * cos - dx * sin) <= np.repeat(half[:, 1], hits)) & (np.abs(dz) <= np.repeat(half[:, 2], hits)))

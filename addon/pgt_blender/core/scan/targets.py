@@ -15,7 +15,7 @@ what lies behind, as a car's windows return the seats or nothing.
 import importlib
 import re
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -81,7 +81,6 @@ class ScanTarget:
     triangle_faces: np.ndarray | None = None
     triangle_polygon: np.ndarray | None = None
     embree_scene: object = None  # built on the first Embree cast (raycast.trace_rays)
-    stretched_normals: dict = field(default_factory=dict, repr=False)  # per scale: 1 / |n / scale| (raycast)
     see_through: np.ndarray | None = None
     gaussians: Gaussians | None = None
 
