@@ -9,7 +9,8 @@ import trimesh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pgt_blender.core.authoring.alignment import align_axes, camera_up, density_inliers
+from pgt_blender.core.authoring.alignment import (_deblurred_edge, align_axes, camera_up, density_inliers,
+                                                   surface_estimate)
 from pgt_blender.core.classes import MINORITY_CLASSES
 from pgt_blender.core.errors import InputError
 from pgt_blender.core.importing import load_reconstruction
@@ -391,22 +392,57 @@ def test_the_issue_truck_tilted_yawed_and_far_away(shared_data):
 
 @pytest.mark.parametrize("class_name", MINORITY_CLASSES)
 def test_refined_box_is_not_inflated_by_noise_and_floaters(class_name):
-    """0.5 % noise (x box diagonal) and 10 % floaters: the refined box is the surface's.
-    Walls (length and width of the box-shaped classes) within 1 % and tighter than the
-    unrefined box of the noisy points; what the plane fit pulls in (tyres below,
-    handlebar ends, the two-wheelers' thin parts) within 3.5 %. Issue 18 asks 1 % on
-    every axis: not reached on those (see bench/alignment.md)."""
-    source, rotation, dims, _ = posed_cloud(class_name, 7, 0.005, 0.1)
-    refined = align_axes(source, up=rotation[:, 2], refine=True)
-    plain = align_axes(source, up=rotation[:, 2])
-    error = np.abs(refined.dims / dims - 1)
-    assert error.max() < 0.035
-    if class_name not in ("motorcycle", "bicycle"):
-        assert error[:2].max() < 0.01
-        assert error[:2].max() < np.abs(plain.dims / dims - 1)[:2].max()
-    source, rotation, _, _ = posed_cloud(class_name, 7, 0.0, 0.0)
+    """0.5 % noise (x box diagonal) and 10 % floaters, three random poses: the refined
+    box is the surface's, issue 18's target: the worst axis within 1 % in the median
+    over the poses (what bench_alignment.py reports), no pose beyond 2.5 % (a bicycle's
+    tubes) and, but for the two-wheelers (whose thin parts the noise widens about as
+    much as the 0.1 % trim cuts), each tighter than the unrefined box of the noisy
+    points. Noise-free, the box is exact to 0.5 %."""
+    worst = []
+    for seed in (7, 8, 9):
+        source, rotation, dims, _ = posed_cloud(class_name, seed, 0.005, 0.1)
+        refined = align_axes(source, up=rotation[:, 2], refine=True)
+        plain = align_axes(source, up=rotation[:, 2])
+        worst.append(np.abs(refined.dims / dims - 1).max())
+        if class_name not in ("motorcycle", "bicycle"):
+            assert worst[-1] < np.abs(plain.dims / dims - 1).max()
+    assert np.median(worst) < 0.01 and max(worst) < 0.025
+    source, rotation, dims, _ = posed_cloud(class_name, 7, 0.0, 0.0)
     clean = align_axes(source, up=rotation[:, 2], refine=True)
     assert np.abs(clean.dims / dims - 1).max() < 0.005
+
+
+def prism(profile, length) -> trimesh.Trimesh:
+    """A closed prism along x: the convex (P, 2) ``profile`` in (y, z), ``length`` long,
+    its ends fanned from the profile's mean."""
+    n = len(profile)
+    ring = np.arange(n)
+    centre = profile.mean(axis=0)
+    vertices = np.r_[np.c_[np.full(n, -length / 2), profile], np.c_[np.full(n, length / 2), profile],
+                     [[-length / 2, *centre], [length / 2, *centre]]]
+    sides = np.r_[np.c_[ring, (ring + 1) % n, n + ring], np.c_[(ring + 1) % n, n + (ring + 1) % n, n + ring]]
+    ends = np.r_[np.c_[np.full(n, 2 * n), (ring + 1) % n, ring],
+                 np.c_[np.full(n, 2 * n + 1), n + ring, n + (ring + 1) % n]]
+    return trimesh.Trimesh(vertices, np.r_[sides, ends])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_rounded_roof_is_deblurred_not_cut(seed):
+    """A 4 m prism, 1.8 m wide, flat walls and floor, a half-cylinder roof (radius 0.9 m,
+    1.9 m high in all): 0.5 % noise, 10 % floaters, arbitrary pose with the up prior. The
+    roof is no wall: its side comes from the deblurred histogram, and every dimension
+    is within 1 % (the unrefined box is 6 % too high)."""
+    angles = np.linspace(0, np.pi, 129)
+    mesh = prism(np.r_[[[0.9, -0.5]], np.c_[0.9 * np.cos(angles), 0.5 + 0.9 * np.sin(angles)], [[-0.9, -0.5]]], 4.0)
+    truth = np.array([4.0, 1.8, 1.9])
+    rng = np.random.default_rng(seed)
+    points, _ = trimesh.sample.sample_surface(mesh, 20000, seed=seed)
+    points += rng.normal(scale=0.005 * np.linalg.norm(truth), size=points.shape)
+    floaters = rng.random(len(points)) < 0.1
+    points[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * truth + mesh.bounds.mean(axis=0)
+    rotation = random_rotation(rng)
+    found = align_axes(points @ rotation.T + [30.0, 5.0, -2.0], up=rotation[:, 2], refine=True)
+    np.testing.assert_allclose(found.dims, truth, rtol=0.01)
 
 
 def test_thin_protrusions_are_kept_and_floaters_are_not():
@@ -429,6 +465,37 @@ def test_thin_protrusions_are_kept_and_floaters_are_not():
     found = align_axes(points @ rotation.T + [50.0, -20.0, 3.0], up=rotation[:, 2], refine=True)
     assert error_degrees(found.transform[:3, :3], rotation.T) < 0.5
     np.testing.assert_allclose(found.dims, truth, rtol=0.01)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_deblurred_edge_of_analytic_marginals(seed):
+    """The side of a surface seen through Gaussian noise (sigma 2 cm), 20,000 points
+    with unit extent 1: a sphere's points are uniform along any axis (Archimedes), so
+    its side is a blurred step; a wall is a blurred spike. The deblurred edge is
+    within 0.6 sigma of the true side where the 0.1 % trimmed extreme lies 0.7 to 3
+    sigma outside it; noise-free points give the trimmed extreme itself."""
+    rng = np.random.default_rng(seed)
+    sigma = 0.02
+    step = rng.uniform(-1, 1, 20000)
+    wall = np.r_[rng.uniform(-1, 1, 15000), np.ones(5000)]
+    for clean in (step, wall):
+        noisy = clean + rng.normal(scale=sigma, size=len(clean))
+        assert abs(_deblurred_edge(noisy, sigma) - 1) < 0.6 * sigma
+        assert np.partition(noisy, len(noisy) - 21)[len(noisy) - 21] - 1 > 0.6 * sigma
+        assert _deblurred_edge(clean, 0.0) == np.partition(clean, len(clean) - 21)[len(clean) - 21]
+
+
+@pytest.mark.parametrize("sigma", [0.0025, 0.01, 0.0235, 0.03])
+def test_surface_noise_estimate_of_a_noisy_box(sigma):
+    """A 4 x 2 x 1.5 m box (point spacing about 4 cm), 20,000 surface points with
+    Gaussian noise sigma up to 0.6 % of its diagonal: the estimated surface noise is
+    sigma within 6 % (chi-corrected, so not biased low; the nearest neighbours of a cloud
+    whose noise nears the point spacing lie closer to the plane, so it then reads low:
+    0.89 sigma at 4 cm)."""
+    rng = np.random.default_rng(int(sigma * 1000))
+    points = box_surface((4.0, 2.0, 1.5), 20000, seed=13) + rng.normal(scale=sigma, size=(20000, 3))
+    estimate = surface_estimate(points - points.mean(axis=0)).noise
+    assert estimate == pytest.approx(sigma, rel=0.06)
 
 
 # ---- issue 18's targets, a seeded loop over random poses -------------------------------

@@ -49,18 +49,26 @@ without enough planar structure (less than ``MIN_PLANAR_SHARE`` of the weight as
 to an axis: spheres, cylinders) keep the unrefined frame (``refined`` is False).
 
 The refined box is taken from the surface estimate, not the raw points: each point is
-moved towards its neighbourhood plane by at most six times the estimated noise (the
-10th percentile of the neighbourhoods' out-of-plane spread; 0 for a noise-free
-sampling of flat faces, which then moves nothing), so noise inflates the box less
+moved towards its neighbourhood plane by at most ``DENOISE_CLAMP`` times the
+estimated noise (the standard deviation :func:`_plane_noise` reads from the flattest
+small neighbourhoods; 0 for a noise-free sampling of flat faces, which then moves
+nothing), so noise inflates the box less
 while thin parts with too few points for a plane stay where they are. A side where a
 wall faces outwards is then the median of the wall's points, not their extreme
-(:func:`_surface_bounds`). Thin real parts that stick out of the body (mirrors, a few
+(:func:`_surface_bounds`). Any other side (a tyre, a rounded roof, a handlebar end,
+whose points thin out towards the extreme, which the plane fit pulls inwards) is taken
+from the raw points: their histogram along the axis is the surface's blurred by the
+noise, so it is deconvolved (non-negative spikes blurred by the estimated noise) and
+the side is where the deblurred points end, less the same 0.1 % as the trim
+(:func:`_deblurred_edge`). Thin real parts that stick out of the body (mirrors, a few
 dozen points of 20,000) are neither trimmed by quantile nor cut at the wall: the points
 beyond a side's noise band (``PROTRUSION_BAND`` x noise) that have neighbours among
 themselves at the sampling's scale are a surface, and the side moves out to them
-(:func:`_protrusion`); floaters, spread over a volume, stay isolated. What is left: the plane fit pulls a convex end (a tyre's
-contact patch, a handlebar end) inwards by its sagitta over the neighbourhood, about 1
-to 2 % of the height or width at 0.5 % noise (bench/alignment.md).
+(:func:`_protrusion`); floaters, spread over a volume, stay isolated. What is left:
+features of a few dozen points (a small mirror, a roof rail) that stick out by about
+the noise or less are not told from the noise tail of the wall behind them and are
+cut off; the deblurred edge itself scatters by about half the noise per side
+(bench/alignment.md).
 
 Robustness: floaters are dropped by a k-nearest-neighbour density test
 (:func:`density_inliers`) before any moment is taken; moments are float64 after
@@ -78,19 +86,27 @@ ISOTROPY = 0.05
 BOX_TRIM = 0.001
 NEIGHBOURS = 8
 NORMAL_NEIGHBOURS = 48
+NOISE_NEIGHBOURS = 24
+NOISE_PERCENTILE = 10
+# DENOISE_CLAMP, SIDE_BAND and PROTRUSION_BAND are in units of the noise estimate, which
+# reads sigma itself since it is chi-corrected; they keep the widths they had in units
+# of the former estimate (6, 2 and 2.5 x the plain percentile, about 0.87 sigma)
+DENOISE_CLAMP = 5.2
 REFINE_CONES_DEG = (20.0, 12.0, 8.0, 5.0, 5.0)
 MIN_PLANAR_SHARE = 0.05
 MIRROR_SAMPLE = 4000
 FACING_DEG = 30.0
-SIDE_BAND = 2.0
+SIDE_BAND = 1.75
 WALL_RATIO = 2.0
-PROTRUSION_BAND = 2.5
+PROTRUSION_BAND = 2.2
 WHEEL_BAND = 0.05
 MESH_SAMPLES = 20000
 LENGTH_BINS = 50
 WHEEL_COVER_RATIO = 0.5
 PROTRUSION_RADIUS = 3.0
 PROTRUSION_NEIGHBOURS = 4
+EDGE_STEP = 0.25
+EDGE_WINDOW = (8.0, 5.0)
 
 
 @dataclass
@@ -244,9 +260,9 @@ class SurfaceEstimate:
     normals:   (N, 3) unit normal of the plane through each point's neighbourhood.
     planarity: (N,) (l2 - l1) / l3 of the neighbourhood's covariance eigenvalues
                l1 <= l2 <= l3, in [0, 1]: 1 for a flat patch, 0 for a line or a blob.
-    denoised:  (N, 3) points moved towards their plane by at most 6 x ``noise``.
-    noise:     the surface noise, the 10th percentile of sqrt(l1) over the points (flat
-               patches exist on every vehicle; their out-of-plane spread is the noise).
+    denoised:  (N, 3) points moved towards their plane by at most ``DENOISE_CLAMP`` x ``noise``.
+    noise:     the surface noise (standard deviation) from the ``NOISE_NEIGHBOURS``
+               nearest of each neighbourhood (:func:`_plane_noise`).
     samples:   (MESH_SAMPLES, 3) points spread evenly over a mesh's area (None for a
                cloud): its moments, which the vertices (dense where the detail is) are not.
     """
@@ -272,10 +288,27 @@ def surface_estimate(points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) ->
     values = np.maximum(values, 0)
     normals = vectors[:, :, 0]
     planarity = (values[:, 1] - values[:, 0]) / np.maximum(values[:, 2], np.finfo(float).tiny)
-    noise = float(np.percentile(np.sqrt(values[:, 0]), 10))
+    noise = _plane_noise(spread[:, :NOISE_NEIGHBOURS])
     offsets = np.einsum("ni,ni->n", points - centres, normals)
-    denoised = points - np.clip(offsets, -6 * noise, 6 * noise)[:, None] * normals
+    denoised = points - np.clip(offsets, -DENOISE_CLAMP * noise, DENOISE_CLAMP * noise)[:, None] * normals
     return SurfaceEstimate(normals, planarity, denoised, noise)
+
+
+def _plane_noise(spread: np.ndarray) -> float:
+    """The surface noise (standard deviation, source units) from neighbourhoods
+    ``spread`` (N, k, 3), each centred on its mean: the out-of-plane spread sqrt(l1) of a
+    flat patch is sigma x sqrt(chi2(k - 3) / k) (the plane takes three degrees of
+    freedom), so the ``NOISE_PERCENTILE``th percentile over the points (flat patches
+    exist on every vehicle; curved ones and edges spread more) divided by that law's is
+    sigma. Small neighbourhoods (``NOISE_NEIGHBOURS``) see less of a surface's curvature."""
+    from scipy.stats import chi2
+
+    k = spread.shape[1]
+    if k <= 3:
+        return 0.0
+    values = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", spread, spread) / k)[:, 0]
+    law = np.sqrt(chi2.ppf(NOISE_PERCENTILE / 100, k - 3) / k)
+    return float(np.percentile(np.sqrt(np.maximum(values, 0)), NOISE_PERCENTILE) / law)
 
 
 def mesh_surface(kept: np.ndarray, vertices: np.ndarray, faces, source="points") -> SurfaceEstimate:
@@ -447,12 +480,53 @@ def _surface_bounds(local: np.ndarray, normals: np.ndarray, noise: float, raw: n
             inner = np.count_nonzero((outward < edge - band) & (outward >= edge - 2 * band))
             if len(outer) >= 1 / BOX_TRIM and len(outer) >= WALL_RATIO * inner:
                 bounds[axis] = sign * np.median(outer)
+            else:
+                bounds[axis] = sign * _deblurred_edge(sign * raw[:, axis], noise)
     spacing = _spacing(raw)
     for axis in range(3):
         for sign, bounds in ((1, high), (-1, low)):
             bounds[axis] = sign * _protrusion(sign * raw[:, axis], raw, sign * bounds[axis],
                                               PROTRUSION_BAND * noise, spacing)
     return low, high
+
+
+def _deblurred_edge(outward: np.ndarray, noise: float, share: float = BOX_TRIM) -> float:
+    """Where a surface ends along ``outward`` ((N,) coordinates of its noisy points,
+    increasing away from the body) when its points are blurred by Gaussian ``noise``
+    (standard deviation, same units) and the side is no wall (a tyre, a rounded roof,
+    a handlebar end: their points thin out towards the extreme, which the wall median
+    cannot take and the plane fit pulls inwards).
+
+    The histogram of the outermost points (bins of ``EDGE_STEP`` x ``noise``, from
+    ``EDGE_WINDOW`` x ``noise`` inside to outside the trimmed extreme) is deconvolved:
+    a non-negative least-squares fit (Poisson-weighted) of Gaussian-blurred spikes on a
+    grid of the same step, plus a constant for the floaters left near the surface. The
+    edge is the outermost spike position where the deblurred mass counted from outside
+    reaches ``share`` of the points, the share the trimmed extreme leaves out (so a
+    noise-free cloud gives the trimmed extreme, and noise no longer widens it)."""
+    from scipy.optimize import nnls
+    from scipy.special import ndtr
+
+    mass = max(1, int(share * len(outward)))
+    if len(outward) <= mass:
+        return float(outward.max())
+    trimmed = np.partition(outward, len(outward) - 1 - mass)[len(outward) - 1 - mass]
+    if noise <= 0:
+        return float(trimmed)
+    inner, outer = EDGE_WINDOW
+    step = EDGE_STEP * noise
+    edges = trimmed + step * np.arange(-round(inner / EDGE_STEP), round(outer / EDGE_STEP) + 1)
+    spikes = trimmed + step * np.arange(-round((inner + 2) / EDGE_STEP), round((outer - 1) / EDGE_STEP))
+    counts, _ = np.histogram(outward, edges)
+    blurred = ndtr((edges[1:, None] - spikes) / noise) - ndtr((edges[:-1, None] - spikes) / noise)
+    design = np.column_stack([blurred, np.diff(edges)])
+    weight = 1 / np.sqrt(counts + 1.0)
+    try:
+        found, _ = nnls(design * weight[:, None], counts * weight, maxiter=50 * design.shape[1])
+    except RuntimeError:  # no convergence: keep the trimmed extreme
+        return float(trimmed)
+    from_outside = found[:-1][::-1].cumsum()
+    return float(spikes[::-1][min(int(np.searchsorted(from_outside, mass)), len(spikes) - 1)])
 
 
 def _spacing(points: np.ndarray) -> float:
