@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pgt_blender.core.reconstruction import Reconstruction
-from pgt_blender.core.scan.raycast import scan_object
+from pgt_blender.core.scan.raycast import embree_available, scan_object
 from pgt_blender.core.scan.returns import RETURN_DTYPE
 from pgt_blender.core.scan.sensors import PRESETS
 from pgt_blender.core.scan.targets import gaussian_target, mesh_target, reflectivity_from_srgb, surfel_target
@@ -344,6 +344,8 @@ def test_bvh_is_built_once_per_object_and_rebuilt_after_an_edit(scene, monkeypat
     scene.pgt_scan.heading = math.radians(10)
     bpy.ops.object.pgt_scan()
     assert built == ["Box"] and scanning.scan_target(obj) is first
+    if embree_available():  # the default engine's scene is built with the cached target
+        assert first.embree_scene is not None and first.embree_scene.is_committed
     top = int(np.argmax(positions(obj)[:, 2]))
     obj.data.vertices[top].co.z += 0.5
     bpy.ops.object.pgt_scan()

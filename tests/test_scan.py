@@ -19,7 +19,7 @@ from pgt_blender.core.scan.raycast import ScanOptions, cast_rays, placement, sca
 from pgt_blender.core.scan.returns import RETURN_DTYPE, write_scan
 from pgt_blender.core.scan.sensors import PRESETS, Sensor, load_sensor_toml
 from pgt_blender.core.scan.sweeps import Motion, sample_motion, scan_many, scan_sweeps
-from pgt_blender.core.scan.targets import mesh_target, surfel_target
+from pgt_blender.core.scan.targets import mesh_target, ready_for, surfel_target
 
 NUSCENES = PRESETS["nuscenes"]
 FAR_NUSCENES = replace(NUSCENES, max_range=2000.0, name="nuscenes-far")
@@ -502,6 +502,23 @@ def test_rays_pass_glass_and_return_from_what_lies_behind(engine):
     assert np.abs(scan.returns["range"] - 7.0 / directions[:, 0]).max() < 1e-6
     only_glass = mesh_target(glass, glass_faces, "glass", face_see_through=[True, True], with_bvh=engine == "bvh")
     assert cast_rays(only_glass, FAR_NUSCENES, np.eye(4), ScanOptions(engine=engine)).hits == 0
+
+
+def test_the_embree_scene_is_built_with_the_target_and_reused():
+    """ready_for builds and commits the Embree scene (Embree builds its BVH on a scene's
+    first query), so a cached target's first scan costs what the others do; scans reuse
+    it, and a target for Blender's BVH gets none."""
+    vertices, faces = _pane(5.0)
+    target = mesh_target(vertices, faces, "pane", with_bvh=False)
+    assert target.embree_scene is None
+    scene = ready_for(target, "embree").embree_scene
+    assert scene.is_committed
+    assert cast_rays(target, FAR_NUSCENES, np.eye(4), ScanOptions(engine="embree")).hits > 50
+    assert target.embree_scene is scene
+    fresh = mesh_target(vertices, faces, "pane", with_bvh=False)
+    cast_rays(fresh, FAR_NUSCENES, np.eye(4), ScanOptions(engine="embree"))  # a target made elsewhere
+    assert fresh.embree_scene.is_committed
+    assert ready_for(mesh_target(vertices, faces, "pane"), "bvh").embree_scene is None
 
 
 def test_glass_is_named_or_transparent_and_faint_splats_are_seen_through(donut):

@@ -25,8 +25,8 @@ from ..core.scan.raycast import ScanOptions, cast_rays, placement, resolve_engin
 from ..core.scan.returns import Scan
 from ..core.scan.sensors import PRESETS, Sensor, load_sensor_toml
 from ..core.scan.targets import (DEFAULT_REFLECTIVITY, ScanTarget, gaussian_target, has_gaussians, mesh_target,
-                                 reflectivity_from_linear, reflectivity_from_srgb, see_through_materials,
-                                 surfel_target)
+                                 ready_for, reflectivity_from_linear, reflectivity_from_srgb,
+                                 see_through_materials, surfel_target)
 from .objects import add_attribute, show_as_points, remove_datablocks
 
 CUSTOM = "CUSTOM"
@@ -66,15 +66,16 @@ def scan(obj: bpy.types.Object, settings) -> tuple[Scan, Sensor, np.ndarray]:
 
 def scan_target(obj: bpy.types.Object, radius_scale: float = 1.0, engine: str = "auto") -> ScanTarget:
     """The (cached) ScanTarget of ``obj``'s mesh data, object frame, m, for ``engine``
-    (raycast.ENGINES; Blender's BVH is built for "bvh" only). With faces: its triangles,
+    (raycast.ENGINES; Blender's BVH for "bvh", the Embree scene for "embree"). With faces: its triangles,
     ``source_index`` = the Blender polygon index of each. Without: Gaussians when it
     carries the splat attributes (scale, rotation, opacity: splat_attributes), else
     surfels of ``radius_scale`` x the point spacing; ``source_index`` = the vertex index."""
-    inputs, build = _target_inputs(obj, radius_scale, resolve_engine(engine) == "bvh")
+    engine = resolve_engine(engine)
+    inputs, build = _target_inputs(obj, radius_scale, engine == "bvh")
     fingerprint = _fingerprint(inputs)
     cached = _cache.pop(obj.name, None)
     if cached is None or cached[0] != fingerprint:
-        cached = (fingerprint, build())
+        cached = (fingerprint, ready_for(build(), engine))
     _cache[obj.name] = cached  # re-inserted: the dict's order is least recently used first
     while len(_cache) > CACHE_SIZE:
         del _cache[next(iter(_cache))]

@@ -21,7 +21,7 @@ from ..scan.raycast import Ground, ScanOptions
 from ..scan.sensors import BIN_COLUMNS
 from ..scan.sweeps import Motion, scan_many
 from ..scan.gaussians import transform_gaussians
-from ..scan.targets import element_colors, has_gaussians, target_from_reconstruction
+from ..scan.targets import element_colors, has_gaussians, ready_for, target_from_reconstruction
 from .config import BankConfig
 from .grid import size_variants, sweeps_of
 from .inputs import BankObject
@@ -42,8 +42,8 @@ class Variant:
 
 
 class TargetCache:
-    """The size variants of each object, made on first use (targets without Blender's
-    BVH for the Embree engine): one target per object serves all its variants (each a
+    """The size variants of each object, made on first use with their engine's structure
+    (for the Embree engine its scene, without Blender's BVH): one target per object serves all its variants (each a
     stretch of its rays), one per variant for splats; holds one object at a time
     (entries come object by object)."""
 
@@ -81,7 +81,8 @@ class TargetCache:
         return Variant(self._target(geometry), bounds, None)
 
     def _target(self, geometry):
-        return target_from_reconstruction(geometry, self.config.radius_scale, self.config.engine == "bvh")
+        return ready_for(target_from_reconstruction(geometry, self.config.radius_scale, self.config.engine == "bvh"),
+                         self.config.engine)
 
     def element_rgb(self, object_index: int) -> np.ndarray:
         """(E, 3) float32 sRGB of what a return's ``face`` indexes (targets.element_colors),

@@ -29,7 +29,7 @@ from .physical_intensity import dataset_intensity, relative_intensity
 from .ray_drop import drop_probability
 from .returns import Scan, return_dtype
 from .sensors import Sensor
-from .targets import ScanTarget
+from .targets import ScanTarget, embree_scene, ready_for
 
 
 ENGINES = ("auto", "bvh", "embree")
@@ -332,7 +332,9 @@ def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bo
     the ray parameter of a hit: its range in metres (the BVH casts along the unit
     direction, its distance is divided by that direction's length); the incidence is the
     stretched normal's, (n . direction / scale) / |n / scale|."""
-    sensor.directions  # the cached ray table: built on first use, kept out of the timing
+    # the ray table and the target's engine structure: built on first use, kept out of the timing
+    sensor.directions
+    ready_for(target, engine)
     start = time.perf_counter()
     poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
     stretch = np.broadcast_to(np.ones(3) if scale is None else np.asarray(scale, np.float64), (len(poses), 3))
@@ -432,17 +434,9 @@ def _bvh_hits(target: ScanTarget, origins: np.ndarray, directions: np.ndarray, f
 
 def _embree_hits(target: ScanTarget, origins: np.ndarray, directions: np.ndarray, far) -> tuple:
     """As ``_bvh_hits``, in one batched Embree call on the target's triangles."""
-    if target.embree_scene is None:
-        try:
-            from embreex import rtcore_scene
-            from embreex.mesh_construction import TriangleMesh
-        except ImportError:
-            raise ImportError("the embree engine needs embreex (pip install embreex)") from None
-        target.embree_scene = rtcore_scene.EmbreeScene()
-        TriangleMesh(target.embree_scene, target.triangle_vertices, target.triangle_faces)
     if not len(directions):
         return np.zeros(0, np.int64), np.zeros(0)
-    result = target.embree_scene.run(origins.astype(np.float32), directions.astype(np.float32),
+    result = embree_scene(target).run(origins.astype(np.float32), directions.astype(np.float32),
                                      dists=np.broadcast_to(far, len(directions)).astype(np.float32), output=1)
     triangle = result["primID"]
     polygons = np.where(triangle >= 0, target.triangle_polygon[np.maximum(triangle, 0)], -1)

@@ -80,13 +80,40 @@ class ScanTarget:
     triangle_vertices: np.ndarray | None = None
     triangle_faces: np.ndarray | None = None
     triangle_polygon: np.ndarray | None = None
-    embree_scene: object = None  # built on the first Embree cast (raycast.trace_rays)
+    embree_scene: object = None  # built once, by embree_scene
     see_through: np.ndarray | None = None
     gaussians: Gaussians | None = None
 
     @property
     def size(self) -> np.ndarray:
         return self.bounds[1] - self.bounds[0]
+
+
+def embree_scene(target: ScanTarget):
+    """The Embree scene of ``target``'s triangles, built and committed on first use and
+    kept on the target (one per object, reused by every cast). ImportError without
+    embreex."""
+    if target.embree_scene is None:
+        try:
+            from embreex import rtcore_scene
+            from embreex.mesh_construction import TriangleMesh
+        except ImportError:
+            raise ImportError("the embree engine needs embreex (pip install embreex)") from None
+        scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(scene, target.triangle_vertices, target.triangle_faces)
+        # Embree builds its BVH on a scene's first query and embreex has no commit call
+        scene.run(np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32), output=1)
+        target.embree_scene = scene
+    return target.embree_scene
+
+
+def ready_for(target: ScanTarget, engine: str) -> ScanTarget:
+    """``target`` with what ``engine`` (resolved: "bvh" or "embree") casts on built, so a
+    cached target's first scan costs what the others do (Blender's BVH is built with the
+    target; Gaussians have their own compositing)."""
+    if engine == "embree" and target.gaussians is None:
+        embree_scene(target)
+    return target
 
 
 def reflectivity_from_linear(rgb: np.ndarray) -> np.ndarray:
