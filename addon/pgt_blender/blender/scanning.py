@@ -66,10 +66,11 @@ def scan(obj: bpy.types.Object, settings) -> tuple[Scan, Sensor, np.ndarray]:
 
 def scan_target(obj: bpy.types.Object, radius_scale: float = 1.0, engine: str = "auto") -> ScanTarget:
     """The (cached) ScanTarget of ``obj``'s mesh data, object frame, m, for ``engine``
-    (raycast.ENGINES; Blender's BVH for "bvh", the Embree scene for "embree"). With faces: its triangles,
-    ``source_index`` = the Blender polygon index of each. Without: Gaussians when it
-    carries the splat attributes (scale, rotation, opacity: splat_attributes), else
-    surfels of ``radius_scale`` x the point spacing; ``source_index`` = the vertex index."""
+    (raycast.ENGINES; built with Blender's BVH for "bvh", its Embree scene for "embree").
+    With faces: its triangles, ``source_index`` = the Blender polygon index of each.
+    Without: Gaussians when it carries the splat attributes (scale, rotation, opacity:
+    splat_attributes), else surfels of ``radius_scale`` x the point spacing;
+    ``source_index`` = the vertex index."""
     engine = resolve_engine(engine)
     inputs, build = _target_inputs(obj, radius_scale, engine == "bvh")
     fingerprint = _fingerprint(inputs)
