@@ -103,7 +103,7 @@ def main(argv: list) -> int:
         for label, build in ((f"gaussians {count // 1000}k", lambda: gaussian_target(*arrays, name="splats")),
                              (f"surfels {count // 1000}k", lambda: surfel_target(
                                  splats["positions"], "splats", scales=splats["scales"],
-                                 rotations=splats["rotations"], opacities=splats["opacities"], with_bvh=False))):
+                                 rotations=splats["rotations"], opacities=splats["opacities"], engine="embree"))):
             began = time.perf_counter()
             methods[label] = build()
             builds[label] = time.perf_counter() - began

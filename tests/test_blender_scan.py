@@ -330,6 +330,16 @@ def test_glass_materials_are_seen_through(scene, glass):
     assert len(stored["face"]) == expected.hits
 
 
+def test_the_cached_target_is_built_for_the_engine(scene):
+    """Before any scan: the default engine's structure is built with the cached target
+    (Embree's committed scene, where embreex is installed; else Blender's BVH)."""
+    target = scanning.scan_target(mesh_object(scene, "Engine box", *box_geometry()))
+    if embree_available():
+        assert target.bvh is None and target.embree_scene.is_committed
+    else:
+        assert target.bvh is not None and target.embree_scene is None
+
+
 def test_bvh_is_built_once_per_object_and_rebuilt_after_an_edit(scene, monkeypatch):
     built = []
 
@@ -344,8 +354,6 @@ def test_bvh_is_built_once_per_object_and_rebuilt_after_an_edit(scene, monkeypat
     scene.pgt_scan.heading = math.radians(10)
     bpy.ops.object.pgt_scan()
     assert built == ["Box"] and scanning.scan_target(obj) is first
-    if embree_available():  # the default engine's scene is built with the cached target
-        assert first.embree_scene is not None and first.embree_scene.is_committed
     top = int(np.argmax(positions(obj)[:, 2]))
     obj.data.vertices[top].co.z += 0.5
     bpy.ops.object.pgt_scan()

@@ -19,7 +19,7 @@ from pgt_blender.core.scan.raycast import ScanOptions, cast_rays, placement, sca
 from pgt_blender.core.scan.returns import RETURN_DTYPE, write_scan
 from pgt_blender.core.scan.sensors import PRESETS, Sensor, load_sensor_toml
 from pgt_blender.core.scan.sweeps import Motion, sample_motion, scan_many, scan_sweeps
-from pgt_blender.core.scan.targets import mesh_target, ready_for, surfel_target
+from pgt_blender.core.scan.targets import embree_scene, gaussian_target, mesh_target, ready_for, surfel_target
 
 NUSCENES = PRESETS["nuscenes"]
 FAR_NUSCENES = replace(NUSCENES, max_range=2000.0, name="nuscenes-far")
@@ -495,30 +495,34 @@ def test_rays_pass_glass_and_return_from_what_lies_behind(engine):
     (glass, glass_faces), (wall, wall_faces) = _pane(5.0), _pane(7.0, half=3.0)
     vertices, faces = np.vstack([glass, wall]), np.vstack([glass_faces, wall_faces + 4])
     see_through = np.array([True, True, False, False])
-    target = mesh_target(vertices, faces, "window", face_see_through=see_through, with_bvh=engine == "bvh")
+    target = mesh_target(vertices, faces, "window", face_see_through=see_through, engine=engine)
     scan = cast_rays(target, FAR_NUSCENES, np.eye(4), ScanOptions(engine=engine))
     directions = ray_directions(FAR_NUSCENES, scan)
     assert scan.hits > 50 and set(scan.returns["face"]) <= {2, 3}
     assert np.abs(scan.returns["range"] - 7.0 / directions[:, 0]).max() < 1e-6
-    only_glass = mesh_target(glass, glass_faces, "glass", face_see_through=[True, True], with_bvh=engine == "bvh")
+    only_glass = mesh_target(glass, glass_faces, "glass", face_see_through=[True, True], engine=engine)
     assert cast_rays(only_glass, FAR_NUSCENES, np.eye(4), ScanOptions(engine=engine)).hits == 0
 
 
-def test_the_embree_scene_is_built_with_the_target_and_reused():
-    """ready_for builds and commits the Embree scene (Embree builds its BVH on a scene's
-    first query), so a cached target's first scan costs what the others do; scans reuse
-    it, and a target for Blender's BVH gets none."""
+def test_a_target_is_built_for_its_engine():
+    """A target built for Embree holds a committed scene (Embree builds its BVH on a
+    scene's first query: built with the target, a cached target's first scan costs what
+    the others do) and no Blender BVH, and scans reuse the scene; one built for the BVH
+    engine holds no scene; a Gaussian target has no triangles for Embree; "auto" must be
+    resolved first."""
     vertices, faces = _pane(5.0)
-    target = mesh_target(vertices, faces, "pane", with_bvh=False)
-    assert target.embree_scene is None
-    scene = ready_for(target, "embree").embree_scene
-    assert scene.is_committed
+    target = mesh_target(vertices, faces, "pane", engine="embree")
+    scene = target.embree_scene
+    assert target.bvh is None and scene is not None and scene.is_committed
     assert cast_rays(target, FAR_NUSCENES, np.eye(4), ScanOptions(engine="embree")).hits > 50
     assert target.embree_scene is scene
-    fresh = mesh_target(vertices, faces, "pane", with_bvh=False)
-    cast_rays(fresh, FAR_NUSCENES, np.eye(4), ScanOptions(engine="embree"))  # a target made elsewhere
-    assert fresh.embree_scene.is_committed
-    assert ready_for(mesh_target(vertices, faces, "pane"), "bvh").embree_scene is None
+    plain = mesh_target(vertices, faces, "pane")
+    assert plain.bvh is not None and plain.embree_scene is None
+    with pytest.raises(ValueError, match="resolved"):
+        ready_for(plain, "auto")
+    splats = gaussian_target(vertices, np.full((4, 3), 0.1), np.tile([1.0, 0.0, 0.0, 0.0], (4, 1)), np.ones(4))
+    with pytest.raises(ValueError, match="no triangles"):
+        embree_scene(splats)
 
 
 def test_glass_is_named_or_transparent_and_faint_splats_are_seen_through(donut):

@@ -25,8 +25,8 @@ from ..core.scan.raycast import ScanOptions, cast_rays, placement, resolve_engin
 from ..core.scan.returns import Scan
 from ..core.scan.sensors import PRESETS, Sensor, load_sensor_toml
 from ..core.scan.targets import (DEFAULT_REFLECTIVITY, ScanTarget, gaussian_target, has_gaussians, mesh_target,
-                                 ready_for, reflectivity_from_linear, reflectivity_from_srgb,
-                                 see_through_materials, surfel_target)
+                                 reflectivity_from_linear, reflectivity_from_srgb, see_through_materials,
+                                 surfel_target)
 from .objects import add_attribute, show_as_points, remove_datablocks
 
 CUSTOM = "CUSTOM"
@@ -71,19 +71,18 @@ def scan_target(obj: bpy.types.Object, radius_scale: float = 1.0, engine: str = 
     Without: Gaussians when it carries the splat attributes (scale, rotation, opacity:
     splat_attributes), else surfels of ``radius_scale`` x the point spacing;
     ``source_index`` = the vertex index."""
-    engine = resolve_engine(engine)
-    inputs, build = _target_inputs(obj, radius_scale, engine == "bvh")
+    inputs, build = _target_inputs(obj, radius_scale, resolve_engine(engine))
     fingerprint = _fingerprint(inputs)
     cached = _cache.pop(obj.name, None)
     if cached is None or cached[0] != fingerprint:
-        cached = (fingerprint, ready_for(build(), engine))
+        cached = (fingerprint, build())
     _cache[obj.name] = cached  # re-inserted: the dict's order is least recently used first
     while len(_cache) > CACHE_SIZE:
         del _cache[next(iter(_cache))]
     return cached[1]
 
 
-def _target_inputs(obj: bpy.types.Object, radius_scale: float, with_bvh: bool):
+def _target_inputs(obj: bpy.types.Object, radius_scale: float, engine: str):
     """Everything the target is made of (the cache's fingerprint covers it all) and the
     function that builds the target from it."""
     mesh = obj.data
@@ -96,8 +95,8 @@ def _target_inputs(obj: bpy.types.Object, radius_scale: float, with_bvh: bool):
                 lambda: gaussian_target(vertices, splats["scale"], splats["rotation"], splats["opacity"], obj.name,
                                         colors)
         opacities = splats.get("opacity")  # faint points are seen through
-        return ("surfels", vertices, colors, radius_scale, opacities, with_bvh), \
-            lambda: surfel_target(vertices, obj.name, colors, radius_scale, with_bvh=with_bvh, opacities=opacities)
+        return ("surfels", vertices, colors, radius_scale, opacities, engine), \
+            lambda: surfel_target(vertices, obj.name, colors, radius_scale, engine=engine, opacities=opacities)
     corners, polygon_index = _triangle_corners(mesh)
     triangles = _corner_vertices(mesh)[corners]
     slots = _triangle_slots(obj, polygon_index)
@@ -105,11 +104,11 @@ def _target_inputs(obj: bpy.types.Object, radius_scale: float, with_bvh: bool):
     see_through = _face_see_through(obj, slots)
 
     def build():
-        target = mesh_target(vertices, triangles, obj.name, reflectivity, with_bvh=with_bvh,
+        target = mesh_target(vertices, triangles, obj.name, reflectivity, engine=engine,
                              face_see_through=see_through)
         return replace(target, source_index=polygon_index[target.source_index])
 
-    return ("mesh", vertices, triangles, polygon_index, reflectivity, see_through, with_bvh), build
+    return ("mesh", vertices, triangles, polygon_index, reflectivity, see_through, engine), build
 
 
 SPLAT_ATTRIBUTES = {"opacity": ("FLOAT", "value", 1), "scale": ("FLOAT_VECTOR", "vector", 3),

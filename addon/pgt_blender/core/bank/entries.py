@@ -17,11 +17,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..scan.raycast import Ground, ScanOptions
+from ..scan.raycast import Ground, ScanOptions, resolve_engine
 from ..scan.sensors import BIN_COLUMNS
 from ..scan.sweeps import Motion, scan_many
 from ..scan.gaussians import transform_gaussians
-from ..scan.targets import element_colors, has_gaussians, ready_for, target_from_reconstruction
+from ..scan.targets import element_colors, has_gaussians, target_from_reconstruction
 from .config import BankConfig
 from .grid import size_variants, sweeps_of
 from .inputs import BankObject
@@ -49,6 +49,7 @@ class TargetCache:
 
     def __init__(self, objects: list, config: BankConfig):
         self.objects, self.config = objects, config
+        self.engine = resolve_engine(config.engine)  # what the targets are built for and cast with
         self._object, self._variants, self._shared, self._rgb = None, {}, None, None
         self.build_seconds = 0.0  # spent making variants (their targets), all told
 
@@ -81,8 +82,7 @@ class TargetCache:
         return Variant(self._target(geometry), bounds, None)
 
     def _target(self, geometry):
-        return ready_for(target_from_reconstruction(geometry, self.config.radius_scale, self.config.engine == "bvh"),
-                         self.config.engine)
+        return target_from_reconstruction(geometry, self.config.radius_scale, self.engine)
 
     def element_rgb(self, object_index: int) -> np.ndarray:
         """(E, 3) float32 sRGB of what a return's ``face`` indexes (targets.element_colors),
@@ -100,7 +100,7 @@ def scan_entries(cache: TargetCache, sensor, entries: np.ndarray, config: BankCo
     entries that share a ray target (an object's size variants, or one splat variant)
     are cast together (sweeps.scan_many)."""
     options = ScanOptions(range_noise=config.range_noise, max_incidence_deg=config.max_incidence_deg,
-                          drop_rate=config.drop_rate, ray_drop=config.ray_drop, engine=config.engine,
+                          drop_rate=config.drop_rate, ray_drop=config.ray_drop, engine=cache.engine,
                           columns=None if config.intensity_checkpoint else BIN_COLUMNS[config.dataset])
     pairs, which = np.unique(entries[["object", "variant"]], return_inverse=True)
     variants = [cache.get(int(pair["object"]), int(pair["variant"])) for pair in pairs]

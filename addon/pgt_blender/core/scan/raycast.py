@@ -29,10 +29,10 @@ from .physical_intensity import dataset_intensity, relative_intensity
 from .ray_drop import drop_probability
 from .returns import Scan, return_dtype
 from .sensors import Sensor
-from .targets import ScanTarget, embree_scene, ready_for
+from .targets import TARGET_ENGINES, ScanTarget, embree_scene, ready_for
 
 
-ENGINES = ("auto", "bvh", "embree")
+ENGINES = ("auto", *TARGET_ENGINES)
 MAX_SEE_THROUGH = 4  # see-through surfaces a ray passes (both sides of a cabin, twice)
 SEE_THROUGH_STEP = 1e-4  # m: how far past a see-through hit the ray goes on
 

@@ -43,12 +43,16 @@ def bvhtree_class():
     return BVHTree
 
 
+# What a mesh or surfel target is built to be cast with: Blender's BVH or an Embree scene.
+TARGET_ENGINES = ("bvh", "embree")
+
+
 @dataclass
 class ScanTarget:
     """One object ready to be scanned from any pose.
 
     bvh:          mathutils BVHTree over the polygons (float32 inside); None when the
-                  target was made for the Embree engine only (``with_bvh=False``).
+                  target was made for the Embree engine (``engine="embree"``).
     bounds:       (2, 3) float64 [min, max] corners of the object's box, object frame,
                   m: of the mesh's vertices or the cloud's points. Placement and the
                   output box use it.
@@ -92,7 +96,9 @@ class ScanTarget:
 def embree_scene(target: ScanTarget):
     """The Embree scene of ``target``'s triangles, built and committed on first use and
     kept on the target (one per object, reused by every cast). ImportError without
-    embreex."""
+    embreex; ValueError for a Gaussian target (no triangles: its own compositing)."""
+    if target.triangle_vertices is None:
+        raise ValueError(f"{target.name}: a {target.kind} target has no triangles for Embree")
     if target.embree_scene is None:
         try:
             from embreex import rtcore_scene
@@ -108,9 +114,11 @@ def embree_scene(target: ScanTarget):
 
 
 def ready_for(target: ScanTarget, engine: str) -> ScanTarget:
-    """``target`` with what ``engine`` (resolved: "bvh" or "embree") casts on built, so a
+    """``target`` with what ``engine`` ("bvh" or "embree", resolved) casts on built, so a
     cached target's first scan costs what the others do (Blender's BVH is built with the
-    target; Gaussians have their own compositing)."""
+    target; Gaussians have their own compositing). ValueError for another engine name."""
+    if engine not in TARGET_ENGINES:
+        raise ValueError(f"engine must be one of {', '.join(TARGET_ENGINES)} (resolved), got {engine!r}")
     if engine == "embree" and target.gaussians is None:
         embree_scene(target)
     return target
@@ -156,10 +164,10 @@ def relative_reflectivity(values: np.ndarray, weights: np.ndarray) -> np.ndarray
 
 
 def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
-                face_reflectivity: np.ndarray | None = None, with_bvh: bool = True,
+                face_reflectivity: np.ndarray | None = None, engine: str = "bvh",
                 face_see_through: np.ndarray | None = None) -> ScanTarget:
-    """A BVH over triangles. vertices (V, 3) object frame m; faces (F, 3) int;
-    ``face_see_through`` (F,) bool marks glass (see_through_materials).
+    """Triangles to cast on with ``engine`` (ready_for). vertices (V, 3) object frame m;
+    faces (F, 3) int; ``face_see_through`` (F,) bool marks glass (see_through_materials).
     Faces of zero area (or with a repeated vertex) are dropped with a warning; an empty
     mesh or non-finite vertices are an InputError naming ``name``."""
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
@@ -196,11 +204,12 @@ def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
             raise InputError(name, f"{len(see_through)} see-through flags for {len(faces)} faces")
         see_through = see_through[kept] if see_through[kept].any() else None
     bvh = bvhtree_class().FromPolygons(vertices.tolist(), used.tolist(), all_triangles=True, epsilon=0.0) \
-        if with_bvh else None
+        if engine == "bvh" else None
     bounds = np.stack([vertices[used].reshape(-1, 3).min(0), vertices[used].reshape(-1, 3).max(0)])
-    return ScanTarget(bvh, bounds, bounds, _planes(normals, corners[:, 0]), reflectivity,
-                      kept.astype(np.int32), "mesh", name, vertices.astype(np.float32), used.astype(np.int32),
-                      np.arange(len(kept), dtype=np.int32), see_through=see_through)
+    return ready_for(ScanTarget(bvh, bounds, bounds, _planes(normals, corners[:, 0]), reflectivity,
+                                kept.astype(np.int32), "mesh", name, vertices.astype(np.float32),
+                                used.astype(np.int32), np.arange(len(kept), dtype=np.int32),
+                                see_through=see_through), engine)
 
 
 def see_through_materials(names, alphas=None) -> np.ndarray:
@@ -228,8 +237,9 @@ def local_frames(positions: np.ndarray, neighbours: int = 8):
 def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarray | None = None,
                   radius_scale: float = 1.0, neighbours: int = 8,
                   scales: np.ndarray | None = None, rotations: np.ndarray | None = None,
-                  with_bvh: bool = True, opacities: np.ndarray | None = None) -> ScanTarget:
-    """Oriented surfels for a point cloud, object frame (m).
+                  engine: str = "bvh", opacities: np.ndarray | None = None) -> ScanTarget:
+    """Oriented surfels for a point cloud, object frame (m), to cast on with ``engine``
+    (ready_for).
 
     Point clouds: normal from local PCA over ``neighbours`` points, radius =
     ``radius_scale`` x the mean distance to them. Gaussian splats (``scales`` (N, 3) m,
@@ -263,19 +273,19 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
     corners = positions[:, None, :] + np.einsum("sk,nk,nik->nsi", unit, semi_axes, tangents)
     polygons = np.arange(len(positions) * SURFEL_SIDES).reshape(-1, SURFEL_SIDES)
     bvh = bvhtree_class().FromPolygons(corners.reshape(-1, 3).tolist(), polygons.tolist(),
-                                       all_triangles=False, epsilon=0.0) if with_bvh else None
+                                       all_triangles=False, epsilon=0.0) if engine == "bvh" else None
     reflectivity = (np.full(len(positions), DEFAULT_REFLECTIVITY, np.float32) if colors is None
                     else relative_reflectivity(reflectivity_from_srgb(colors), semi_axes.prod(axis=1)))
     flat = corners.reshape(-1, 3)
     normals = np.cross(tangents[:, :, 0], tangents[:, :, 1])
     fan = np.array([[0, side, side + 1] for side in range(1, SURFEL_SIDES - 1)])  # a hexagon as 4 triangles
     faint = None if opacities is None else np.asarray(opacities, np.float64).reshape(-1) < SEE_THROUGH_OPACITY
-    return ScanTarget(bvh, np.stack([positions.min(0), positions.max(0)]), np.stack([flat.min(0), flat.max(0)]),
-                      _planes(normals, positions), reflectivity,
-                      np.arange(len(positions), dtype=np.int32), "surfels", name,
-                      flat.astype(np.float32), polygons[:, fan].reshape(-1, 3).astype(np.int32),
-                      np.repeat(np.arange(len(positions), dtype=np.int32), len(fan)),
-                      see_through=faint if faint is not None and faint.any() else None)
+    return ready_for(ScanTarget(bvh, np.stack([positions.min(0), positions.max(0)]),
+                                np.stack([flat.min(0), flat.max(0)]), _planes(normals, positions), reflectivity,
+                                np.arange(len(positions), dtype=np.int32), "surfels", name,
+                                flat.astype(np.float32), polygons[:, fan].reshape(-1, 3).astype(np.int32),
+                                np.repeat(np.arange(len(positions), dtype=np.int32), len(fan)),
+                                see_through=faint if faint is not None and faint.any() else None), engine)
 
 
 def element_colors(reconstruction) -> np.ndarray:
@@ -321,24 +331,24 @@ def has_gaussians(attributes: dict) -> bool:
     return all(attributes.get(key) is not None for key in ("scale", "rotation", "opacity"))
 
 
-def target_from_reconstruction(reconstruction, radius_scale: float = 1.0, with_bvh: bool = True,
+def target_from_reconstruction(reconstruction, radius_scale: float = 1.0, engine: str = "bvh",
                                gaussians: bool = True) -> ScanTarget:
     """A mesh target when the reconstruction has faces; else Gaussians when it carries
     ``scale``, ``rotation`` and ``opacity`` (and ``gaussians``); else surfels
     (splat-shaped when it carries ``scale`` and ``rotation``). Positions must already be
-    in the object frame. ``with_bvh=False`` skips Blender's BVH: the target serves the
-    Embree engine only."""
+    in the object frame. ``engine`` ("bvh" or "embree") is what mesh and surfel targets
+    are built to be cast with (ready_for)."""
     name = str(reconstruction.source)
     colors = reconstruction.colors
     if len(reconstruction.faces):
         face_reflectivity = None
         if colors is not None:
             face_reflectivity = reflectivity_from_srgb(colors)[reconstruction.faces].mean(axis=1)
-        return mesh_target(reconstruction.positions, reconstruction.faces, name, face_reflectivity, with_bvh)
+        return mesh_target(reconstruction.positions, reconstruction.faces, name, face_reflectivity, engine)
     attributes = reconstruction.attributes
     if gaussians and has_gaussians(attributes):
         return gaussian_target(reconstruction.positions, attributes["scale"], attributes["rotation"],
                                attributes["opacity"], name, colors)
     return surfel_target(reconstruction.positions, name, colors, radius_scale,
-                         scales=attributes.get("scale"), rotations=attributes.get("rotation"), with_bvh=with_bvh,
+                         scales=attributes.get("scale"), rotations=attributes.get("rotation"), engine=engine,
                          opacities=attributes.get("opacity"))
