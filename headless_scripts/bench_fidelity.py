@@ -191,7 +191,7 @@ def main(argv: list) -> int:
             f"mean ring Jaccard {number(totals['mean_ring_jaccard'])}; intensity W1, mean over objects, "
             f"{number(totals['mean_w1_sim'], 3)} simulated vs {number(totals['mean_w1_constant'], 3)} constant mean "
             f"({totals['constant_intensity']:.3f})")
-    shown_meshes = dev.shown_path(args.meshes) if Path(args.meshes).exists() else args.meshes
+    shown_meshes = args.meshes if args.meshes == "samples" else dev.shown_path(args.meshes)
     inputs = {"folder": dev.shown_path(args.folder), "meshes": shown_meshes, "glass": not args.no_glass,
               "sensor": sensor.name, "seed": args.seed, "min_points": args.min_points,
               "ray_drop": None if args.no_drop or not sensor.ray_drop else list(sensor.ray_drop),

@@ -229,7 +229,8 @@ def main(argv: list) -> int:
             + table(rows) + "\n\nPer class: W1 per point averaged over the folds that scored it, and its ratio "
             "to the constant class mean's.\n\n" + summary_table(averaged))
     print("\n" + body)
-    inputs = {"real objects": f"{dev.shown_path(args.kitti)}, cut by their labels; held out in turn: {', '.join(scans)}",
+    inputs = {"real objects": f"{dev.shown_path(args.kitti)}, cut by their labels; held out in turn: "
+                              f"{', '.join(scans)}",
               "folds": fold_lines,
               "RGB objects": f"{len(rgb)} per fold: the Chrono meshes "
                              f"{'(the first per class)' if args.quick else 'and the built-in samples'}, scanned at "

@@ -23,10 +23,15 @@ CHRONO_VEHICLES = SHARED_DATA / "chrono_vehicles" / "data" / "vehicle"
 
 
 def shown_path(path) -> str:
-    """``path`` as reports print it: relative to the repository (``../shared/...``) when it
-    lies beside it, so a report names no one machine's folders; else as given."""
+    """``path`` as reports print it, so a report names no one machine's folders: relative
+    to the repository when it lies inside it or beside it (``../shared/...``), else
+    absolute."""
     path = Path(path).resolve()
-    return f"../{path.relative_to(REPOSITORY.parent).as_posix()}" if path.is_relative_to(REPOSITORY.parent) else str(path)
+    if path.is_relative_to(REPOSITORY):
+        return path.relative_to(REPOSITORY).as_posix()
+    if path.is_relative_to(REPOSITORY.parent):
+        return f"../{path.relative_to(REPOSITORY.parent).as_posix()}"
+    return str(path)
 
 
 def machine(**details) -> dict:
