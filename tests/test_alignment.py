@@ -9,6 +9,7 @@ import trimesh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from pgt_blender.core.authoring import alignment
 from pgt_blender.core.authoring.alignment import (_deblurred_edge, align_axes, camera_up, density_inliers,
                                                    surface_estimate)
 from pgt_blender.core.classes import MINORITY_CLASSES
@@ -391,13 +392,21 @@ def test_the_issue_truck_tilted_yawed_and_far_away(shared_data):
 
 
 @pytest.mark.parametrize("class_name", MINORITY_CLASSES)
-def test_refined_box_is_not_inflated_by_noise_and_floaters(class_name):
+def test_refined_box_is_not_inflated_by_noise_and_floaters(class_name, monkeypatch):
     """0.5 % noise (x box diagonal) and 10 % floaters, three random poses: the refined
     box is the surface's, issue 18's target: the worst axis within 1 % in the median
     over the poses (what bench_alignment.py reports), no pose beyond 2.5 % (a bicycle's
     tubes) and, but for the two-wheelers (whose thin parts the noise widens about as
     much as the 0.1 % trim cuts), each tighter than the unrefined box of the noisy
-    points. Noise-free, the box is exact to 0.5 %."""
+    points. Every class has sides that are no wall (tyres, handlebar ends, a bucket's
+    edge): they come from the deblurred edge. Noise-free, the box is exact to 0.5 %."""
+    deblurred = []
+
+    def counted(*args):
+        deblurred.append(_deblurred_edge(*args))
+        return deblurred[-1]
+
+    monkeypatch.setattr(alignment, "_deblurred_edge", counted)
     worst = []
     for seed in (7, 8, 9):
         source, rotation, dims, _ = posed_cloud(class_name, seed, 0.005, 0.1)
@@ -406,7 +415,7 @@ def test_refined_box_is_not_inflated_by_noise_and_floaters(class_name):
         worst.append(np.abs(refined.dims / dims - 1).max())
         if class_name not in ("motorcycle", "bicycle"):
             assert worst[-1] < np.abs(plain.dims / dims - 1).max()
-    assert np.median(worst) < 0.01 and max(worst) < 0.025
+    assert np.median(worst) < 0.01 and max(worst) < 0.025 and deblurred
     source, rotation, dims, _ = posed_cloud(class_name, 7, 0.0, 0.0)
     clean = align_axes(source, up=rotation[:, 2], refine=True)
     assert np.abs(clean.dims / dims - 1).max() < 0.005
@@ -427,11 +436,12 @@ def prism(profile, length) -> trimesh.Trimesh:
 
 
 @pytest.mark.parametrize("seed", range(3))
-def test_rounded_roof_is_deblurred_not_cut(seed):
+def test_rounded_roof_is_not_cut(seed):
     """A 4 m prism, 1.8 m wide, flat walls and floor, a half-cylinder roof (radius 0.9 m,
-    1.9 m high in all): 0.5 % noise, 10 % floaters, arbitrary pose with the up prior. The
-    roof is no wall: its side comes from the deblurred histogram, and every dimension
-    is within 1 % (the unrefined box is 6 % too high)."""
+    1.9 m high in all): 0.5 % noise, 10 % floaters, arbitrary pose with the up prior.
+    At 20,000 points the roof's crest is broad enough to count as a wall (its crowd's
+    median, not the plane fit's inward extreme): every dimension is within 1 % (the
+    unrefined box is 6 % too high)."""
     angles = np.linspace(0, np.pi, 129)
     mesh = prism(np.r_[[[0.9, -0.5]], np.c_[0.9 * np.cos(angles), 0.5 + 0.9 * np.sin(angles)], [[-0.9, -0.5]]], 4.0)
     truth = np.array([4.0, 1.8, 1.9])

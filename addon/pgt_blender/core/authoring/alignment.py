@@ -296,18 +296,20 @@ def surface_estimate(points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) ->
 
 def _plane_noise(spread: np.ndarray) -> float:
     """The surface noise (standard deviation, source units) from neighbourhoods
-    ``spread`` (N, k, 3), each centred on its mean: the out-of-plane spread sqrt(l1) of a
+    ``spread`` (N, k, 3), each the k nearest points of a larger neighbourhood centred
+    on that one's mean (what surface_estimate has at hand; it reads sigma as closely as
+    recentring would, measured on noisy planes): the out-of-plane spread sqrt(l1) of a
     flat patch is sigma x sqrt(chi2(k - 3) / k) (the plane takes three degrees of
     freedom), so the ``NOISE_PERCENTILE``th percentile over the points (flat patches
     exist on every vehicle; curved ones and edges spread more) divided by that law's is
     sigma. Small neighbourhoods (``NOISE_NEIGHBOURS``) see less of a surface's curvature."""
-    from scipy.stats import chi2
+    from scipy.special import chdtri
 
     k = spread.shape[1]
     if k <= 3:
         return 0.0
     values = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", spread, spread) / k)[:, 0]
-    law = np.sqrt(chi2.ppf(NOISE_PERCENTILE / 100, k - 3) / k)
+    law = np.sqrt(chdtri(k - 3, 1 - NOISE_PERCENTILE / 100) / k)  # the chi2(k - 3) percentile
     return float(np.percentile(np.sqrt(np.maximum(values, 0)), NOISE_PERCENTILE) / law)
 
 
@@ -465,7 +467,8 @@ def _surface_bounds(local: np.ndarray, normals: np.ndarray, noise: float, raw: n
     within ``FACING_DEG`` of the axis crowd into the outer band, ``SIDE_BAND`` x
     ``noise`` wide, at least ``WALL_RATIO`` times as many as in the band inside it) is
     the median of that crowd (denoised points still scatter about a wall, so their
-    extreme lies outside it); other sides keep the trimmed extreme. Then what sticks
+    extreme lies outside it); any other side is where the raw points' deblurred
+    histogram ends (:func:`_deblurred_edge`). Then what sticks
     out of the body (:func:`_protrusion`): thin real parts (mirrors, handles) that the
     trim or the wall median cut off, told from floaters by being a cluster."""
     low, high = _trimmed_bounds(local)
@@ -503,15 +506,15 @@ def _deblurred_edge(outward: np.ndarray, noise: float, share: float = BOX_TRIM) 
     grid of the same step, plus a constant for the floaters left near the surface. The
     edge is the outermost spike position where the deblurred mass counted from outside
     reaches ``share`` of the points, the share the trimmed extreme leaves out (so a
-    noise-free cloud gives the trimmed extreme, and noise no longer widens it)."""
+    noise-free cloud gives the trimmed extreme, and noise no longer widens it). Fewer
+    than 1 / ``share`` points, or a window holding less than that share, keep the
+    trimmed extreme."""
     from scipy.optimize import nnls
     from scipy.special import ndtr
 
-    mass = max(1, int(share * len(outward)))
-    if len(outward) <= mass:
-        return float(outward.max())
+    mass = int(share * len(outward))  # as _trimmed_bounds
     trimmed = np.partition(outward, len(outward) - 1 - mass)[len(outward) - 1 - mass]
-    if noise <= 0:
+    if noise <= 0 or mass == 0:  # noise-free, or too few points (under 1 / share) to deconvolve
         return float(trimmed)
     inner, outer = EDGE_WINDOW
     step = EDGE_STEP * noise
@@ -526,7 +529,9 @@ def _deblurred_edge(outward: np.ndarray, noise: float, share: float = BOX_TRIM) 
     except RuntimeError:  # no convergence: keep the trimmed extreme
         return float(trimmed)
     from_outside = found[:-1][::-1].cumsum()
-    return float(spikes[::-1][min(int(np.searchsorted(from_outside, mass)), len(spikes) - 1)])
+    if from_outside[-1] < mass:  # the window holds less than the trimmed share: nothing to place the edge by
+        return float(trimmed)
+    return float(spikes[::-1][int(np.searchsorted(from_outside, mass))])
 
 
 def _spacing(points: np.ndarray) -> float:
