@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 from pgt_blender.core.reconstruction import Reconstruction
-from pgt_blender.core.scan.raycast import embree_available, scan_object
+from pgt_blender.core.scan.raycast import scan_object
 from pgt_blender.core.scan.returns import RETURN_DTYPE
 from pgt_blender.core.scan.sensors import PRESETS
-from pgt_blender.core.scan.targets import gaussian_target, mesh_target, reflectivity_from_srgb, surfel_target
+from pgt_blender.core.scan.targets import (embree_available, gaussian_target, mesh_target, reflectivity_from_srgb,
+                                          surfel_target)
 
 from .conftest import datablock_counts
 

@@ -19,7 +19,8 @@ from pgt_blender.core.scan.raycast import ScanOptions, cast_rays, placement, sca
 from pgt_blender.core.scan.returns import RETURN_DTYPE, write_scan
 from pgt_blender.core.scan.sensors import PRESETS, Sensor, load_sensor_toml
 from pgt_blender.core.scan.sweeps import Motion, sample_motion, scan_many, scan_sweeps
-from pgt_blender.core.scan.targets import embree_scene, gaussian_target, mesh_target, ready_for, surfel_target
+from pgt_blender.core.scan.targets import (blender_bvh, embree_scene, gaussian_target, mesh_target,
+                                          surfel_target)
 
 NUSCENES = PRESETS["nuscenes"]
 FAR_NUSCENES = replace(NUSCENES, max_range=2000.0, name="nuscenes-far")
@@ -270,7 +271,7 @@ def test_per_beam_hits_on_a_plane_equal_the_analytic_count():
 def test_rays_through_shared_edges_and_vertices_never_leak(mesh):
     from mathutils import Vector
 
-    target = mesh_target(mesh.vertices, mesh.faces, "closed")
+    target = mesh_target(mesh.vertices, mesh.faces, "closed", engine="bvh")
     rng = np.random.default_rng(3)
     aims = np.concatenate([mesh.vertices, mesh.vertices[mesh.edges_unique].mean(axis=1)])
     misses = 0
@@ -507,22 +508,26 @@ def test_rays_pass_glass_and_return_from_what_lies_behind(engine):
 def test_a_target_is_built_for_its_engine():
     """A target built for Embree holds a committed scene (Embree builds its BVH on a
     scene's first query: built with the target, a cached target's first scan costs what
-    the others do) and no Blender BVH, and scans reuse the scene; one built for the BVH
-    engine holds no scene; a Gaussian target has no triangles for Embree; "auto" must be
-    resolved first."""
+    the others do) and no Blender BVH; cast with the BVH engine it builds that on first
+    use, with the very returns of a target built for the BVH. Gaussian
+    targets have no polygons for either; an unknown engine name is an error."""
     vertices, faces = _pane(5.0)
     target = mesh_target(vertices, faces, "pane", engine="embree")
     scene = target.embree_scene
     assert target.bvh is None and scene is not None and scene.is_committed
-    assert cast_rays(target, FAR_NUSCENES, np.eye(4), ScanOptions(engine="embree")).hits > 50
-    assert target.embree_scene is scene
-    plain = mesh_target(vertices, faces, "pane")
+    by_embree = cast_rays(target, FAR_NUSCENES, np.eye(4), ScanOptions(engine="embree"))
+    by_bvh = cast_rays(target, FAR_NUSCENES, np.eye(4), ScanOptions(engine="bvh"))
+    assert target.embree_scene is scene and target.bvh is not None and by_embree.hits > 50
+    plain = mesh_target(vertices, faces, "pane", engine="bvh")
     assert plain.bvh is not None and plain.embree_scene is None
-    with pytest.raises(ValueError, match="resolved"):
-        ready_for(plain, "auto")
+    assert cast_rays(plain, FAR_NUSCENES, np.eye(4), ScanOptions(engine="bvh")).returns.tobytes() == \
+        by_bvh.returns.tobytes()
+    with pytest.raises(ValueError, match="engine must be one of"):
+        mesh_target(vertices, faces, "pane", engine="optix")
     splats = gaussian_target(vertices, np.full((4, 3), 0.1), np.tile([1.0, 0.0, 0.0, 0.0], (4, 1)), np.ones(4))
-    with pytest.raises(ValueError, match="no triangles"):
-        embree_scene(splats)
+    for build in (embree_scene, blender_bvh):
+        with pytest.raises(ValueError, match="no polygons|no triangles"):
+            build(splats)
 
 
 def test_glass_is_named_or_transparent_and_faint_splats_are_seen_through(donut):

@@ -24,7 +24,7 @@
     [jitter]
     centre = 0.5                # m: box centre moved by U(-centre, centre) in x and y
     size = 0.05                 # relative: each axis scaled by 1 + N(0, size) clipped to +-size
-    size_variants = 8           # differently jittered copies (one BVH each) per object
+    size_variants = 8           # differently jittered copies per object (a mesh's share its target)
 
     [scan]
     range_noise = true          # Gaussian range noise with the sensor's sigma

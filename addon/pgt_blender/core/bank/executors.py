@@ -1,7 +1,7 @@
 """Where a bank's chunks run: this process, a local process pool, or a Ray cluster.
 Each runs ``write(job, cache, chunk_id, entries)`` (export.write_chunk) for the pending
 chunks and yields what it returns (export.ChunkDone) as each finishes; a worker holds one job and one
-TargetCache (one BVH per object variant, reused across its chunks)."""
+TargetCache (one ray target per object, or per splat variant, reused across its chunks)."""
 
 import ctypes
 import os

@@ -19,7 +19,7 @@ return the same rows, bit for bit.
 
 import time
 from dataclasses import dataclass
-from functools import cache, lru_cache
+from functools import cache
 from itertools import chain
 
 import numpy as np
@@ -29,26 +29,12 @@ from .physical_intensity import dataset_intensity, relative_intensity
 from .ray_drop import drop_probability
 from .returns import Scan, return_dtype
 from .sensors import Sensor
-from .targets import TARGET_ENGINES, ScanTarget, embree_scene, ready_for
+from .targets import TARGET_ENGINES, ScanTarget, embree_scene, ready_for, resolve_engine
 
 
 ENGINES = ("auto", *TARGET_ENGINES)
 MAX_SEE_THROUGH = 4  # see-through surfaces a ray passes (both sides of a cabin, twice)
 SEE_THROUGH_STEP = 1e-4  # m: how far past a see-through hit the ray goes on
-
-
-def resolve_engine(engine: str) -> str:
-    """The engine ``engine`` names: "auto" is "embree" when embreex imports, else "bvh"."""
-    return ("embree" if embree_available() else "bvh") if engine == "auto" else engine
-
-
-@lru_cache(maxsize=None)
-def embree_available() -> bool:
-    try:
-        import embreex  # noqa: F401  (only whether it imports)
-    except ImportError:
-        return False
-    return True
 
 
 @dataclass(frozen=True)
@@ -332,7 +318,7 @@ def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bo
     the ray parameter of a hit: its range in metres (the BVH casts along the unit
     direction, its distance is divided by that direction's length); the incidence is the
     stretched normal's, (n . direction / scale) / |n / scale|."""
-    # the ray table and the target's engine structure: built on first use, kept out of the timing
+    # the ray table and what the engine casts on (ready_for): built on first use, kept out of the timing
     sensor.directions
     ready_for(target, engine)
     start = time.perf_counter()

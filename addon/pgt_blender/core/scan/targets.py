@@ -14,6 +14,7 @@ what lies behind, as a car's windows return the seats or nothing.
 
 import importlib
 import re
+from functools import lru_cache
 import warnings
 from dataclasses import dataclass
 
@@ -43,16 +44,30 @@ def bvhtree_class():
     return BVHTree
 
 
-# What a mesh or surfel target is built to be cast with: Blender's BVH or an Embree scene.
+# What a mesh or surfel target is cast with: Blender's BVH or an Embree scene.
 TARGET_ENGINES = ("bvh", "embree")
+
+
+def resolve_engine(engine: str) -> str:
+    """The engine ``engine`` names: "auto" is "embree" when embreex imports, else "bvh"."""
+    return ("embree" if embree_available() else "bvh") if engine == "auto" else engine
+
+
+@lru_cache(maxsize=None)
+def embree_available() -> bool:
+    try:
+        import embreex  # noqa: F401  (only whether it imports)
+    except ImportError:
+        return False
+    return True
 
 
 @dataclass
 class ScanTarget:
     """One object ready to be scanned from any pose.
 
-    bvh:          mathutils BVHTree over the polygons (float32 inside); None when the
-                  target was made for the Embree engine (``engine="embree"``).
+    bvh:          mathutils BVHTree over the polygons (float32 inside), built by
+                  blender_bvh for the "bvh" engine; None until then, and for Gaussians.
     bounds:       (2, 3) float64 [min, max] corners of the object's box, object frame,
                   m: of the mesh's vertices or the cloud's points. Placement and the
                   output box use it.
@@ -70,7 +85,8 @@ class ScanTarget:
                   passes on to what lies behind (raycast.trace_rays).
     triangle_vertices (V, 3) float32, triangle_faces (T, 3) int32: the polygons as an
                   indexed triangle mesh, and triangle_polygon (T,) int32 the polygon of
-                  each triangle: what the Embree engine casts on.
+                  each triangle: what the Embree scene and the BVH are built from.
+    embree_scene: the Embree scene (embree_scene), None until built.
     """
 
     bvh: object
@@ -84,7 +100,7 @@ class ScanTarget:
     triangle_vertices: np.ndarray | None = None
     triangle_faces: np.ndarray | None = None
     triangle_polygon: np.ndarray | None = None
-    embree_scene: object = None  # built once, by embree_scene
+    embree_scene: object = None
     see_through: np.ndarray | None = None
     gaussians: Gaussians | None = None
 
@@ -113,15 +129,34 @@ def embree_scene(target: ScanTarget):
     return target.embree_scene
 
 
+def blender_bvh(target: ScanTarget):
+    """Blender's BVH over ``target``'s polygons (its triangles; a surfel's hexagon), built
+    on first use and kept on the target, like embree_scene."""
+    if target.triangle_vertices is None:
+        raise ValueError(f"{target.name}: a {target.kind} target has no polygons for a BVH")
+    if target.bvh is None:
+        surfels = target.kind == "surfels"
+        polygons = np.arange(len(target.triangle_vertices)).reshape(-1, SURFEL_SIDES) if surfels \
+            else target.triangle_faces
+        target.bvh = bvhtree_class().FromPolygons(target.triangle_vertices.tolist(), polygons.tolist(),
+                                                  all_triangles=not surfels, epsilon=0.0)
+    return target.bvh
+
+
 def ready_for(target: ScanTarget, engine: str) -> ScanTarget:
-    """``target`` with what ``engine`` ("bvh" or "embree", resolved) casts on built, so a
-    cached target's first scan costs what the others do (Blender's BVH is built with the
-    target; Gaussians have their own compositing). ValueError for another engine name."""
-    if engine not in TARGET_ENGINES:
-        raise ValueError(f"engine must be one of {', '.join(TARGET_ENGINES)} (resolved), got {engine!r}")
-    if engine == "embree" and target.gaussians is None:
-        embree_scene(target)
+    """``target`` with what ``engine`` casts on built ("auto" resolved): Blender's BVH or
+    the Embree scene, so a cached target's first scan costs what the others do (Gaussians
+    have their own compositing). ValueError for an unknown engine name."""
+    if target.gaussians is None:
+        (embree_scene if _checked_engine(engine) == "embree" else blender_bvh)(target)
     return target
+
+
+def _checked_engine(engine: str) -> str:
+    resolved = resolve_engine(engine)
+    if resolved not in TARGET_ENGINES:
+        raise ValueError(f"engine must be one of auto, {', '.join(TARGET_ENGINES)}, got {engine!r}")
+    return resolved
 
 
 def reflectivity_from_linear(rgb: np.ndarray) -> np.ndarray:
@@ -164,12 +199,14 @@ def relative_reflectivity(values: np.ndarray, weights: np.ndarray) -> np.ndarray
 
 
 def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
-                face_reflectivity: np.ndarray | None = None, engine: str = "bvh",
+                face_reflectivity: np.ndarray | None = None, engine: str = "auto",
                 face_see_through: np.ndarray | None = None) -> ScanTarget:
-    """Triangles to cast on with ``engine`` (ready_for). vertices (V, 3) object frame m;
-    faces (F, 3) int; ``face_see_through`` (F,) bool marks glass (see_through_materials).
+    """Triangles, built for ``engine`` (ready_for; the other engine's structure is built
+    when first cast with). vertices (V, 3) object frame m; faces (F, 3) int;
+    ``face_see_through`` (F,) bool marks glass (see_through_materials).
     Faces of zero area (or with a repeated vertex) are dropped with a warning; an empty
     mesh or non-finite vertices are an InputError naming ``name``."""
+    _checked_engine(engine)
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
     if len(faces) == 0 or len(vertices) == 0:
@@ -203,10 +240,8 @@ def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
         if len(see_through) != len(faces):
             raise InputError(name, f"{len(see_through)} see-through flags for {len(faces)} faces")
         see_through = see_through[kept] if see_through[kept].any() else None
-    bvh = bvhtree_class().FromPolygons(vertices.tolist(), used.tolist(), all_triangles=True, epsilon=0.0) \
-        if engine == "bvh" else None
     bounds = np.stack([vertices[used].reshape(-1, 3).min(0), vertices[used].reshape(-1, 3).max(0)])
-    return ready_for(ScanTarget(bvh, bounds, bounds, _planes(normals, corners[:, 0]), reflectivity,
+    return ready_for(ScanTarget(None, bounds, bounds, _planes(normals, corners[:, 0]), reflectivity,
                                 kept.astype(np.int32), "mesh", name, vertices.astype(np.float32),
                                 used.astype(np.int32), np.arange(len(kept), dtype=np.int32),
                                 see_through=see_through), engine)
@@ -237,9 +272,9 @@ def local_frames(positions: np.ndarray, neighbours: int = 8):
 def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarray | None = None,
                   radius_scale: float = 1.0, neighbours: int = 8,
                   scales: np.ndarray | None = None, rotations: np.ndarray | None = None,
-                  engine: str = "bvh", opacities: np.ndarray | None = None) -> ScanTarget:
-    """Oriented surfels for a point cloud, object frame (m), to cast on with ``engine``
-    (ready_for).
+                  engine: str = "auto", opacities: np.ndarray | None = None) -> ScanTarget:
+    """Oriented surfels for a point cloud, object frame (m), built for ``engine`` (as
+    mesh_target).
 
     Point clouds: normal from local PCA over ``neighbours`` points, radius =
     ``radius_scale`` x the mean distance to them. Gaussian splats (``scales`` (N, 3) m,
@@ -247,6 +282,7 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
     ``SPLAT_SIGMAS`` x scale (x ``radius_scale``), normal along the smallest; a splat
     with ``opacities`` below SEE_THROUGH_OPACITY lets rays pass (see_through).
     """
+    _checked_engine(engine)
     positions = np.asarray(positions, np.float64).reshape(-1, 3)
     if len(positions) == 0:
         raise InputError(name, "point cloud is empty")
@@ -272,15 +308,13 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
     # corner (n, s) = centre + sum_k unit[s, k] * semi_axes[n, k] * tangents[n, :, k]
     corners = positions[:, None, :] + np.einsum("sk,nk,nik->nsi", unit, semi_axes, tangents)
     polygons = np.arange(len(positions) * SURFEL_SIDES).reshape(-1, SURFEL_SIDES)
-    bvh = bvhtree_class().FromPolygons(corners.reshape(-1, 3).tolist(), polygons.tolist(),
-                                       all_triangles=False, epsilon=0.0) if engine == "bvh" else None
     reflectivity = (np.full(len(positions), DEFAULT_REFLECTIVITY, np.float32) if colors is None
                     else relative_reflectivity(reflectivity_from_srgb(colors), semi_axes.prod(axis=1)))
     flat = corners.reshape(-1, 3)
     normals = np.cross(tangents[:, :, 0], tangents[:, :, 1])
     fan = np.array([[0, side, side + 1] for side in range(1, SURFEL_SIDES - 1)])  # a hexagon as 4 triangles
     faint = None if opacities is None else np.asarray(opacities, np.float64).reshape(-1) < SEE_THROUGH_OPACITY
-    return ready_for(ScanTarget(bvh, np.stack([positions.min(0), positions.max(0)]),
+    return ready_for(ScanTarget(None, np.stack([positions.min(0), positions.max(0)]),
                                 np.stack([flat.min(0), flat.max(0)]), _planes(normals, positions), reflectivity,
                                 np.arange(len(positions), dtype=np.int32), "surfels", name,
                                 flat.astype(np.float32), polygons[:, fan].reshape(-1, 3).astype(np.int32),
@@ -331,13 +365,12 @@ def has_gaussians(attributes: dict) -> bool:
     return all(attributes.get(key) is not None for key in ("scale", "rotation", "opacity"))
 
 
-def target_from_reconstruction(reconstruction, radius_scale: float = 1.0, engine: str = "bvh",
+def target_from_reconstruction(reconstruction, radius_scale: float = 1.0, engine: str = "auto",
                                gaussians: bool = True) -> ScanTarget:
     """A mesh target when the reconstruction has faces; else Gaussians when it carries
     ``scale``, ``rotation`` and ``opacity`` (and ``gaussians``); else surfels
     (splat-shaped when it carries ``scale`` and ``rotation``). Positions must already be
-    in the object frame. ``engine`` ("bvh" or "embree") is what mesh and surfel targets
-    are built to be cast with (ready_for)."""
+    in the object frame. ``engine``: what mesh and surfel targets are built for (ready_for)."""
     name = str(reconstruction.source)
     colors = reconstruction.colors
     if len(reconstruction.faces):
