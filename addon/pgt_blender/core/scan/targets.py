@@ -1,4 +1,5 @@
-"""What a scan hits: one object's surface in its object frame, with its BVH built once.
+"""What a scan hits: one object's surface in its object frame, with its ray structure (Embree
+scene or Blender BVH) built once.
 
 Object frame: +x forward, +y left, +z up, metres (what authoring writes). Meshes are
 used as they are (open, non-manifold and self-intersecting meshes are fine: a ray
@@ -14,9 +15,9 @@ what lies behind, as a car's windows return the seats or nothing.
 
 import importlib
 import re
-from functools import lru_cache
 import warnings
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
