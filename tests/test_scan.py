@@ -269,9 +269,9 @@ def test_per_beam_hits_on_a_plane_equal_the_analytic_count():
 @pytest.mark.parametrize("mesh", [trimesh.creation.box(extents=(2, 2, 2)), trimesh.creation.icosphere(2)],
                          ids=["cube", "icosphere"])
 def test_rays_through_shared_edges_and_vertices_never_leak(mesh):
-    from mathutils import Vector
-
     target = mesh_target(mesh.vertices, mesh.faces, "closed", engine="bvh")
+    from mathutils import Vector  # loaded with the BVH (the PyPI bpy registers it)
+
     rng = np.random.default_rng(3)
     aims = np.concatenate([mesh.vertices, mesh.vertices[mesh.edges_unique].mean(axis=1)])
     misses = 0
