@@ -304,9 +304,9 @@ def _pose_offsets(pose: np.ndarray, count: int) -> np.ndarray:
 
 
 def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bool = True,
-               cast_bounds: np.ndarray | None = None, engine: str = "bvh", scale: np.ndarray | None = None) -> Trace:
+               cast_bounds: np.ndarray | None = None, engine: str = "auto", scale: np.ndarray | None = None) -> Trace:
     """Cast the rays of ``target`` placed by each of ``poses`` (T, 4, 4) sensor_from_object
-    (or one (4, 4)) through ``engine``, all poses in one engine call (Gaussian targets:
+    (or one (4, 4)) through ``engine`` (ENGINES), all poses in one engine call (Gaussian targets:
     gaussians.gaussian_hits, pose by pose, the same for every engine). ``cast_bounds``
     ((T, 2, 3) or (2, 3), object frame; default the geometry's): only the rays of that
     box's window are cast (a scan that wants part of the object: its window's hits
@@ -320,6 +320,7 @@ def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bo
     stretched normal's, (n . direction / scale) / |n / scale|."""
     # the ray table and what the engine casts on (ready_for): built on first use, kept out of the timing
     sensor.directions
+    engine = resolve_engine(engine)
     ready_for(target, engine)
     start = time.perf_counter()
     poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)

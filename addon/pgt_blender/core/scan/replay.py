@@ -66,11 +66,11 @@ def placed(vertices: np.ndarray, centre, dims, heading: float) -> np.ndarray:
     return local @ np.array([[cos, sin, 0.0], [-sin, cos, 0.0], [0.0, 0.0, 1.0]]) + centre
 
 
-def labelled_scene(labels: list, meshes: dict, glass: bool = True) -> tuple:
+def labelled_scene(labels: list, meshes: dict, glass: bool = True, engine: str = "auto") -> tuple:
     """(target, owner, chosen): one ScanTarget of every label's class mesh (the unit box
-    without one) at its box, ``owner`` (F,) the label index of each input face (index it
-    with a return's ``face`` or a polygon's ``target.source_index``), and the mesh tuple
-    chosen per label. ``glass`` False scans see-through faces as solid."""
+    without one) at its box, built for ``engine``, ``owner`` (F,) the label index of each
+    input face (index it with a return's ``face`` or a polygon's ``target.source_index``),
+    and the mesh tuple chosen per label. ``glass`` False scans see-through faces as solid."""
     chosen = [meshes.get(kind.lower(), box_mesh()) for kind, *_ in labels]
     vertices, faces, start = [], [], 0
     for (mesh_vertices, mesh_faces, *_), (_, centre, dims, heading) in zip(chosen, labels):
@@ -79,7 +79,7 @@ def labelled_scene(labels: list, meshes: dict, glass: bool = True) -> tuple:
         start += len(mesh_vertices)
     owner_of_face = np.repeat(np.arange(len(chosen)), [len(mesh[1]) for mesh in chosen])
     see_through = np.concatenate([mesh[3] for mesh in chosen])
-    target = mesh_target(np.concatenate(vertices), np.concatenate(faces), "scene",
+    target = mesh_target(np.concatenate(vertices), np.concatenate(faces), "scene", engine=engine,
                          face_see_through=see_through if glass else None)
     return target, owner_of_face, chosen
 
@@ -104,8 +104,8 @@ def hit_outcomes(rows: np.ndarray, labels: list, sensor: Sensor, meshes: dict) -
     "outcome" (ray_drop.cell_outcomes: KEPT, DROPPED, ELSEWHERE), "label",
     "reflectivity", "cos_incidence", "range" (m); ``real_label`` (N,) the label whose box
     holds each real point, -1 for none."""
-    target, owner_of_face, _ = labelled_scene(labels, meshes)
-    trace = trace_rays(target, sensor, np.eye(4), window=False)
+    target, owner_of_face, _ = labelled_scene(labels, meshes, engine="bvh")
+    trace = trace_rays(target, sensor, np.eye(4), window=False, engine="bvh")
     owner = owner_of_face[target.source_index[trace.polygons]]
     points = sensor.return_points(trace.cells, trace.ranges)
     sim_cells = trace.cells // sensor.columns * sensor.columns + azimuth_columns(points, sensor)
