@@ -64,7 +64,8 @@ import numpy as np  # noqa: E402
 
 from pgt_blender import cli, dev  # noqa: E402
 from pgt_blender.core.bank import export  # noqa: E402
-from pgt_blender.core.scan.raycast import ENGINES, resolve_engine  # noqa: E402
+from pgt_blender.core.scan.raycast import ENGINES  # noqa: E402
+from pgt_blender.core.scan.targets import resolve_engine  # noqa: E402
 
 CHRONO_TRUCK = dev.CHRONO_VEHICLES / "truck" / "truck_chassis.obj"
 TARGET_ENTRIES_PER_S = 1000.0

@@ -79,7 +79,7 @@ def main(argv: list) -> int:
     import bpy
 
     from pgt_blender.blender import headless
-    from pgt_blender.core.scan.raycast import resolve_engine
+    from pgt_blender.core.scan.targets import resolve_engine
 
     headless.ensure_registered()
     bpy.ops.wm.read_factory_settings(use_empty=True)

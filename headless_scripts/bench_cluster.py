@@ -35,7 +35,7 @@ import numpy as np
 import bench_bank  # beside this script; it puts addon/ on the import path
 from bench_bank import ROOT, export_once, make_objects
 from pgt_blender import cli, dev
-from pgt_blender.core.scan.raycast import resolve_engine
+from pgt_blender.core.scan.targets import resolve_engine
 
 
 def busy_share(run: dict, nodes: int) -> float:

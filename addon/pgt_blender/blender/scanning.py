@@ -21,12 +21,12 @@ import numpy as np
 from mathutils import Matrix
 
 from ..core.errors import InputError
-from ..core.scan.raycast import ScanOptions, cast_rays, placement, resolve_engine
+from ..core.scan.raycast import ScanOptions, cast_rays, placement
 from ..core.scan.returns import Scan
 from ..core.scan.sensors import PRESETS, Sensor, load_sensor_toml
 from ..core.scan.targets import (DEFAULT_REFLECTIVITY, ScanTarget, gaussian_target, has_gaussians, mesh_target,
-                                 reflectivity_from_linear, reflectivity_from_srgb, see_through_materials,
-                                 surfel_target)
+                                 reflectivity_from_linear, reflectivity_from_srgb, resolve_engine,
+                                 see_through_materials, surfel_target)
 from .objects import add_attribute, show_as_points, remove_datablocks
 
 CUSTOM = "CUSTOM"

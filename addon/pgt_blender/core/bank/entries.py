@@ -17,11 +17,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..scan.raycast import Ground, ScanOptions, resolve_engine
+from ..scan.raycast import Ground, ScanOptions
 from ..scan.sensors import BIN_COLUMNS
 from ..scan.sweeps import Motion, scan_many
 from ..scan.gaussians import transform_gaussians
-from ..scan.targets import element_colors, has_gaussians, target_from_reconstruction
+from ..scan.targets import element_colors, has_gaussians, resolve_engine, target_from_reconstruction
 from .config import BankConfig
 from .grid import size_variants, sweeps_of
 from .inputs import BankObject
@@ -42,10 +42,10 @@ class Variant:
 
 
 class TargetCache:
-    """The size variants of each object, made on first use with their engine's structure
-    (for the Embree engine its scene, without Blender's BVH): one target per object serves all its variants (each a
-    stretch of its rays), one per variant for splats; holds one object at a time
-    (entries come object by object)."""
+    """The size variants of each object, made on first use, their targets built for the
+    bank's engine: one target per object serves all its variants (each a stretch of its
+    rays), one per variant for splats; holds one object at a time (entries come object
+    by object)."""
 
     def __init__(self, objects: list, config: BankConfig):
         self.objects, self.config = objects, config

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import atomic_output
-from ..scan.raycast import resolve_engine
+from ..scan.targets import resolve_engine
 from ..scan.sensors import INTENSITY_MAX, sensor_from_name
 from ..scan.sweeps import motion_class
 from . import executors

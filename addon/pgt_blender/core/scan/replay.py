@@ -22,6 +22,9 @@ from .raycast import trace_rays
 from .sensors import Sensor
 from .targets import mesh_target
 
+# The engine hit_outcomes casts with, the one the presets' ray drop and intensity law were fitted on.
+OUTCOME_ENGINE = "bvh"
+
 KITTI_QUANTUM = 0.01  # KITTI intensities come in steps of 0.01
 # KITTI class (lower case) -> mesh under the Chrono vehicle folder (../shared/data/chrono_vehicles/data/vehicle).
 CHRONO_MESHES = {"car": "sedan/sedan_chassis_vis.obj", "van": "VW_microbus/van_chassis.obj",
@@ -104,8 +107,8 @@ def hit_outcomes(rows: np.ndarray, labels: list, sensor: Sensor, meshes: dict) -
     "outcome" (ray_drop.cell_outcomes: KEPT, DROPPED, ELSEWHERE), "label",
     "reflectivity", "cos_incidence", "range" (m); ``real_label`` (N,) the label whose box
     holds each real point, -1 for none."""
-    target, owner_of_face, _ = labelled_scene(labels, meshes, engine="bvh")
-    trace = trace_rays(target, sensor, np.eye(4), window=False, engine="bvh")
+    target, owner_of_face, _ = labelled_scene(labels, meshes, engine=OUTCOME_ENGINE)
+    trace = trace_rays(target, sensor, np.eye(4), window=False, engine=OUTCOME_ENGINE)
     owner = owner_of_face[target.source_index[trace.polygons]]
     points = sensor.return_points(trace.cells, trace.ranges)
     sim_cells = trace.cells // sensor.columns * sensor.columns + azimuth_columns(points, sensor)
