@@ -201,7 +201,7 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
             data, info = database_record(fmt, config.dataset, points, scan.box, shared)
             lap("records")
             relative = f"{fmt}/{info['path']}"
-            files[relative] = write_entry_file(job.out / relative, memoryview(data).cast("B"))
+            files[relative] = write_entry_file(job.out / relative, data)
             lap("writes")
             infos[fmt].append(info)
         intensities.setdefault(class_name, []).append(rows["intensity"])

@@ -186,20 +186,26 @@ def info_path_root(info_pickle: Path) -> Path:
     return Path(info_pickle).parent if data_root is None else manifest.parent / data_root
 
 
-def write_entry_file(path: Path, data: bytes) -> str:
+def write_entry_file(path: Path, data) -> str:
     """Write one entry's file (its folder exists) in place and return its sha256: not
     through a temporary file, since the chunk record that lists it is written after it
     (atomically) and a chunk without a record is redone whole; a write that fails
-    removes the file and names it."""
+    removes the file and names it. ``data``: bytes or a C-contiguous array. Three
+    system calls (open, write, close): a bank makes millions of these files."""
+    view = whole = memoryview(data).cast("B")
     try:
-        with open(path, "wb") as stream:
-            stream.write(data)
+        descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_BINARY", 0), 0o666)
+        try:
+            while view:
+                view = view[os.write(descriptor, view):]
+        finally:
+            os.close(descriptor)
     except BaseException as error:
         path.unlink(missing_ok=True)
         if isinstance(error, OSError) and error.filename is None:
             raise OSError(error.errno, error.strerror, str(path)) from error
         raise
-    return hashlib.sha256(data).hexdigest()
+    return hashlib.sha256(whole).hexdigest()
 
 
 def write_file(path: Path, data: bytes) -> str:
