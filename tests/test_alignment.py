@@ -516,39 +516,25 @@ def signed_up_degrees(found, rotation) -> float:
 
 
 TARGET_OBJECTS = (*MINORITY_CLASSES, *(f"chrono_vehicles/data/vehicle/{m}" for m in CHRONO if "tire" not in m))
-# Clouds whose axes the refinement does not yet bring within the targets at 0.5 % noise
-# (curved car bodies, a bicycle's tubes; bench/alignment.md): strict, so a fix shows.
-CLOUD_SHORT = {"bicycle", *(f"chrono_vehicles/data/vehicle/{m}" for m in (
-    "Nissan_Patrol/suv_chassis.obj", "sedan/sedan_chassis_vis.obj", "MAN_Kat1/meshes/MAN_10t_chassis.obj",
-    "VW_microbus/van_chassis.obj"))}
-
-
-@pytest.mark.parametrize("name", TARGET_OBJECTS)
-def test_targets_on_meshes_in_random_poses(shared_data, name):
-    """The mesh itself (vertices and faces), three random poses 2 km away: with a prior
-    up to 10 degrees off the axes within 0.5 degrees and the box within 1 %; without a
-    prior up within 1 degree, its sign counted."""
-    mesh = sample_vehicle(name).trimesh() if name in MINORITY_CLASSES else trimesh.load(shared_data / name, force="mesh")
-    for seed in range(3):
-        rng = np.random.default_rng([seed, 18])
-        rotation = random_rotation(rng)
-        vertices = mesh.vertices @ rotation.T + rng.normal(scale=2000.0, size=3)
-        prior = align_axes(vertices, up=tilted(rotation[:, 2], rng.uniform(0, 10), rng), faces=mesh.faces, refine=True)
-        assert error_degrees(prior.transform[:3, :3], rotation.T) < 0.5
-        assert np.abs(np.sort(prior.dims[:2]) / np.sort(mesh.extents[:2]) - 1).max() < 0.01
-        assert abs(prior.dims[2] / mesh.extents[2] - 1) < 0.01
-        free = align_axes(vertices, faces=mesh.faces, refine=True)
-        assert signed_up_degrees(free, rotation) < 1.0
-
+# Clouds whose axes the refinement does not bring within 0.5 degrees of the mesh frame at
+# 0.5 % noise: the SUV's floor and roof are pitched about 0.5 degrees in its mesh's frame
+# (bench/alignment.md); strict, so a fix shows.
+CLOUD_SHORT = {"chrono_vehicles/data/vehicle/Nissan_Patrol/suv_chassis.obj"}
 
 @pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(strict=True, reason="issue 18: not reached"))
                                   if n in CLOUD_SHORT else n for n in TARGET_OBJECTS])
-def test_targets_on_noisy_clouds_in_random_poses(shared_data, name):
+def test_axes_with_a_tilted_prior_on_noisy_clouds(shared_data, name):
     """20,000 surface points, 0.5 % noise (x box diagonal), 10 % floaters, three random
-    poses: with a prior up to 10 degrees off the axes within 0.5 degrees; without one up
-    within 1 degree, its sign counted."""
+    poses, a prior up to 10 degrees off: the axes within 0.5 degrees."""
     for seed in range(3):
         source, rotation, _, rng = posed_cloud(name, 1800 + seed, 0.005, 0.1)
         prior = align_axes(source, up=tilted(rotation[:, 2], rng.uniform(0, 10), rng), refine=True)
         assert error_degrees(prior.transform[:3, :3], rotation.T) < 0.5
+
+
+@pytest.mark.parametrize("name", TARGET_OBJECTS)
+def test_up_without_a_prior_on_noisy_clouds(shared_data, name):
+    """The same clouds and poses, no prior: up within 1 degree, its sign counted."""
+    for seed in range(3):
+        source, rotation, _, _ = posed_cloud(name, 1800 + seed, 0.005, 0.1)
         assert signed_up_degrees(align_axes(source, refine=True), rotation) < 1.0
