@@ -321,7 +321,8 @@ def target_summary(throughput: list) -> dict | None:
         return None
     row = next((r for r in mine if r["grid"] == "full"), mine[0])
     return {"object": TARGET_OBJECT, "workers": cores, "grid": row["grid"], "kept_per_s": row["kept_per_s"],
-            "engine_ratio": row["engine_ratio"], "engine_ratio_runs": row["engine_ratio_runs"], "meets_rate": bool(row["kept_per_s"] >= TARGET_ENTRIES_PER_S),
+            "engine_ratio": row["engine_ratio"], "engine_ratio_runs": row["engine_ratio_runs"],
+            "meets_rate": bool(row["kept_per_s"] >= TARGET_ENTRIES_PER_S),
             "meets_ratio": bool(row["engine_ratio"] is not None and row["engine_ratio"] <= TARGET_ENGINE_RATIO)}
 
 

@@ -45,7 +45,7 @@ narrow upwards); where the third moment does not tell (a box-shaped bus), from t
 (:func:`_wheels_down`: the end band covering far less of the length is the bottom), else
 the source +z. The up sign without a prior is a property of vehicles, not of geometry in
 general: an upside-down box is a box. Last, for clouds, the frame is sharpened
-(:func:`sharpest_turn`): turned by up to 2 degrees about each axis to make the
+(:func:`sharpest_turn`): turned by a few degrees at most about each axis to make the
 histograms of the denoised points along x, y and z the sharpest (least summed
 entropy, bins half the noise wide). The plane fit reads a noisy curved body's normals
 with a bias of a degree or two in pitch (a sedan, an SUV; a bicycle has few planes at
