@@ -401,7 +401,8 @@ def sharpest_turn(points: np.ndarray, weights: np.ndarray, bin_width: float,
         for _ in range(2):
             for axis in range(3):
                 turned = points @ turn.T
-                costs = [sum(histogram_entropy(values, weights, bin_width) for values in (turned @ about.T).T)
+                moved = [other for other in range(3) if other != axis]  # the histogram along axis stays
+                costs = [sum(histogram_entropy(values, weights, bin_width) for values in (turned @ about.T)[:, moved].T)
                          for about in (_turn_about(axis, angle) for angle in angles)]
                 turn = _turn_about(axis, angles[int(np.argmin(costs))]) @ turn
     return turn
