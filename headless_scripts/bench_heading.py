@@ -3,11 +3,13 @@ the learned classifier (front_probability > 0.5), leave-one-mesh-out over the bu
 sample vehicles and the Chrono vehicle meshes, at several point densities and noise levels,
 on dense surface samplings and on what a LiDAR sees of the held-out mesh.
 
-    .venv/bin/python headless_scripts/bench_heading.py [--quick] [--steps N] [--samplings N] [--threads 2]
-        [--chrono DIR] [--out bench/heading]
+    .venv/bin/python headless_scripts/bench_heading.py [--quick] [--steps N] [--samplings N] [--seeds N]
+        [--threads 2] [--chrono DIR] [--out bench/heading]
 
-For each held-out mesh a classifier is trained on all the other meshes (same settings
-as train_heading.py but --steps, default 1000; --quick: 150), then both methods judge
+For each held-out mesh --seeds classifiers (training seeds 0, 1, ...; default 3, --quick
+1: one held-out mesh can swing from right to wrong with the seed) are trained on all
+the other meshes (same settings as train_heading.py but --steps, default 1000; --quick:
+150), each judged alone and the accuracies averaged; both methods judge
 --samplings seeded samplings of the held-out mesh per (points, noise) cell, half of
 them turned 180 degrees (the truth turns with them). Samplings are random subsets of
 the mesh's area-weighted surface sample plus Gaussian noise (sigma = noise x box
@@ -86,6 +88,7 @@ def main(argv: list) -> int:
     parser.add_argument("--steps", type=int, help="training steps per held-out mesh (default 1000, --quick 150)")
     parser.add_argument("--samplings", type=int,
                         help="samplings per (mesh, points, noise) cell (default 40, --quick 8)")
+    parser.add_argument("--seeds", type=int, help="training seeds per held-out mesh (default 3, --quick 1)")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--chrono", type=Path, default=CHRONO, help="folder of .obj meshes, front at +x")
     parser.add_argument("--sensor", default="nuscenes", help="sensor preset of the scans")
@@ -95,6 +98,7 @@ def main(argv: list) -> int:
     args = parser.parse_args(argv)
     steps = args.steps or (150 if args.quick else 1000)
     samplings = args.samplings or (8 if args.quick else 40)
+    seeds = args.seeds or (1 if args.quick else 3)
     torch.set_num_threads(args.threads)
     labelled = hc.sample_meshes()
     if args.chrono.is_dir():
@@ -111,17 +115,18 @@ def main(argv: list) -> int:
         others = meshes[:held] + meshes[held + 1:]
         if args.scans:
             others += [view for index, views in enumerate(scans) if index != held for view in views]
-        classifier = hc.train(others, seed=0, steps=steps, threads=args.threads)
-        for noise in NOISE_LEVELS:
-            baseline, learned, judged = judge_scans(scans[held], classifier, noise, held * 1000 + int(noise * 1000))
-            scan_rows.append({"mesh": held_out.name, "noise": noise, "views": judged,
-                              "baseline": baseline / judged, "classifier": learned / judged})
-        for points in DENSITIES:
+        for seed in range(seeds):  # rows per seed: the means below average over them
+            classifier = hc.train(others, seed=seed, steps=steps, threads=args.threads)
             for noise in NOISE_LEVELS:
-                seed = held * 1_000_000 + points * 100 + int(noise * 1000)
-                baseline, learned = judge(held_out, classifier, points, noise, samplings, seed)
-                rows.append({"mesh": held_out.name, "points": points, "noise": noise,
-                             "baseline": baseline / samplings, "classifier": learned / samplings})
+                baseline, learned, judged = judge_scans(scans[held], classifier, noise, held * 1000 + int(noise * 1000))
+                scan_rows.append({"mesh": held_out.name, "seed": seed, "noise": noise, "views": judged,
+                                  "baseline": baseline / judged, "classifier": learned / judged})
+            for points in DENSITIES:
+                for noise in NOISE_LEVELS:
+                    sampling_seed = held * 1_000_000 + points * 100 + int(noise * 1000)
+                    baseline, learned = judge(held_out, classifier, points, noise, samplings, sampling_seed)
+                    rows.append({"mesh": held_out.name, "seed": seed, "points": points, "noise": noise,
+                                 "baseline": baseline / samplings, "classifier": learned / samplings})
         print(f"held out {held_out.name}: dense: baseline {mean(rows, 'baseline', mesh=held_out.name):.3f}, "
               f"classifier {mean(rows, 'classifier', mesh=held_out.name):.3f}; scans: baseline "
               f"{mean(scan_rows, 'baseline', mesh=held_out.name):.3f}, "
@@ -137,8 +142,8 @@ def main(argv: list) -> int:
     scan_cells = [{"noise": n, **{k: mean(scan_rows, k, noise=n) for k in METHODS}} for n in NOISE_LEVELS]
     machine = dev.machine(torch_threads=args.threads, torch=str(torch.__version__), numpy=np.__version__,
                           trimesh=trimesh.__version__, load_average=dev.load_average())
-    settings = {"held_out_meshes": len(meshes), "training_steps": steps,
-                "training": "train_heading.py defaults but steps and threads, seed 0",
+    settings = {"held_out_meshes": len(meshes), "training_steps": steps, "training_seeds": seeds,
+                "training": "train_heading.py defaults but steps, threads and seed",
                 "trained_on": "dense samples and scans" if args.scans else "dense samples",
                 "scans": {"sensor": args.sensor, "ranges_m": hc.SCAN_RANGES_M, "headings": hc.SCAN_HEADINGS,
                           "views_per_mesh": [len(v) for v in scans], "judged": "each view as is and turned 180"},
@@ -146,7 +151,7 @@ def main(argv: list) -> int:
                 "noise_levels_of_diagonal": NOISE_LEVELS, "classifier_resamplings": 4, "seconds": round(seconds, 1)}
     inputs = [m.source for m in meshes]
     print(f"\nmachine: {machine}\nsettings: {settings}\ninputs: {', '.join(s.split(' sha256:')[0] for s in inputs)}\n")
-    body = tables(cells, scan_cells, per_mesh, samplings, args.sensor)
+    body = tables(cells, scan_cells, per_mesh, samplings, seeds, args.sensor)
     print(body)
     markdown_inputs = {"settings": {key: str(value) for key, value in settings.items()},
                        "inputs": [source.split(" sha256:")[0] for source in inputs]}
@@ -159,18 +164,19 @@ def main(argv: list) -> int:
     return 0
 
 
-def tables(cells: list, scan_cells: list, per_mesh: list, samplings: int, sensor: str) -> str:
+def tables(cells: list, scan_cells: list, per_mesh: list, samplings: int, seeds: int, sensor: str) -> str:
     """The Markdown tables of a run (what it prints and writes to <out>.md)."""
     lines = []
     add = lines.append
-    add(f"Accuracy, mean over {len(per_mesh)} held-out meshes ({samplings} samplings each, half turned 180 degrees):\n")
+    add(f"Accuracy, mean over {len(per_mesh)} held-out meshes ({samplings} samplings each, half turned 180 degrees) "
+        f"and {seeds} training seeds:\n")
     add("| points | noise (of box diagonal) | baseline | classifier |")
     add("|---:|---:|---:|---:|")
     for c in cells:
         add(f"| {c['points']} | {c['noise']:.0%} | {c['baseline']:.3f} | {c['classifier']:.3f} |")
     add(f"| all | all | {mean(cells, 'baseline'):.3f} | {mean(cells, 'classifier'):.3f} |")
     add(f"\nScans ({sensor}, {', '.join(f'{r:g}' for r in hc.SCAN_RANGES_M)} m, {hc.SCAN_HEADINGS} headings), "
-        "mean over held-out meshes:\n")
+        f"mean over held-out meshes and {seeds} training seeds:\n")
     add("| noise (of box diagonal) | baseline | classifier |")
     add("|---:|---:|---:|")
     for c in scan_cells:

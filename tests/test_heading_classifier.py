@@ -90,6 +90,11 @@ def test_shipped_checkpoint_gets_the_samples_right_both_ways(samples):
     assert hc.DEFAULT_CHECKPOINT.stat().st_size < 300_000
     config = hc.load_checkpoint().config
     assert (config["flip_p"], config["rotation_augmentation"], config["seed"]) == (0.5, False, 0)
+    sources = [source["source"] for source in config["sources"]]
+    for item in samples:  # trained on what a LiDAR sees of every vehicle as well as on dense samples
+        assert sum(source.startswith(f"sample:{item.name} ") for source in sources) == 2, item.name
+        assert any(source.startswith(f"sample:{item.name} ") and source.endswith(" scans:nuscenes")
+                   for source in sources), item.name
     for item in samples:
         cloud = draw(item, 2048, 1)
         assert hc.front_probability(cloud, item.dims) > 0.5, item.name
@@ -192,13 +197,27 @@ def test_train_script_bad_input_exits_non_zero_and_writes_nothing(tmp_path, case
 
 @needs_torch
 def test_bench_script_runs(tmp_path):
-    result = run_script("bench_heading.py", "--steps", "2", "--samplings", "2", "--out", tmp_path / "heading")
+    result = run_script("bench_heading.py", "--steps", "2", "--samplings", "2", "--seeds", "2",
+                        "--out", tmp_path / "heading")
     assert result.returncode == 0, result.stderr
     report = json.loads((tmp_path / "heading.json").read_text())
     assert len(report["cells"]) == 12 and report["settings"]["training_steps"] == 2
+    assert report["settings"]["training_seeds"] == 2 and {row["seed"] for row in report["rows"]} == {0, 1}
     assert {m["mesh"] for m in report["per_mesh"]} >= {"truck", "bicycle"}
     assert (tmp_path / "heading.png").stat().st_size > 0
     assert "| points | noise (of box diagonal) | baseline | classifier |" in result.stdout
+
+
+def test_training_draws_each_kind_of_set_equally_often():
+    """One dense set among 30 scanned views still fills about half of the batches."""
+    dense = hc.PointSet("dense", np.zeros((8, 3)), np.ones(3), "mesh:a")
+    views = [hc.PointSet(f"view{i}", np.full((8, 3), 0.1), np.ones(3), "mesh:a scans:x", kind="scan")
+             for i in range(30)]
+    config = {"count_range": [8, 8], "batch": 2000, "points": 8, "noise_max": 0.0, "scale_jitter": 0.0,
+              "flip_p": 0.0}
+    clouds, _ = hc._training_batch([dense, *views], config, np.random.default_rng(0))
+    dense_share = np.mean(np.all(clouds[:, :, :3] == 0, axis=(1, 2)))
+    assert 0.45 < dense_share < 0.55
 
 
 @pytest.fixture(scope="module")
