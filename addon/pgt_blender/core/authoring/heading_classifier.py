@@ -26,7 +26,9 @@ that kind: with one dense set and two dozen views per mesh, drawing sets uniform
 let the scans drown the dense samples (held out: 0.72 on scans and 0.78 on dense
 samples, against 0.76 and 0.83 balanced). Augmentations besides the flip, none of
 them a rotation: point count (log-uniform, so densities from a far LiDAR object to
-a dense reconstruction), Gaussian jitter and anisotropic scale.
+a dense reconstruction), Gaussian jitter, anisotropic scale and a left-right mirror
+(y -> -y, p = 0.5: the front stays the front, and a scan sees either side; 0.79
+held out on scans and 0.85 on dense samples with it).
 
 torch is imported inside the functions that need it, so the rest of the core works
 without it; without it they raise :class:`InputError` with a one-line reason.
@@ -233,6 +235,8 @@ def _training_batch(sets: list, config: dict, rng: np.random.Generator):
         sigma = rng.uniform(0, config["noise_max"]) * np.linalg.norm(item.dims)
         points = points + rng.normal(scale=sigma, size=points.shape)
         points = points * rng.uniform(1 - config["scale_jitter"], 1 + config["scale_jitter"], 3)
+        if rng.random() < config["mirror_p"]:  # left-right: a mirrored vehicle keeps its front
+            points = points * (1, -1, 1)
         front = rng.random() >= config["flip_p"]
         clouds.append(normalise(points if front else points * (-1, -1, 1), item.dims))
         labels.append(float(front))
@@ -254,7 +258,7 @@ def train(sets: list, seed: int = 0, steps: int = 3000, points: int = 512, batch
     config = {
         "format": FORMAT, "architecture": ARCHITECTURE, "seed": seed, "steps": steps,
         "threads": threads, "points": points, "batch": batch, "lr": lr, "loss": "binary cross-entropy",
-        "flip_p": 0.5, "rotation_augmentation": False, "count_range": [32, 4096],
+        "flip_p": 0.5, "mirror_p": 0.5, "rotation_augmentation": False, "count_range": [32, 4096],
         "set_sampling": "a kind (dense, scan, database) uniformly, then a set of that kind uniformly",
         "noise_max": 0.03, "scale_jitter": 0.1,
         "normalisation": "points / (dims / 2), then dims / max(dims) on every point",
