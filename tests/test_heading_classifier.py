@@ -51,6 +51,13 @@ def test_short_training_learns(samples, short_run):
 
 
 @needs_torch
+def test_collapsed_training_is_an_error_not_a_checkpoint(samples):
+    # a learning rate far too high kills every ReLU of a layer within a few steps
+    with pytest.raises(InputError, match="collapsed after 30 steps"):
+        hc.train(samples, seed=0, steps=30, lr=0.3)
+
+
+@needs_torch
 def test_checkpoint_round_trip_keeps_probabilities_and_config(samples, short_run, tmp_path):
     path = tmp_path / "heading.pt"
     hc.save_checkpoint(path, short_run)
