@@ -222,7 +222,7 @@ def test_training_draws_each_kind_of_set_equally_often():
              for i in range(30)]
     config = {"count_range": [8, 8], "batch": 2000, "points": 8, "noise_max": 0.0, "scale_jitter": 0.0,
               "flip_p": 0.0, "mirror_p": 0.0}
-    clouds, _ = hc._training_batch([dense, *views], config, np.random.default_rng(0))
+    clouds, _ = hc._training_batch(hc._by_kind([dense, *views]), config, np.random.default_rng(0))
     dense_share = np.mean(np.all(clouds[:, :, :3] == 0, axis=(1, 2)))
     assert 0.45 < dense_share < 0.55
 

@@ -218,13 +218,17 @@ def _network(torch):
         nn.Linear(128, 64), nn.ReLU(), nn.Linear(64, 1))
 
 
-def _training_batch(sets: list, config: dict, rng: np.random.Generator):
+def _by_kind(sets: list) -> list:
+    """``sets`` grouped by PointSet.kind, kinds in sorted order: what training draws from."""
+    return [[item for item in sets if item.kind == kind] for kind in sorted({item.kind for item in sets})]
+
+
+def _training_batch(kinds: list, config: dict, rng: np.random.Generator):
     """(B, points, 6) float32 network inputs (:func:`normalise`) and (B,) float32 labels
-    (1: front at +x). Each item: a kind of set (PointSet.kind) uniformly, then a set of
-    that kind uniformly (a mesh's one dense set would otherwise drown among its dozens of
-    scanned views)."""
+    (1: front at +x) from ``kinds`` (:func:`_by_kind`). Each item: a kind uniformly, then
+    a set of that kind uniformly (a mesh's one dense set would otherwise drown among its
+    dozens of scanned views)."""
     low, high = np.log(config["count_range"])
-    kinds = [[item for item in sets if item.kind == kind] for kind in sorted({item.kind for item in sets})]
     clouds, labels = [], []
     for _ in range(config["batch"]):
         group = kinds[rng.integers(len(kinds))]
@@ -246,7 +250,7 @@ def _training_batch(sets: list, config: dict, rng: np.random.Generator):
 def train(sets: list, seed: int = 0, steps: int = 3000, points: int = 512, batch: int = 32,
           lr: float = 3e-3, threads: int = 1, progress=None) -> HeadingClassifier:
     """Train a classifier on ``sets`` (list of :class:`PointSet`, fronts at +x), each
-    batch item a uniformly chosen set. Deterministic: same sets, seed and ``threads``
+    batch item a kind of set, then a set of that kind, drawn uniformly. Deterministic: same sets, seed and ``threads``
     (torch's CPU thread count, restored afterwards) give the same weights. Adam with a
     cosine-decayed ``lr``; ``progress(step, loss)`` is called after every step.
     InputError when training collapsed: the last batch's logits all equal (every ReLU
@@ -268,7 +272,7 @@ def train(sets: list, seed: int = 0, steps: int = 3000, points: int = 512, batch
         "sources": [{"source": s, "point_sets": n} for s, n in sorted(sources.items())],
         "versions": {"torch": str(torch.__version__), "numpy": np.__version__, "python": platform.python_version()},
     }
-    rng = np.random.default_rng(seed)
+    rng, kinds = np.random.default_rng(seed), _by_kind(sets)
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
@@ -278,7 +282,7 @@ def train(sets: list, seed: int = 0, steps: int = 3000, points: int = 512, batch
             optimiser = torch.optim.Adam(model.parameters(), lr=lr)
             schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, steps)
             for step in range(steps):
-                clouds, labels = _training_batch(sets, config, rng)
+                clouds, labels = _training_batch(kinds, config, rng)
                 logits = model(torch.from_numpy(clouds).transpose(1, 2))[:, 0]
                 loss = torch.nn.functional.binary_cross_entropy_with_logits(logits, torch.from_numpy(labels))
                 optimiser.zero_grad()
