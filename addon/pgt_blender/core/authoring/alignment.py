@@ -402,7 +402,7 @@ def sharpest_turn(points: np.ndarray, weights: np.ndarray, bin_width: float,
             for axis in range(3):
                 turned = points @ turn.T
                 moved = [other for other in range(3) if other != axis]  # the histogram along axis stays
-                costs = [sum(histogram_entropy(values, weights, bin_width) for values in (turned @ about.T)[:, moved].T)
+                costs = [sum(histogram_entropy(values, weights, bin_width) for values in (turned @ about[moved].T).T)
                          for about in (_turn_about(axis, angle) for angle in angles)]
                 turn = _turn_about(axis, angles[int(np.argmin(costs))]) @ turn
     return turn
