@@ -8,7 +8,7 @@ on dense surface samplings and on what a LiDAR sees of the held-out mesh.
 
 For each held-out mesh --seeds classifiers (training seeds 0, 1, ...; default 3, --quick
 1: one held-out mesh can swing from right to wrong with the seed) are trained on all
-the other meshes (same settings as train_heading.py but --steps, default 1000; --quick:
+the other meshes (same settings as train_heading.py but --steps, default 500 as there; --quick:
 150), each judged alone and the accuracies averaged; both methods judge
 --samplings seeded samplings of the held-out mesh per (points, noise) cell, half of
 them turned 180 degrees (the truth turns with them). Samplings are random subsets of
@@ -85,7 +85,7 @@ def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="bench_heading.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true",
                         help="150 training steps, 8 samplings per cell (about a minute)")
-    parser.add_argument("--steps", type=int, help="training steps per held-out mesh (default 1000, --quick 150)")
+    parser.add_argument("--steps", type=int, help=f"training steps per held-out mesh (default {hc.STEPS}, --quick 150)")
     parser.add_argument("--samplings", type=int,
                         help="samplings per (mesh, points, noise) cell (default 40, --quick 8)")
     parser.add_argument("--seeds", type=int, help="training seeds per held-out mesh (default 3, --quick 1)")
@@ -96,7 +96,7 @@ def main(argv: list) -> int:
                         help="train on dense samples only (the scans are still judged)")
     parser.add_argument("--out", type=Path, default=Path("bench/heading"))
     args = parser.parse_args(argv)
-    steps = args.steps or (150 if args.quick else 1000)
+    steps = args.steps or (150 if args.quick else hc.STEPS)
     samplings = args.samplings or (8 if args.quick else 40)
     seeds = args.seeds or (1 if args.quick else 3)
     torch.set_num_threads(args.threads)

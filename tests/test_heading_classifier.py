@@ -52,9 +52,15 @@ def test_short_training_learns(samples, short_run):
 
 @needs_torch
 def test_collapsed_training_is_an_error_not_a_checkpoint(samples):
-    # a learning rate far too high kills every ReLU of a layer within a few steps
+    # batch normalisation keeps the ReLUs alive at any sane rate; one this absurd overflows the weights
     with pytest.raises(InputError, match="collapsed after 30 steps"):
-        hc.train(samples, seed=0, steps=30, lr=0.3)
+        hc.train(samples, seed=0, steps=30, lr=1e20)
+
+
+@needs_torch
+def test_training_needs_batches_of_two(samples):
+    with pytest.raises(ValueError, match="batch 1"):  # batch normalisation has nothing to normalise
+        hc.train(samples, steps=1, batch=1)
 
 
 @needs_torch

@@ -1,8 +1,8 @@
 """Train the front/back heading classifier (PointNet, BCE, 180-degree flips with p = 0.5,
 no rotation augmentation) and save a checkpoint with its training config.
 
-    pgt-train-heading --out PATH [--seed 0] [--steps 3000] [--points 512]
-    .venv/bin/python headless_scripts/train_heading.py --out PATH [--seed 0] [--steps 3000] [--points 512]
+    pgt-train-heading --out PATH [--seed 0] [--steps 500] [--points 512]
+    .venv/bin/python headless_scripts/train_heading.py --out PATH [--seed 0] [--steps 500] [--points 512]
         [--chrono DIR] [--gt-database PKL --gt-convention mmdet3d|openpcdet] [--no-samples] [--threads 1]
         [--scans nuscenes|kitti|...|SENSOR.toml]
     blender -b -P headless_scripts/train_heading.py -- --out PATH [...]
@@ -66,7 +66,7 @@ def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="train_heading.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True, help="checkpoint to write (.pt)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--steps", type=int, default=3000, help="optimiser steps (batches of 32)")
+    parser.add_argument("--steps", type=int, default=hc.STEPS, help="optimiser steps (batches of 32)")
     parser.add_argument("--points", type=int, default=512, help="points per cloud the network sees")
     parser.add_argument("--chrono", type=Path,
                         help="folder of .obj meshes, front at +x (the shipped checkpoint: ../shared/data/chrono_vehicles)")

@@ -3,7 +3,12 @@
 The paper's main text names PointNet++; its supplement describes what is built here,
 a conventional PointNet: a shared per-point MLP 6 -> 64 -> 128 (3 input channels
 there; the box's proportions added here, see Input), max-pooled to a
-128-dim feature, then an MLP 128 -> 64 -> 1 logit, "the front is at +x". Trained
+128-dim feature, then an MLP 128 -> 64 -> 1 logit, "the front is at +x", batch
+normalisation after every layer but the last, as PointNet has it. Without it a
+leave-one-out fold (the van held out) never left chance at 3000 steps (the former default):
+every ReLU of the 64-unit layer died; with it that fold's training loss falls from
+the first hundred steps, and the held-out accuracy rose from 0.85 to 0.88 on dense
+samples and from 0.73 to 0.81 on scans at 3 % noise (docs/benchmarks.md). Trained
 with binary cross-entropy on object-frame point sets whose front is known, each
 flipped 180 degrees about z with p = 0.5 (x, y -> -x, -y, label flips) and never
 otherwise rotated: a rotation-sensitive network is what tells front from back.
@@ -45,8 +50,9 @@ from .. import gt_database, learning
 from ..errors import InputError
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[2] / "models" / "heading_pointnet.pt"
-FORMAT = "pgt_blender.heading_pointnet/2"  # /1: three input channels, no proportions
-ARCHITECTURE = "PointNet: shared MLP 6-64-128 (ReLU), max-pool -> 128-dim feature, MLP 128-64-1 -> logit"
+FORMAT = "pgt_blender.heading_pointnet/3"  # /2: no batch normalisation; /1: three input channels
+ARCHITECTURE = ("PointNet: shared MLP 6-64-128 (batch norm, ReLU), max-pool -> 128-dim feature, "
+                "MLP 128-64 (batch norm, ReLU) -1 -> logit")
 # Chrono meshes without a front (a tyre): left out of mesh folders.
 NO_FRONT = ("sedan_tire.obj",)
 # Surface points drawn once per mesh; training draws its point sets from this pool.
@@ -56,6 +62,9 @@ POOL_POINTS = 16384
 SCAN_RANGES_M = (10.0, 20.0, 35.0)
 SCAN_HEADINGS = 8
 SCAN_MIN_POINTS = 16
+# Training steps: held out (one mesh left out, seed 0) 250, 500, 1000 and 3000 steps gave
+# 0.82, 0.83, 0.79 and 0.77 on scans at 0 % noise: more steps learn the training meshes.
+STEPS = 500
 
 
 @dataclass(frozen=True)
@@ -213,9 +222,10 @@ def resample(points: np.ndarray, count: int, rng: np.random.Generator) -> np.nda
 def _network(torch):
     nn = torch.nn
     return nn.Sequential(
-        nn.Conv1d(6, 64, 1), nn.ReLU(), nn.Conv1d(64, 128, 1), nn.ReLU(),  # shared per-point MLP
+        nn.Conv1d(6, 64, 1), nn.BatchNorm1d(64), nn.ReLU(),  # shared per-point MLP
+        nn.Conv1d(64, 128, 1), nn.BatchNorm1d(128), nn.ReLU(),
         nn.AdaptiveMaxPool1d(1), nn.Flatten(),  # (B, 128) feature
-        nn.Linear(128, 64), nn.ReLU(), nn.Linear(64, 1))
+        nn.Linear(128, 64), nn.BatchNorm1d(64), nn.ReLU(), nn.Linear(64, 1))
 
 
 def _by_kind(sets: list) -> list:
@@ -247,18 +257,20 @@ def _training_batch(kinds: list, config: dict, rng: np.random.Generator):
     return np.stack(clouds), np.array(labels, np.float32)
 
 
-def train(sets: list, seed: int = 0, steps: int = 3000, points: int = 512, batch: int = 32,
+def train(sets: list, seed: int = 0, steps: int = STEPS, points: int = 512, batch: int = 32,
           lr: float = 3e-3, threads: int = 1, progress=None) -> HeadingClassifier:
     """Train a classifier on ``sets`` (list of :class:`PointSet`, fronts at +x), each
-    batch item a kind of set, then a set of that kind, drawn uniformly. Deterministic: same sets, seed and ``threads``
-    (torch's CPU thread count, restored afterwards) give the same weights. Adam with a
-    cosine-decayed ``lr``; ``progress(step, loss)`` is called after every step.
-    InputError when training collapsed: the last batch's logits all equal (every ReLU
-    of a layer dead; one of 12 leave-one-out folds at 3000 steps did), a network that
-    would say p = 0.5 of every object and so leave every heading as it is."""
+    batch item a kind of set, then a set of that kind, drawn uniformly. Deterministic:
+    same sets, seed and ``threads`` (torch's CPU thread count, restored afterwards) give
+    the same weights. Adam with a cosine-decayed ``lr``; ``progress(step, loss)`` is
+    called after every step. InputError when training collapsed: the last batch's
+    logits all equal or not finite (every ReLU of a layer dead, which batch
+    normalisation prevents, or weights overflowed by a far too high ``lr``), a network
+    that would say the same of every object and so leave every heading as it is."""
     torch = require_torch("torch")
-    if not sets or steps < 1:
-        raise ValueError(f"training needs point sets and at least one step ({len(sets)} sets, {steps} steps)")
+    if not sets or steps < 1 or batch < 2:  # batch normalisation needs two items to normalise
+        raise ValueError(f"training needs point sets, at least one step and batches of two or more "
+                         f"({len(sets)} sets, {steps} steps, batch {batch})")
     sources = {}
     for item in sets:
         sources[item.source] = sources.get(item.source, 0) + 1
@@ -296,8 +308,8 @@ def train(sets: list, seed: int = 0, steps: int = 3000, points: int = 512, batch
     spread = float(logits.detach().max() - logits.detach().min())
     if not spread > 1e-6:  # NaN too: a network whose ReLUs all died says the same of every cloud
         raise InputError("heading classifier training", f"the network collapsed after {steps} steps (seed {seed}, "
-                         f"lr {lr}): its output no longer depends on the points; train again with another seed, "
-                         "fewer steps or a lower lr")
+                         f"lr {lr}): its output no longer depends on the points or is not finite; train again "
+                         "with another seed, fewer steps or a lower lr")
     config["final_loss"] = float(loss.detach())
     return HeadingClassifier(model.eval(), config)
 
