@@ -87,7 +87,7 @@ def main(argv: list) -> int:
                         help="150 training steps, 8 samplings per cell (about a minute)")
     parser.add_argument("--steps", type=int, help=f"training steps per held-out mesh (default {hc.STEPS}, --quick 150)")
     parser.add_argument("--samplings", type=int,
-                        help="samplings per (mesh, points, noise) cell (default 40, --quick 8)")
+                        help="samplings per (mesh, points, noise) cell (default 10, --quick 8)")
     parser.add_argument("--seeds", type=int, help="training seeds per held-out mesh (default 3, --quick 1)")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument("--chrono", type=Path, default=CHRONO, help="folder of .obj meshes, front at +x")
@@ -97,7 +97,7 @@ def main(argv: list) -> int:
     parser.add_argument("--out", type=Path, default=Path("bench/heading"))
     args = parser.parse_args(argv)
     steps = args.steps or (150 if args.quick else hc.STEPS)
-    samplings = args.samplings or (8 if args.quick else 40)
+    samplings = args.samplings or (8 if args.quick else 10)
     seeds = args.seeds or (1 if args.quick else 3)
     torch.set_num_threads(args.threads)
     labelled = hc.sample_meshes()
