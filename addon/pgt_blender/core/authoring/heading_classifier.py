@@ -5,10 +5,10 @@ a conventional PointNet: a shared per-point MLP 6 -> 64 -> 128 (3 input channels
 there; the box's proportions added here, see Input), max-pooled to a
 128-dim feature, then an MLP 128 -> 64 -> 1 logit, "the front is at +x", batch
 normalisation after every layer but the last, as PointNet has it. Without it a
-leave-one-out fold (the van held out) never left chance at 3000 steps (the former default):
-every ReLU of the 64-unit layer died; with it that fold's training loss falls from
-the first hundred steps, and the held-out accuracy rose from 0.85 to 0.88 on dense
-samples and from 0.73 to 0.81 on scans at 3 % noise (docs/benchmarks.md). Trained
+leave-one-out fold (the van held out) never left chance at 3000 steps (the former
+default): every ReLU of the 64-unit layer died; with it that fold's training loss
+falls from the first hundred steps, and the held-out accuracy rose from 0.85 to 0.88
+on dense samples and from 0.73 to 0.81 on scans at 3 % noise (docs/benchmarks.md). Trained
 with binary cross-entropy on object-frame point sets whose front is known, each
 flipped 180 degrees about z with p = 0.5 (x, y -> -x, -y, label flips) and never
 otherwise rotated: a rotation-sensitive network is what tells front from back.
@@ -269,7 +269,7 @@ def train(sets: list, seed: int = 0, steps: int = STEPS, points: int = 512, batc
     that would say the same of every object and so leave every heading as it is."""
     torch = require_torch("torch")
     if not sets or steps < 1 or batch < 2:  # batch normalisation needs two items to normalise
-        raise ValueError(f"training needs point sets, at least one step and batches of two or more "
+        raise ValueError("training needs point sets, at least one step and batches of two or more "
                          f"({len(sets)} sets, {steps} steps, batch {batch})")
     sources = {}
     for item in sets:
