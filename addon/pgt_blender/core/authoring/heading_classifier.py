@@ -305,8 +305,9 @@ def train(sets: list, seed: int = 0, steps: int = STEPS, points: int = 512, batc
                     progress(step, float(loss.detach()))
     finally:
         torch.set_num_threads(previous_threads)
-    spread = float(logits.detach().max() - logits.detach().min())
-    if not spread > 1e-6:  # NaN too: a network whose ReLUs all died says the same of every cloud
+    final = logits.detach()
+    # all equal: every ReLU of a layer dead; not finite: weights overflowed (an inf among finite logits too)
+    if not (bool(torch.isfinite(final).all()) and float(final.max() - final.min()) > 1e-6):
         raise InputError("heading classifier training", f"the network collapsed after {steps} steps (seed {seed}, "
                          f"lr {lr}): its output no longer depends on the points or is not finite; train again "
                          "with another seed, fewer steps or a lower lr")
