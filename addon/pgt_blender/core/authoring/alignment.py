@@ -68,9 +68,10 @@ noise, so it is deconvolved (non-negative spikes blurred by the estimated noise)
 the side is where the deblurred points end, less the same 0.1 % as the trim
 (:func:`_deblurred_edge`). Thin real parts that stick out of the body (mirrors, a few
 dozen points of 20,000) are neither trimmed by quantile nor cut at the wall: the points
-beyond a side's noise band (``PROTRUSION_BAND`` x noise) that have neighbours among
-themselves at the sampling's scale are a surface, and the side moves out to them
-(:func:`_protrusion`); floaters, spread over a volume, stay isolated. What is left:
+beyond a side's noise band (``PROTRUSION_BAND`` x noise) that crowd together at the
+sampling's scale, far more than the same number spread evenly over the side would, are
+a surface, and the side moves out to them (:func:`_protrusion`); floaters, spread over a
+volume, and a wall's own noise tail, spread over the wall, do not crowd. What is left:
 features of a few dozen points (a small mirror, a roof rail) that stick out by about
 the noise or less are not told from the noise tail of the wall behind them and are
 cut off; the deblurred edge itself scatters by about half the noise per side
@@ -111,6 +112,7 @@ LENGTH_BINS = 50
 WHEEL_COVER_RATIO = 0.5
 PROTRUSION_RADIUS = 3.0
 PROTRUSION_NEIGHBOURS = 4
+PROTRUSION_CHANCE = 1e-3
 EDGE_STEP = 0.25
 EDGE_WINDOW = (8.0, 5.0)
 SHARPEN_PASSES_DEG = ((2.0, 0.2), (0.3, 0.05), (0.06, 0.01))  # (half range, step) of each pass
@@ -544,10 +546,12 @@ def _surface_bounds(local: np.ndarray, normals: np.ndarray, noise: float, raw: n
             else:
                 bounds[axis] = sign * _deblurred_edge(sign * raw[:, axis], noise)
     spacing = _spacing(raw)
+    body = high - low
     for axis in range(3):
+        face = np.prod(np.delete(body, axis))
         for sign, bounds in ((1, high), (-1, low)):
             bounds[axis] = sign * _protrusion(sign * raw[:, axis], raw, sign * bounds[axis],
-                                              PROTRUSION_BAND * noise, spacing)
+                                              PROTRUSION_BAND * noise, spacing, face)
     return low, high
 
 
@@ -601,25 +605,36 @@ def _spacing(points: np.ndarray) -> float:
     return float(np.median(distances[:, 1]))
 
 
-def _protrusion(outward: np.ndarray, points: np.ndarray, edge: float, band: float, spacing: float) -> float:
+def _protrusion(outward: np.ndarray, points: np.ndarray, edge: float, band: float, spacing: float,
+                face: float) -> float:
     """The side ``edge`` (a coordinate along ``outward``, (N,) the points' coordinates
     increasing away from the body) moved out to a protrusion when there is one.
 
     Candidates are the points beyond the edge's noise ``band``; a candidate is part of
     a real surface when at least ``PROTRUSION_NEIGHBOURS`` other candidates lie within
-    ``PROTRUSION_RADIUS`` x ``spacing`` of it (a surface sampled at that spacing has
-    its neighbours there; floaters, spread over a volume, seldom do: at 10 % floaters
-    in a box 1.5x the object's their density is about 1/50 of a surface's). The side is
-    then the second most outward such point (one stray cluster member aside). Floaters
-    within the band of a wall remain and widen the box by at most the band."""
+    ``PROTRUSION_RADIUS`` x ``spacing`` of it, and more than the candidates spread evenly
+    over the side's ``face`` (its area, source units squared) would put there but with
+    probability ``PROTRUSION_CHANCE`` (a Poisson count). A surface sampled at that
+    spacing has its neighbours there; floaters, spread over a volume, seldom do (at 10 %
+    floaters in a box 1.5x the object's their density is about 1/50 of a surface's);
+    nor does the noise tail of a wall, spread over the wall (at 1 % noise, near the
+    point spacing, the noise estimate reads low and hundreds of a wall's points cross
+    the band). The side is then the second most outward such point (one stray cluster
+    member aside). Floaters within the band of a wall remain and widen the box by at
+    most the band."""
     from scipy.spatial import cKDTree
+    from scipy.stats import poisson
 
     beyond = outward > edge + band
-    if np.count_nonzero(beyond) <= PROTRUSION_NEIGHBOURS:
+    count = np.count_nonzero(beyond)
+    if count <= PROTRUSION_NEIGHBOURS:
         return edge
     candidates = points[beyond]
-    counts = cKDTree(candidates).query_ball_point(candidates, PROTRUSION_RADIUS * spacing, return_length=True)
-    clustered = np.sort(outward[beyond][counts > PROTRUSION_NEIGHBOURS])
+    radius = PROTRUSION_RADIUS * spacing
+    spread_evenly = (count - 1) * np.pi * radius**2 / max(face, np.finfo(float).tiny)
+    needed = max(PROTRUSION_NEIGHBOURS - 1, poisson.isf(PROTRUSION_CHANCE, spread_evenly))
+    others = cKDTree(candidates).query_ball_point(candidates, radius, return_length=True) - 1
+    clustered = np.sort(outward[beyond][others > needed])
     return float(clustered[-2]) if len(clustered) >= 2 else edge
 
 
