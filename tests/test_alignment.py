@@ -312,14 +312,22 @@ def up_axis_degrees(found, rotation) -> float:
     return float(np.degrees(np.arccos(min(1.0, abs(found.transform[2, :3] @ rotation[:, 2])))))
 
 
+def observed(points, dims, noise, floater_share, rng, centre=0.0) -> np.ndarray:
+    """``points`` (N, 3) with Gaussian noise (sigma = ``noise`` x the box diagonal) and a
+    ``floater_share`` of them replaced by floaters uniform in a box 1.5x ``dims`` about
+    ``centre``; draws from ``rng`` in that order."""
+    noisy = points + rng.normal(scale=noise * np.linalg.norm(dims), size=points.shape)
+    floaters = rng.random(len(points)) < floater_share
+    noisy[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * dims + centre
+    return noisy
+
+
 def posed_cloud(name, seed, noise, outliers, offset=100):
     """A sample or Chrono cloud with noise (x box diagonal) and floaters, randomly posed
     (moved by N(0, ``offset``) m)."""
     points, dims = object_frame_points(name)
     rng = np.random.default_rng(seed)
-    noisy = points + rng.normal(scale=noise * np.linalg.norm(dims), size=points.shape)
-    floaters = rng.random(len(points)) < outliers
-    noisy[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * dims
+    noisy = observed(points, dims, noise, outliers, rng)
     rotation = random_rotation(rng)
     return (noisy @ rotation.T + rng.normal(scale=offset, size=3)).astype(np.float32), rotation, dims, rng
 
@@ -447,9 +455,7 @@ def test_rounded_roof_is_not_cut(seed):
     truth = np.array([4.0, 1.8, 1.9])
     rng = np.random.default_rng(seed)
     points, _ = trimesh.sample.sample_surface(mesh, 20000, seed=seed)
-    points += rng.normal(scale=0.005 * np.linalg.norm(truth), size=points.shape)
-    floaters = rng.random(len(points)) < 0.1
-    points[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * truth + mesh.bounds.mean(axis=0)
+    points = observed(points, truth, 0.005, 0.1, rng, centre=mesh.bounds.mean(axis=0))
     rotation = random_rotation(rng)
     found = align_axes(points @ rotation.T + [30.0, 5.0, -2.0], up=rotation[:, 2], refine=True)
     np.testing.assert_allclose(found.dims, truth, rtol=0.01)
@@ -468,9 +474,7 @@ def test_thin_protrusions_are_kept_and_floaters_are_not():
     truth = np.array([4.0, 2.3, 1.4])
     rng = np.random.default_rng(12)
     points, _ = trimesh.sample.sample_surface(mesh, 20000, seed=12)
-    points += rng.normal(scale=0.005 * np.linalg.norm(truth), size=points.shape)
-    floaters = rng.random(len(points)) < 0.1
-    points[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * truth
+    points = observed(points, truth, 0.005, 0.1, rng)
     rotation = random_rotation(rng)
     found = align_axes(points @ rotation.T + [50.0, -20.0, 3.0], up=rotation[:, 2], refine=True)
     assert error_degrees(found.transform[:3, :3], rotation.T) < 0.5
@@ -487,9 +491,7 @@ def test_a_walls_noise_tail_is_no_protrusion(seed):
     chance neighbours for a protrusion widened it by up to 11 %)."""
     dims = np.array([4.0, 2.0, 1.5])
     rng = np.random.default_rng(seed)
-    points = box_surface(dims, 20000, seed=seed) + rng.normal(scale=0.01 * np.linalg.norm(dims), size=(20000, 3))
-    floaters = rng.random(len(points)) < 0.1
-    points[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * dims
+    points = observed(box_surface(dims, 20000, seed=seed), dims, 0.01, 0.1, rng)
     rotation = random_rotation(rng)
     found = align_axes(points @ rotation.T, up=rotation[:, 2], refine=True)
     np.testing.assert_allclose(found.dims, dims, rtol=0.01)
