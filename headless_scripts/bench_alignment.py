@@ -39,7 +39,7 @@ from pgt_blender import cli, dev  # noqa: E402
 from pgt_blender.core.authoring.alignment import align_axes  # noqa: E402
 from pgt_blender.core.authoring.heading_classifier import NO_FRONT  # noqa: E402
 from pgt_blender.core.classes import MINORITY_CLASSES  # noqa: E402
-from pgt_blender.core.samples import random_rotation, sample_vehicle  # noqa: E402
+from pgt_blender.core.samples import observed, random_rotation, sample_vehicle  # noqa: E402
 
 CHRONO = dev.SHARED_DATA / "chrono_vehicles"
 DEFAULT = {"points": 20000, "noise": 0.005, "outliers": 0.05}
@@ -72,9 +72,7 @@ def observe(mesh, points: int, noise: float, outliers: float, seed: int) -> tupl
     rng = np.random.default_rng([seed, 1])
     rotation, translation = random_rotation(rng), rng.normal(scale=TRANSLATION_M, size=3)
     surface, _ = trimesh.sample.sample_surface(mesh, points, seed=seed)
-    cloud = surface + rng.normal(scale=noise * np.linalg.norm(mesh.extents), size=surface.shape)
-    floaters = rng.random(points) < outliers
-    cloud[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * mesh.extents
+    cloud = observed(surface, mesh.extents, noise, outliers, rng)
     return (cloud @ rotation.T + translation).astype(np.float32), rotation
 
 

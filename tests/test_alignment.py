@@ -15,7 +15,7 @@ from pgt_blender.core.authoring.alignment import (_deblurred_edge, align_axes, c
 from pgt_blender.core.classes import MINORITY_CLASSES
 from pgt_blender.core.errors import InputError
 from pgt_blender.core.importing import load_reconstruction
-from pgt_blender.core.samples import random_rotation, sample_vehicle
+from pgt_blender.core.samples import observed, random_rotation, sample_vehicle
 
 # The documented symmetry with an up prior: the 180 degree turn about z (front/back).
 FLIP = np.diag([-1.0, -1.0, 1.0])
@@ -310,16 +310,6 @@ def up_axis_degrees(found, rotation) -> float:
     """Angle between the found and the true up axis, up to the up sign (the documented
     symmetry without a prior)."""
     return float(np.degrees(np.arccos(min(1.0, abs(found.transform[2, :3] @ rotation[:, 2])))))
-
-
-def observed(points, dims, noise, floater_share, rng, centre=0.0) -> np.ndarray:
-    """``points`` (N, 3) with Gaussian noise (sigma = ``noise`` x the box diagonal) and a
-    ``floater_share`` of them replaced by floaters uniform in a box 1.5x ``dims`` about
-    ``centre``; draws from ``rng`` in that order."""
-    noisy = points + rng.normal(scale=noise * np.linalg.norm(dims), size=points.shape)
-    floaters = rng.random(len(points)) < floater_share
-    noisy[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * dims + centre
-    return noisy
 
 
 def posed_cloud(name, seed, noise, outliers, offset=100):

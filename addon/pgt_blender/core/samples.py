@@ -214,13 +214,27 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     ])
 
 
+def observed(points: np.ndarray, dims, noise: float, floater_share: float, rng: np.random.Generator,
+             centre=0.0) -> np.ndarray:
+    """``points`` (N, 3) as a noisy reconstruction holds them (a new float64 array):
+    Gaussian noise on each (sigma = ``noise`` x the diagonal of the box ``dims`` (3,)),
+    then a ``floater_share`` of them replaced by floaters uniform in a box 1.5x ``dims``
+    about ``centre``; drawn from ``rng`` in that order."""
+    noisy = points + rng.normal(scale=noise * np.linalg.norm(dims), size=np.shape(points))
+    floaters = rng.random(len(noisy)) < floater_share
+    noisy[floaters] = rng.uniform(-0.75, 0.75, (floaters.sum(), 3)) * dims + centre
+    return noisy
+
+
 def synthetic_reconstruction(class_name: str, seed: int = 0, points: int = 20000,
                              noise: float = 0.005, outlier_share: float = 0.03,
                              scale_range: tuple = (0.05, 5.0)) -> SyntheticReconstruction:
     """Sample ``points`` surface points of the class's vehicle with their part colors,
     add Gaussian noise (sigma = ``noise`` x box diagonal) and color noise, replace an
     ``outlier_share`` of them by floaters in a box 1.5x the object's, then apply a random
-    rotation, log-uniform scale in ``scale_range`` and translation. Same seed, same bytes."""
+    rotation, log-uniform scale in ``scale_range`` and translation. Same seed, same bytes
+    (``observed``'s model, with the color noise drawn between its two steps: the samples'
+    bytes are fixed, the shipped heading checkpoint records them)."""
     import trimesh
 
     rng = np.random.default_rng(seed)
