@@ -26,9 +26,10 @@ files' pages) varies by up to 3x from one run to the next on a virtual machine.
 Every export runs in a fresh Python process (its memory is its own): it loads the
 objects, plans, exports (export.run_plan: the timed part; kept/s = entries that reach
 the bank), assembles, and reports its CPU seconds (user + system, with its workers; the
-system part apart), its own peak RSS (getrusage), its workers' peaks (the largest VmHWM
-of its pool workers, and their largest private resident memory, smaps_rollup, polled
-from /proc every 0.2 s) and the bank's bytes by part. Stages
+system part apart), its own peak RSS (VmHWM: getrusage's starts at the benchmark's own
+peak, which a child started by subprocess inherits), its workers' peaks (the largest
+VmHWM of its pool workers, and their largest private resident memory, smaps_rollup,
+polled from /proc every 0.2 s) and the bank's bytes by part. Stages
 are the sum over chunks of export.ChunkDone.seconds (per worker wall time; with all
 cores they add up across workers); the engine ratio is the export's CPU per entry over
 the time its ray engine's own calls took per entry (Scan.cast_seconds: the Embree or BVH
@@ -36,7 +37,9 @@ call), how far the pipeline runs from its ray engine; the user-CPU ratio leaves 
 kernel's part (making files, first touches of memory). Last, the machine's own cost of
 writing the bank's files (file_write_cost: new files of an entry's size by one process,
 by all cores at once, and by one right after deleting), the floor under the writes
-stage. Every bank stays on disk until the benchmark ends: on ext4 without a journal,
+stage, and of a new page of memory the first time and again (page_touch_cost, measured
+first): on a virtual machine the first touch can cost many times more (the host backs
+the page then), and every new page-cache page of a bank pays it. Every bank stays on disk until the benchmark ends: on ext4 without a journal,
 files made within minutes of deleting many cost several times more (measured there),
 which would charge one export for the cleanup of the one before.
 
@@ -56,6 +59,7 @@ import sys
 import tempfile
 import threading
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,6 +82,7 @@ QUICK_SUBSET = SUBSET | {"headings_deg": [-180.0, 180.0, 180.0], "x": [-50.0, 50
 PAPER_BANK = {"truck": 36_960, "construction_vehicle": 52_800, "bus": 12_960, "trailer": 19_280,
               "motorcycle": 25_279, "bicycle": 4_300}  # the paper's nuScenes bank, kept entries per class
 MIB = 2**20
+PAGE = 4096
 
 
 # ----------------------------------------------------------------- one export (a child process)
@@ -136,8 +141,6 @@ def file_write_cost(size: int, folder: Path, processes: int, count: int = 2000) 
     files (``after_deleting``): ext4 without a journal skips the inodes freed in the
     last minutes one by one when it makes a file, so writing soon after deleting many
     files costs more, whatever writes."""
-    from concurrent.futures import ProcessPoolExecutor
-
     files = folder / "file_write_cost"
     files.mkdir()
     alone = _write_files(files, "a", size, count)
@@ -149,6 +152,22 @@ def file_write_cost(size: int, folder: Path, processes: int, count: int = 2000) 
         path.unlink()
     return {"bytes": size, "files": count, **alone, "concurrent": together | {"processes": processes},
             "after_deleting": _write_files(files, "b", size, count)}
+
+
+def page_touch_cost(size: int = 2**30) -> dict:
+    """System CPU µs per 4 kB page of writing ``size`` bytes of newly allocated memory,
+    the first time and again right after freeing it. The kernel's own cost is the
+    second; on a virtual machine whose host backs guest memory only when it is first
+    touched, and takes free memory back (free page reporting), the first includes the
+    host's fault: every new page-cache page of a bank pays it."""
+    def touch() -> float:
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_stime
+        block = np.ones(size // 8)
+        spent = resource.getrusage(resource.RUSAGE_SELF).ru_stime - before
+        del block
+        return 1e6 * spent / (size / PAGE)
+
+    return {"bytes": size, "first_us": touch(), "again_us": touch()}
 
 
 def _write_files(files: Path, prefix: str, size: int, count: int) -> dict:
@@ -209,7 +228,7 @@ def child(spec: dict) -> dict:
     points = [info["num_points_in_gt"] for entries in infos.values() for info in entries]
     return result | {"poses": poses, "kept": manifest["entries"], "disk": disk_usage(out),
                      "manifest_sha256": hashlib.sha256((out / "manifest.json").read_bytes()).hexdigest(),
-                     "parent_max_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+                     "parent_max_rss": _vmhwm(os.getpid()),
                      "workers_max_rss": poll.peak, "workers_max_private": poll.private,
                      "points_per_entry": float(np.mean(points or [0]))}
 
@@ -340,7 +359,7 @@ def mb(value) -> str:
     return "-" if value is None else f"{value / MIB:,.0f}"
 
 
-def tables(throughput: list, series: list, projected: list, files: dict) -> str:
+def tables(throughput: list, series: list, projected: list, files: dict, pages: dict) -> str:
     stages = list(export.CHUNK_STAGES)
     text = "## throughput\n\n" + dev.markdown_table(
         ["object", "grid", "workers", "poses", "kept", "s (median of n)", "kept/s", "CPU ms/entry",
@@ -361,6 +380,11 @@ def tables(throughput: list, series: list, projected: list, files: dict) -> str:
              f"{again['wall_us']:.0f} µs wall and {again['system_us']:.0f} µs system (file_write_cost: ext4 "
              f"without a journal steps over recently freed inodes; so the benchmark deletes its banks only at "
              f"its end). An entry writes one file per format.")
+    text += (f" Each new page of memory (4 kB; page_touch_cost, {pages['bytes'] / MIB:,.0f} MB written) cost "
+             f"{pages['first_us']:.2f} µs of system CPU the first time and {pages['again_us']:.2f} µs again right "
+             f"after freeing it: where the first is many times the second, the host backs the guest's memory only "
+             f"on first touch and takes free memory back, and each new page-cache page of the bank pays that "
+             f"first touch.")
     text += ("\n\n## where a worker's time goes (export.ChunkDone stages, ms per entry; casts are part of scans)\n\n"
              + dev.markdown_table(["object", "grid", "workers", *stages],
                                   [[r["object"], r["grid"], r["workers"],
@@ -429,6 +453,7 @@ def main(argv: list) -> int:
     machine = dev.machine(numpy=np.__version__, bpy=bpy.app.version_string, engine=args.engine)
     print(f"machine: {machine}\n", flush=True)
     load_before, started = dev.load_average(), time.perf_counter()
+    pages = page_touch_cost()
     with tempfile.TemporaryDirectory(prefix="bench_bank_objects_") as scratch:
         scratch = Path(scratch)
         objects = make_objects(scratch, args.chrono, subdivided=not args.quick)
@@ -462,11 +487,12 @@ def main(argv: list) -> int:
                      f"{dev.load_average()} (other work on the machine inflates the times: upper bounds)"}
     projected, target = projection(throughput), target_summary(throughput)
 
-    body, line = tables(throughput, series, projected, files), target_line(target, args.quick)
+    body, line = tables(throughput, series, projected, files, pages), target_line(target, args.quick)
     print("\n" + body + "\n" + line)
     dev.write_report(args.out, "Bank export: throughput, stages and memory at nuScenes settings", "bench_bank.py",
                      machine, inputs, f"**{line}**\n\n{body}",
                      {"machine": machine, "inputs": inputs, "throughput": throughput, "file_writes": files,
+                      "page_touch": pages,
                       "memory_series": series, "projection": projected, "target": target},
                      plot(throughput, series, series_object))
     return 0
