@@ -39,9 +39,10 @@ writing the bank's files (file_write_cost: new files of an entry's size by one p
 by all cores at once, and by one right after deleting), the floor under the writes
 stage, and of a new page of memory the first time and again (page_touch_cost, measured
 first): on a virtual machine the first touch can cost many times more (the host backs
-the page then), and every new page-cache page of a bank pays it. Every bank stays on disk until the benchmark ends: on ext4 without a journal,
-files made within minutes of deleting many cost several times more (measured there),
-which would charge one export for the cleanup of the one before.
+the page then), and every new page-cache page of a bank pays it. Every bank stays on
+disk until the benchmark ends: on ext4 without a journal, files made within minutes of
+deleting many cost several times more (measured there), which would charge one export
+for the cleanup of the one before.
 
 Memory against the bank size: 1, 2, 4, 8 copies (--quick: 1, 2) of one object (the 176k
 truck; --quick: the 11k one) under other names (more entries, more objects) on the
@@ -59,7 +60,6 @@ import sys
 import tempfile
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -141,6 +141,8 @@ def file_write_cost(size: int, folder: Path, processes: int, count: int = 2000) 
     files (``after_deleting``): ext4 without a journal skips the inodes freed in the
     last minutes one by one when it makes a file, so writing soon after deleting many
     files costs more, whatever writes."""
+    from concurrent.futures import ProcessPoolExecutor
+
     files = folder / "file_write_cost"
     files.mkdir()
     alone = _write_files(files, "a", size, count)
