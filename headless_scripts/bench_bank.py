@@ -26,10 +26,11 @@ files' pages) varies by up to 3x from one run to the next on a virtual machine.
 Every export runs in a fresh Python process (its memory is its own): it loads the
 objects, plans, exports (export.run_plan: the timed part; kept/s = entries that reach
 the bank), assembles, and reports its CPU seconds (user + system, with its workers; the
-system part apart), its own peak RSS (VmHWM: getrusage's starts at the benchmark's own
-peak, which a child started by subprocess inherits), its workers' peaks (the largest
-VmHWM of its pool workers, and their largest private resident memory, smaps_rollup,
-polled from /proc every 0.2 s) and the bank's bytes by part. Stages
+system part apart; the memory poll's own left out), its own peak RSS (VmHWM:
+getrusage's starts at the benchmark's own peak, which a child started by subprocess
+inherits), its workers' peaks (the largest VmHWM of its pool workers, and their largest
+private resident memory, smaps_rollup, polled from /proc every 0.2 s) and the bank's
+bytes by part. Stages
 are the sum over chunks of export.ChunkDone.seconds (per worker wall time; with all
 cores they add up across workers); the engine ratio is the export's CPU per entry over
 the time its ray engine's own calls took per entry (Scan.cast_seconds: the Embree or BVH
@@ -115,11 +116,14 @@ def _cpu_s() -> tuple:
 class WorkerPoll(threading.Thread):
     """The largest VmHWM and the largest private resident memory of this process's
     children (listed by /proc's per-thread ``children`` files: cheap), polled every
-    ``interval`` seconds."""
+    ``interval`` seconds; ``cpu_s`` its own (user, system) CPU seconds once stopped
+    (reading smaps_rollup walks a worker's page tables: about 0.03 ms per entry of a
+    full-grid export, the benchmark's cost, not the exporter's)."""
 
     def __init__(self, interval: float = 0.2):
         super().__init__(daemon=True)
         self.interval, self.peak, self.private, self.stop = interval, 0, 0, threading.Event()
+        self.cpu_s = (0.0, 0.0)
 
     def run(self):
         tasks = Path(f"/proc/{os.getpid()}/task")
@@ -131,6 +135,8 @@ class WorkerPoll(threading.Thread):
                     continue
                 for pid in children:
                     self.peak, self.private = max(self.peak, _vmhwm(pid)), max(self.private, _private(pid))
+        usage = resource.getrusage(resource.RUSAGE_THREAD)
+        self.cpu_s = (usage.ru_utime, usage.ru_stime)
 
 
 def file_write_cost(size: int, folder: Path, processes: int, count: int = 2000) -> dict:
@@ -220,11 +226,12 @@ def child(spec: dict) -> dict:
         poses += chunk.entries
         for stage, seconds in chunk.seconds.items():
             stages[stage] += seconds
-    seconds, (user_end, system_end) = time.perf_counter() - start, _cpu_s()
-    result = {"export_s": seconds, "export_cpu_s": user_end - user + system_end - system,
-              "export_system_s": system_end - system, "load_1min": load, "stages_s": stages}
+    seconds = time.perf_counter() - start
     poll.stop.set()
     poll.join()
+    user_end, system_end = np.subtract(_cpu_s(), poll.cpu_s)
+    result = {"export_s": seconds, "export_cpu_s": user_end - user + system_end - system,
+              "export_system_s": system_end - system, "load_1min": load, "stages_s": stages}
     manifest = export.assemble(out)
     infos = load_infos(out / manifest["info_pickles"][config.formats[0]])
     points = [info["num_points_in_gt"] for entries in infos.values() for info in entries]

@@ -180,9 +180,20 @@ def reflectivity_from_srgb(colors: np.ndarray) -> np.ndarray:
     return reflectivity_from_linear(np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4))
 
 
-def _planes(normals: np.ndarray, points: np.ndarray) -> np.ndarray:
-    normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+def _planes(normals: np.ndarray, points: np.ndarray, lengths: np.ndarray | None = None) -> np.ndarray:
+    """(N, 4) unit normal and offset (n . x = offset) of planes through ``points`` (N, 3)
+    along ``normals`` (N, 3), whose ``lengths`` (N,) are taken when the caller has them."""
+    lengths = np.linalg.norm(normals, axis=1) if lengths is None else lengths
+    normals = normals / lengths[:, None]
     return np.column_stack([normals, np.einsum("ij,ij->i", normals, points)])
+
+
+def _vertex_bounds(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(2, 3) min and max corner of the ``vertices`` (V, 3) that ``faces`` (F, 3) use."""
+    used = np.zeros(len(vertices), bool)
+    used[faces.ravel()] = True
+    corners = vertices[used]
+    return np.stack([corners.min(0), corners.max(0)])
 
 
 def relative_reflectivity(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -218,31 +229,31 @@ def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
     if bad.any():
         raise InputError(name, f"{int(bad.sum())} vertices are NaN or infinite")
     corners = vertices[faces]
-    doubled_area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
-    extent = np.ptp(corners.reshape(-1, 3), axis=0).max()
-    keep = doubled_area > 1e-12 * extent**2
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    doubled_area = np.linalg.norm(normals, axis=1)
+    bounds = _vertex_bounds(vertices, faces)
+    keep = doubled_area > 1e-12 * np.max(bounds[1] - bounds[0])**2
     if not keep.any():
         raise InputError(name, "every face has zero area")
-    if not keep.all():
-        warnings.warn(f"{name}: dropped {int((~keep).sum())} zero-area faces of {len(faces)}", stacklevel=2)
     kept = np.flatnonzero(keep)
-    used = faces[kept]
-    corners = corners[kept]
-    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    used, origins = faces, corners[:, 0]
+    if len(kept) < len(faces):
+        warnings.warn(f"{name}: dropped {int((~keep).sum())} zero-area faces of {len(faces)}", stacklevel=2)
+        used, origins, normals, doubled_area = faces[kept], origins[kept], normals[kept], doubled_area[kept]
+        bounds = _vertex_bounds(vertices, used)
     reflectivity = np.full(len(kept), DEFAULT_REFLECTIVITY, np.float32)
     if face_reflectivity is not None:
         given = np.asarray(face_reflectivity, np.float32).reshape(-1)
         if len(given) != len(faces):
             raise InputError(name, f"{len(given)} face reflectivities for {len(faces)} faces")
-        reflectivity = relative_reflectivity(given[kept], doubled_area[kept])
+        reflectivity = relative_reflectivity(given[kept], doubled_area)
     see_through = None
     if face_see_through is not None:
         see_through = np.asarray(face_see_through, bool).reshape(-1)
         if len(see_through) != len(faces):
             raise InputError(name, f"{len(see_through)} see-through flags for {len(faces)} faces")
         see_through = see_through[kept] if see_through[kept].any() else None
-    bounds = np.stack([vertices[used].reshape(-1, 3).min(0), vertices[used].reshape(-1, 3).max(0)])
-    return ready_for(ScanTarget(None, bounds, bounds, _planes(normals, corners[:, 0]), reflectivity,
+    return ready_for(ScanTarget(None, bounds, bounds, _planes(normals, origins, doubled_area), reflectivity,
                                 kept.astype(np.int32), "mesh", name, vertices.astype(np.float32),
                                 used.astype(np.int32), np.arange(len(kept), dtype=np.int32),
                                 see_through=see_through), engine)
