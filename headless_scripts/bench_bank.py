@@ -83,7 +83,7 @@ QUICK_SUBSET = SUBSET | {"headings_deg": [-180.0, 180.0, 180.0], "x": [-50.0, 50
 PAPER_BANK = {"truck": 36_960, "construction_vehicle": 52_800, "bus": 12_960, "trailer": 19_280,
               "motorcycle": 25_279, "bicycle": 4_300}  # the paper's nuScenes bank, kept entries per class
 MIB = 2**20
-PAGE = 4096
+PAGE = resource.getpagesize()  # bytes; 4 kB on x86-64 Linux
 
 
 # ----------------------------------------------------------------- one export (a child process)
@@ -163,8 +163,8 @@ def file_write_cost(size: int, folder: Path, processes: int, count: int = 2000) 
 
 
 def page_touch_cost(size: int = 2**30) -> dict:
-    """System CPU µs per 4 kB page of writing ``size`` bytes of newly allocated memory,
-    the first time and again right after freeing it. The kernel's own cost is the
+    """System CPU µs per page (PAGE bytes) of writing ``size`` bytes of newly allocated
+    memory, the first time and again right after freeing it. The kernel's own cost is the
     second; on a virtual machine whose host backs guest memory only when it is first
     touched, and takes free memory back (free page reporting), the first includes the
     host's fault: every new page-cache page of a bank pays it."""
@@ -175,7 +175,7 @@ def page_touch_cost(size: int = 2**30) -> dict:
         del block
         return 1e6 * spent / (size / PAGE)
 
-    return {"bytes": size, "first_us": touch(), "again_us": touch()}
+    return {"bytes": size, "page_bytes": PAGE, "first_us": touch(), "again_us": touch()}
 
 
 def _write_files(files: Path, prefix: str, size: int, count: int) -> dict:
@@ -389,7 +389,7 @@ def tables(throughput: list, series: list, projected: list, files: dict, pages: 
              f"{again['wall_us']:.0f} µs wall and {again['system_us']:.0f} µs system (file_write_cost: ext4 "
              f"without a journal steps over recently freed inodes; so the benchmark deletes its banks only at "
              f"its end). An entry writes one file per format.")
-    text += (f" Each new page of memory (4 kB; page_touch_cost, {pages['bytes'] / MIB:,.0f} MB written) cost "
+    text += (f" Each new page of memory ({pages['page_bytes'] // 1024} kB; page_touch_cost, {pages['bytes'] / MIB:,.0f} MB written) cost "
              f"{pages['first_us']:.2f} µs of system CPU the first time and {pages['again_us']:.2f} µs again right "
              f"after freeing it: where the first is many times the second, the host backs the guest's memory only "
              f"on first touch and takes free memory back, and each new page-cache page of the bank pays that "
