@@ -1,5 +1,6 @@
-"""Held-out front/back accuracy of the geometric baseline (profile_front_score > 0) and
-the learned classifier (front_probability > 0.5), leave-one-mesh-out over the built-in
+"""Held-out front/back accuracy of the geometric baseline (profile_front_score > 0), the
+learned classifier (front_probability > 0.5) and what Detect Front ships, the classifier
+with the baseline deciding where it is unsure (heading.front_decision), leave-one-mesh-out over the built-in
 sample vehicles and the Chrono vehicle meshes, at several point densities and noise levels,
 on dense surface samplings and on what a LiDAR sees of the held-out mesh.
 
@@ -9,7 +10,7 @@ on dense surface samplings and on what a LiDAR sees of the held-out mesh.
 For each held-out mesh --seeds classifiers (training seeds 0, 1, ...; default 3, --quick
 1: one held-out mesh can swing from right to wrong with the seed) are trained on all
 the other meshes (same settings as train_heading.py but --steps, default 500 as there; --quick:
-150), each judged alone and the accuracies averaged; both methods judge
+150), each judged alone and the accuracies averaged; the methods judge
 --samplings seeded samplings of the held-out mesh per (points, noise) cell, half of
 them turned 180 degrees (the truth turns with them). Samplings are random subsets of
 the mesh's area-weighted surface sample plus Gaussian noise (sigma = noise x box
@@ -37,43 +38,49 @@ import trimesh  # noqa: E402
 
 from pgt_blender import cli, dev  # noqa: E402
 from pgt_blender.core.authoring import heading_classifier as hc  # noqa: E402
-from pgt_blender.core.authoring.heading import profile_front_score  # noqa: E402
+from pgt_blender.core.authoring.heading import CLASSIFIER_DOUBT, front_decision, profile_front_score  # noqa: E402
 
 CHRONO = dev.SHARED_DATA / "chrono_vehicles"
 DENSITIES = (64, 256, 1024, 4096)
 NOISE_LEVELS = (0.0, 0.01, 0.03)
-METHODS = ("baseline", "classifier")
+METHODS = ("baseline", "classifier", "shipped")
 
 
-def judge(held_out, classifier, points: int, noise: float, samplings: int, seed: int) -> tuple:
-    """(baseline right, classifier right) counts over ``samplings`` samplings of
-    ``held_out`` (a PointSet), the odd ones turned 180 degrees about z."""
+def decisions(cloud, dims, classifier, front_at_x: bool) -> np.ndarray:
+    """(3,) int: whether each of METHODS is right about ``cloud``."""
+    score = profile_front_score(cloud)
+    probability = hc.front_probability(cloud, dims, classifier)
+    return np.array([(score > 0) == front_at_x, (probability > 0.5) == front_at_x,
+                     front_decision(probability, score)[0] == front_at_x], int)
+
+
+def judge(held_out, classifier, points: int, noise: float, samplings: int, seed: int) -> np.ndarray:
+    """(3,) right counts of METHODS over ``samplings`` samplings of ``held_out`` (a
+    PointSet), the odd ones turned 180 degrees about z."""
     rng = np.random.default_rng(seed)
     sigma = noise * np.linalg.norm(held_out.dims)
-    baseline = learned = 0
+    right = np.zeros(len(METHODS), int)
     for index in range(samplings):
         cloud = held_out.points[rng.choice(len(held_out.points), points, replace=False)]
         cloud = cloud + rng.normal(scale=sigma, size=cloud.shape)
         front_at_x = index % 2 == 0
         if not front_at_x:
             cloud = cloud * (-1, -1, 1)
-        baseline += (profile_front_score(cloud) > 0) == front_at_x
-        learned += (hc.front_probability(cloud, held_out.dims, classifier) > 0.5) == front_at_x
-    return baseline, learned
+        right += decisions(cloud, held_out.dims, classifier, front_at_x)
+    return right
 
 
 def judge_scans(views: list, classifier, noise: float, seed: int) -> tuple:
-    """(baseline right, classifier right, judged) over the scanned ``views`` (PointSets)
-    of a held-out mesh, each judged as it is and turned 180 degrees, noise added."""
+    """((3,) right counts of METHODS, judged) over the scanned ``views`` (PointSets) of a
+    held-out mesh, each judged as it is and turned 180 degrees, noise added."""
     rng = np.random.default_rng(seed)
-    baseline = learned = judged = 0
+    right, judged = np.zeros(len(METHODS), int), 0
     for view in views:
         noisy = view.points + rng.normal(scale=noise * np.linalg.norm(view.dims), size=view.points.shape)
         for front_at_x, cloud in ((True, noisy), (False, noisy * (-1, -1, 1))):
-            baseline += (profile_front_score(cloud) > 0) == front_at_x
-            learned += (hc.front_probability(cloud, view.dims, classifier) > 0.5) == front_at_x
+            right += decisions(cloud, view.dims, classifier, front_at_x)
             judged += 1
-    return baseline, learned, judged
+    return right, judged
 
 
 def mean(rows: list, key: str, **match) -> float:
@@ -118,20 +125,18 @@ def main(argv: list) -> int:
         for seed in range(seeds):  # rows per seed: the means below average over them
             classifier = hc.train(others, seed=seed, steps=steps, threads=args.threads)
             for noise in NOISE_LEVELS:
-                baseline, learned, judged = judge_scans(scans[held], classifier, noise, held * 1000 + int(noise * 1000))
+                right, judged = judge_scans(scans[held], classifier, noise, held * 1000 + int(noise * 1000))
                 scan_rows.append({"mesh": held_out.name, "seed": seed, "noise": noise, "views": judged,
-                                  "baseline": baseline / judged, "classifier": learned / judged})
+                                  **dict(zip(METHODS, (right / judged).tolist()))})
             for points in DENSITIES:
                 for noise in NOISE_LEVELS:
                     sampling_seed = held * 1_000_000 + points * 100 + int(noise * 1000)
-                    baseline, learned = judge(held_out, classifier, points, noise, samplings, sampling_seed)
+                    right = judge(held_out, classifier, points, noise, samplings, sampling_seed)
                     rows.append({"mesh": held_out.name, "seed": seed, "points": points, "noise": noise,
-                                 "baseline": baseline / samplings, "classifier": learned / samplings})
-        print(f"held out {held_out.name}: dense: baseline {mean(rows, 'baseline', mesh=held_out.name):.3f}, "
-              f"classifier {mean(rows, 'classifier', mesh=held_out.name):.3f}; scans: baseline "
-              f"{mean(scan_rows, 'baseline', mesh=held_out.name):.3f}, "
-              f"classifier {mean(scan_rows, 'classifier', mesh=held_out.name):.3f} "
-              f"({time.perf_counter() - start:.0f} s so far)", flush=True)
+                                 **dict(zip(METHODS, (right / samplings).tolist()))})
+        accuracies = "; ".join(f"{kind}: " + ", ".join(f"{k} {mean(found, k, mesh=held_out.name):.3f}" for k in METHODS)
+                               for kind, found in (("dense", rows), ("scans", scan_rows)))
+        print(f"held out {held_out.name}: {accuracies} ({time.perf_counter() - start:.0f} s so far)", flush=True)
     seconds = time.perf_counter() - start
     cells = [{"points": p, "noise": n, **{k: mean(rows, k, points=p, noise=n) for k in METHODS}}
              for p in DENSITIES for n in NOISE_LEVELS]
@@ -148,14 +153,16 @@ def main(argv: list) -> int:
                 "scans": {"sensor": args.sensor, "ranges_m": hc.SCAN_RANGES_M, "headings": hc.SCAN_HEADINGS,
                           "views_per_mesh": [len(v) for v in scans], "judged": "each view as is and turned 180"},
                 "samplings_per_cell": samplings, "flipped_share": 0.5, "densities": DENSITIES,
-                "noise_levels_of_diagonal": NOISE_LEVELS, "classifier_resamplings": 4, "seconds": round(seconds, 1)}
+                "noise_levels_of_diagonal": NOISE_LEVELS, "classifier_resamplings": 4,
+                "shipped": f"the classifier; the baseline where |probability - 0.5| <= {CLASSIFIER_DOUBT}",
+                "seconds": round(seconds, 1)}
     inputs = [m.source for m in meshes]
     print(f"\nmachine: {machine}\nsettings: {settings}\ninputs: {', '.join(s.split(' sha256:')[0] for s in inputs)}\n")
     body = tables(cells, scan_cells, per_mesh, samplings, seeds, args.sensor)
     print(body)
     markdown_inputs = {"settings": {key: str(value) for key, value in settings.items()},
                        "inputs": [source.split(" sha256:")[0] for source in inputs]}
-    dev.write_report(args.out, "Heading: geometric baseline against the classifier, leave one mesh out",
+    dev.write_report(args.out, "Heading: geometric baseline, classifier and the two shipped together, leave one mesh out",
                      "bench_heading.py", machine, markdown_inputs, body,
                      {"machine": machine, "settings": settings, "inputs": inputs, "cells": cells,
                       "scan_cells": scan_cells, "per_mesh": per_mesh, "rows": rows, "scan_rows": scan_rows},
@@ -168,27 +175,31 @@ def tables(cells: list, scan_cells: list, per_mesh: list, samplings: int, seeds:
     """The Markdown tables of a run (what it prints and writes to <out>.md)."""
     lines = []
     add = lines.append
+    heads, rule = " | ".join(METHODS), "---:|" * len(METHODS)
     add(f"Accuracy, mean over {len(per_mesh)} held-out meshes ({samplings} samplings each, half turned 180 degrees) "
-        f"and {seeds} training seeds:\n")
-    add("| points | noise (of box diagonal) | baseline | classifier |")
-    add("|---:|---:|---:|---:|")
+        f"and {seeds} training seeds; shipped: the classifier, the baseline deciding where the classifier's "
+        f"front probability is within {CLASSIFIER_DOUBT} of 0.5 (what Detect Front does):\n")
+    add(f"| points | noise (of box diagonal) | {heads} |")
+    add(f"|---:|---:|{rule}")
     for c in cells:
-        add(f"| {c['points']} | {c['noise']:.0%} | {c['baseline']:.3f} | {c['classifier']:.3f} |")
-    add(f"| all | all | {mean(cells, 'baseline'):.3f} | {mean(cells, 'classifier'):.3f} |")
+        add(f"| {c['points']} | {c['noise']:.0%} | " + " | ".join(f"{c[k]:.3f}" for k in METHODS) + " |")
+    add("| all | all | " + " | ".join(f"{mean(cells, k):.3f}" for k in METHODS) + " |")
     add(f"\nScans ({sensor}, {', '.join(f'{r:g}' for r in hc.SCAN_RANGES_M)} m, {hc.SCAN_HEADINGS} headings), "
         f"mean over held-out meshes and {seeds} training seeds:\n")
-    add("| noise (of box diagonal) | baseline | classifier |")
-    add("|---:|---:|---:|")
+    add(f"| noise (of box diagonal) | {heads} |")
+    add(f"|---:|{rule}")
     for c in scan_cells:
-        add(f"| {c['noise']:.0%} | {c['baseline']:.3f} | {c['classifier']:.3f} |")
+        add(f"| {c['noise']:.0%} | " + " | ".join(f"{c[k]:.3f}" for k in METHODS) + " |")
     add("\nPer held-out mesh: dense (mean over all cells) and scans per noise level:\n")
-    noise_heads = " | ".join(f"scans {n:.0%}: baseline | classifier" for n in NOISE_LEVELS)
-    add(f"| held-out mesh | source | dense: baseline | classifier | {noise_heads} |")
-    add("|---|---|" + "---:|" * (2 + 2 * len(NOISE_LEVELS)))
+    noise_heads = " | ".join(f"scans {n:.0%}: {heads}" for n in NOISE_LEVELS)
+    add(f"| held-out mesh | source | dense: {heads} | {noise_heads} |")
+    add("|---|---|" + "---:|" * (len(METHODS) * (1 + len(NOISE_LEVELS))))
     for m in per_mesh:
-        scan_cols = " | ".join(f"{m[f'scan_baseline_{n:g}']:.3f} | {m[f'scan_classifier_{n:g}']:.3f}"
-                               for n in NOISE_LEVELS)
-        add(f"| {m['mesh']} | {m['source']} | {m['baseline']:.3f} | {m['classifier']:.3f} | {scan_cols} |")
+        values = [m[k] for k in METHODS] + [m[f"scan_{k}_{n:g}"] for n in NOISE_LEVELS for k in METHODS]
+        add(f"| {m['mesh']} | {m['source']} | " + " | ".join(f"{v:.3f}" for v in values) + " |")
+    pairs = [("shipped", "baseline")] + [(f"scan_shipped_{n:g}", f"scan_baseline_{n:g}") for n in NOISE_LEVELS]
+    worst = min(m[shipped] - m[baseline] for m in per_mesh for shipped, baseline in pairs)
+    add(f"\nShipped against the baseline, per held-out mesh and column: worst {worst:+.3f}.")
     return "\n".join(lines)
 
 
@@ -201,6 +212,8 @@ def plot(plt, cells: list, meshes: int):
                       label=f"classifier, noise {noise:.0%}")
         axis.semilogx([c["points"] for c in mine], [c["baseline"] for c in mine], "x--", color=color,
                       label=f"baseline, noise {noise:.0%}")
+        axis.semilogx([c["points"] for c in mine], [c["shipped"] for c in mine], "s:", color=color,
+                      label=f"shipped, noise {noise:.0%}")
     axis.axhline(0.5, color="grey", lw=0.8)
     axis.set_xlabel("points per object")
     axis.set_ylabel("front/back accuracy")

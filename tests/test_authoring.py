@@ -57,6 +57,35 @@ def test_baseline_finds_a_low_front(class_name):
     assert heading.profile_front_score(points * [-1, -1, 1]) == pytest.approx(-score)
 
 
+@pytest.mark.parametrize("probability, score, front, decided_by", [
+    (0.9, -0.5, True, "classifier"), (0.1, 0.5, False, "classifier"),
+    (0.6, -0.2, False, "baseline"), (0.45, 0.1, True, "baseline"),
+    (0.5 + heading.CLASSIFIER_DOUBT, -0.1, False, "baseline"), (0.5 - heading.CLASSIFIER_DOUBT - 1e-9, 0.3, False,
+                                                                "classifier")])
+def test_front_decision_defers_to_the_baseline_where_the_classifier_is_unsure(probability, score, front,
+                                                                             decided_by):
+    assert heading.front_decision(probability, score) == (front, decided_by)
+
+
+def test_detect_front_by_classifier_and_by_baseline_where_it_is_unsure():
+    """The shipped classifier is sure about the sample truck; a plain box looks alike
+    from both ends, so the baseline's score decides it."""
+    from pgt_blender.core.authoring.heading_classifier import front_probability
+
+    truck = sample_vehicle("truck").trimesh()
+    points, _ = trimesh.sample.sample_surface(truck, 4000, seed=23)
+    points -= truck.bounds.mean(axis=0)
+    assert heading.automatic_front(points, truck.extents, "classifier")[::2] == (0, "classifier")
+    assert heading.automatic_front(points * [-1, -1, 1], truck.extents, "classifier")[::2] == (2, "classifier")
+    box, _ = trimesh.sample.sample_surface(trimesh.creation.box(extents=(4.0, 2.0, 1.5)), 4000, seed=24)
+    box[:, 2] += np.where(box[:, 0] > 1.0, 0.05, 0.0)  # the +x quarter 5 cm higher: the baseline's rear
+    box -= (box.max(axis=0) + box.min(axis=0)) / 2
+    dims = np.ptp(box, axis=0)
+    assert abs(front_probability(box, dims) - 0.5) <= heading.CLASSIFIER_DOUBT
+    turns, score, decided_by = heading.automatic_front(box, dims, "classifier")
+    assert (turns, score, decided_by) == (2, heading.profile_front_score(box), "baseline")
+
+
 # ---- sizing -----------------------------------------------------------------------------
 
 def test_class_size_noise_is_seeded_and_clipped():

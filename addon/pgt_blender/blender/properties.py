@@ -96,7 +96,8 @@ class PGT_PG_authoring(bpy.types.PropertyGroup):
                                      "roof, floor); without a prior, find up from them")
     heading_method: EnumProperty(name="Method", default="classifier",
                                  description="How Detect Front decides which end is the front", items=[
-        ("classifier", "Classifier", "PointNet front/back classifier (needs torch)"),
+        ("classifier", "Classifier", "PointNet front/back classifier (needs torch); where it is unsure, the "
+                                     "geometric rule decides"),
         ("baseline", "Baseline", "Geometric rule: the lower end is the front")])
     checkpoint: StringProperty(name="Checkpoint", subtype="FILE_PATH", options=PATH_OPTIONS,
                                description="Heading classifier checkpoint; empty: the one shipped with pgt_blender")

@@ -70,7 +70,7 @@ def main(argv: list) -> int:
             print(f"note: {why_not}; heading by the geometric baseline", file=sys.stderr)
     mode, exact = (args.size, None) if isinstance(args.size, str) else ("exact", args.size)
     failures = 0
-    print(f"{'object':32} {'points':>8} {'up':>6} {'tilt °':>6} {'heading':>18}  dims [l, w, h] m")
+    print(f"{'object':32} {'points':>8} {'up':>6} {'tilt °':>6} {'heading':>24}  dims [l, w, h] m")
     for index, path in enumerate(inputs):
         try:
             recon = load_reconstruction(path)
@@ -84,10 +84,12 @@ def main(argv: list) -> int:
         align, *rest = authored.steps
         heading = next((s.details for s in rest if s.name == "heading"), {"by": "none"})
         score = f" {heading['score']:.2f}" if "score" in heading else ""
+        by = heading["by"] if heading.get("decided_by", heading["by"]) == heading["by"] \
+            else f"{heading['by']}/{heading['decided_by']}"  # the classifier unsure: the baseline decided
         dims = ", ".join(f"{d:.2f}" for d in authored.dims)
         print(f"{recon.name:32} {len(recon.positions):8d} {align.details['up_from']:>6} "
               f"{align.details['tilt_deg']:6.2f} "
-              f"{heading['by'] + score:>18}  [{dims}]")
+              f"{by + score:>24}  [{dims}]")
     print(f"\n{len(inputs) - failures} of {len(inputs)} prepared into {args.out}")
     return 1 if failures else 0
 

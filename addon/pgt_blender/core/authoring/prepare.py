@@ -94,9 +94,9 @@ def front_step(direction, dims, source="direction") -> Step:
 
 def automatic_heading_step(positions, dims, method: str, checkpoint=None, source="points") -> Step:
     """Baseline or classifier front/back decision (see :func:`.heading.automatic_front`)."""
-    turns, score = heading.automatic_front(positions, dims, method, checkpoint, source)
+    turns, score, decided_by = heading.automatic_front(positions, dims, method, checkpoint, source)
     step = turn_step(turns, dims)
-    step.details.update(by=method, score=float(score))
+    step.details.update(by=method, decided_by=decided_by, score=float(score))
     return step
 
 
