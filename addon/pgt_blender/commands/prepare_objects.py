@@ -84,8 +84,8 @@ def main(argv: list) -> int:
         align, *rest = authored.steps
         heading = next((s.details for s in rest if s.name == "heading"), {"by": "none"})
         score = f" {heading['score']:.2f}" if "score" in heading else ""
-        by = heading["by"] if heading.get("decided_by", heading["by"]) == heading["by"] \
-            else f"{heading['by']}/{heading['decided_by']}"  # the classifier unsure: the baseline decided
+        decided_by = heading.get("decided_by", heading["by"])
+        by = heading["by"] if decided_by == heading["by"] else f"{heading['by']}/{decided_by}"  # unsure: baseline
         dims = ", ".join(f"{d:.2f}" for d in authored.dims)
         print(f"{recon.name:32} {len(recon.positions):8d} {align.details['up_from']:>6} "
               f"{align.details['tilt_deg']:6.2f} "

@@ -93,15 +93,14 @@ def automatic_front(points: np.ndarray, dims, method: str = "classifier", checkp
     points = points[inside] if inside.any() else points
     if method not in ("baseline", "classifier"):
         raise InputError(source, f"unknown heading method '{method}' (have: baseline, classifier)")
-    if method == "classifier":
-        from .heading_classifier import DEFAULT_CHECKPOINT, front_probability
-
-        probability = front_probability(points, dims, checkpoint or DEFAULT_CHECKPOINT, source=source)
-        score = profile_front_score(points)
-        front, decided_by = front_decision(probability, score)
-        return (0 if front else 2), (probability if decided_by == "classifier" else score), decided_by
     score = profile_front_score(points)
-    return (0 if score >= 0 else 2), score, "baseline"
+    if method == "baseline":
+        return (0 if score >= 0 else 2), score, "baseline"
+    from .heading_classifier import DEFAULT_CHECKPOINT, front_probability
+
+    probability = front_probability(points, dims, checkpoint or DEFAULT_CHECKPOINT, source=source)
+    front, decided_by = front_decision(probability, score)
+    return (0 if front else 2), (probability if decided_by == "classifier" else score), decided_by
 
 
 def best_available_method(checkpoint=None) -> tuple:
