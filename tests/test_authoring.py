@@ -14,7 +14,7 @@ from pgt_blender.core.classes import CLASS_SIZES, MINORITY_CLASSES
 from pgt_blender.core.errors import InputError
 from pgt_blender.core.importing import load_reconstruction
 from pgt_blender.core.reconstruction import Reconstruction
-from pgt_blender.core.samples import sample_vehicle
+from pgt_blender.core.samples import sample_vehicle, write_sample
 
 from .conftest import run_script
 
@@ -84,6 +84,50 @@ def test_detect_front_by_classifier_and_by_baseline_where_it_is_unsure():
     assert abs(front_probability(box, dims) - 0.5) <= heading.CLASSIFIER_DOUBT
     turns, score, decided_by = heading.automatic_front(box, dims, "classifier")
     assert (turns, score, decided_by) == (2, heading.profile_front_score(box), "baseline")
+
+
+def test_running_gear_puts_a_trailers_front_ahead_of_its_wheels(tmp_path):
+    """A box on stilts whose only low points are wheels 3 m behind the middle of its 10 m:
+    the score is 0.3 exactly; the sample trailer (landing gear in front, tandem axle at
+    the back) scores positive, and minus that turned 180 degrees."""
+    rng = np.random.default_rng(3)
+    body = rng.uniform([-5, -1.2, -1.0], [5, 1.2, 2.0], (500, 3))  # above the lowest quarter of 4 m
+    wheels = np.column_stack([rng.uniform(-3.5, -2.5, 40), rng.uniform(-1.2, 1.2, 40), rng.uniform(-2, -1.2, 40)])
+    wheels[:, 0] += -3.0 - wheels[:, 0].mean()
+    dims = (10.0, 2.4, 4.0)
+    assert heading.running_gear_front_score(np.r_[body, wheels], dims) == pytest.approx(0.3)
+    assert heading.running_gear_front_score(body, dims) is None  # no wheels seen
+    assert heading.baseline_score(body, dims, "trailer") == (heading.profile_front_score(body), "baseline")
+    trailer = sample_vehicle("trailer").trimesh()
+    points, _ = trimesh.sample.sample_surface(trailer, 4000, seed=25)
+    points -= trailer.bounds.mean(axis=0)
+    score, rule = heading.baseline_score(points, trailer.extents, "trailer")
+    assert score > 0.1 and rule == "running gear"
+    assert heading.baseline_score(points * [-1, -1, 1], trailer.extents, "trailer")[0] == pytest.approx(-score)
+    assert heading.baseline_score(points, trailer.extents, "truck")[1] == "baseline"  # the rule is the trailer's
+    # Detect Front: a trailer's running gear decides, so neither torch nor the checkpoint is needed
+    missing = tmp_path / "no_checkpoint.pt"
+    assert heading.automatic_front(points * [-1, -1, 1], trailer.extents, "classifier", missing,
+                                   class_name="trailer") == (2, pytest.approx(-score), "running gear")
+    with pytest.raises(ValueError, match="no_checkpoint.pt"):
+        heading.automatic_front(points, trailer.extents, "classifier", missing, class_name="truck")
+
+
+@pytest.mark.parametrize("probability", [0.01, 0.5, 0.99])
+def test_front_decision_leaves_a_trailer_to_its_running_gear(probability):
+    assert heading.front_decision(probability, -0.2, "running gear") == (False, "running gear")
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_prepare_heads_a_sample_trailer_by_its_running_gear(tmp_path, seed):
+    """A synthetic trailer reconstruction, randomly posed with floaters: prepared as a
+    trailer, its front ends up at +x (the truth's), decided by the running gear."""
+    paths = write_sample(tmp_path, "trailer", seed=seed, points=8000)
+    truth = np.array(json.loads(paths["truth.json"].read_text())["source_from_object"])
+    authored = prepare(load_reconstruction(paths["reconstruction.ply"]), "trailer", size="keep")
+    assert authored.steps[1].details["decided_by"] == "running gear"
+    forward = authored.object_from_source[:3, :3] @ truth[:3, 0]  # the true front, in the found object frame
+    assert forward[0] / np.linalg.norm(forward) > 0.99
 
 
 # ---- sizing -----------------------------------------------------------------------------
@@ -237,6 +281,16 @@ def test_prepare_objects_cli(sample_folder, tmp_path):
         written = load_reconstruction(out / f"{stem}.ply").positions
         np.testing.assert_allclose(written, apply_transform(recon.positions, np.array(sidecar["transform"])),
                                    atol=1e-5)
+
+
+def test_prepare_objects_names_a_trailers_running_gear(tmp_path):
+    paths = write_sample(tmp_path / "in", "trailer", seed=2, points=4000)
+    paths["mesh.ply"].unlink()
+    paths["truth.json"].unlink()
+    result = run_script("prepare_objects.py", "--in", tmp_path / "in", "--class", "trailer", "--out", tmp_path / "out",
+                        "--heading", "baseline", "--size", "keep")
+    assert result.returncode == 0, result.stderr
+    assert "baseline/running gear" in result.stdout
 
 
 def test_prepare_objects_keep_size(sample_folder, tmp_path):

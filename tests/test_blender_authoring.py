@@ -51,6 +51,21 @@ def test_ui_and_headless_give_identical_objects(scene, truck_file):
     assert [s["step"] for s in json.loads(obj.pgt.steps_json)] == ["align", "heading", "size"]
 
 
+def test_detect_front_heads_a_trailer_by_its_running_gear(scene, tmp_path):
+    """With the class set to trailer, Detect Front decides by the running gear, as
+    prepare() does for that class, and turns the object the same way."""
+    path = write_sample(tmp_path, "trailer", seed=1, points=6000)["reconstruction.ply"]
+    obj = imported(scene, path)
+    settings = scene.pgt_authoring
+    settings.up, settings.heading_method = "auto", "classifier"
+    settings.dataset, settings.class_name = "nuscenes", "trailer"
+    for operator in (bpy.ops.object.pgt_align, bpy.ops.object.pgt_auto_heading):
+        assert operator() == {"FINISHED"}
+    headless = prepare(load_reconstruction(path), "trailer", heading_method="classifier", size="keep")
+    assert json.loads(obj.pgt.steps_json)[1]["decided_by"] == "running gear" == headless.steps[1].details["decided_by"]
+    np.testing.assert_allclose(np.array(obj.pgt.object_from_source), headless.object_from_source, rtol=1e-6, atol=1e-6)
+
+
 def test_status_and_box_follow_the_steps(scene, truck_file):
     from pgt_blender.blender.ui import status_text
 

@@ -217,8 +217,10 @@ def test_bench_script_runs(tmp_path):
     assert len(report["cells"]) == 12 and report["settings"]["training_steps"] == 2
     assert report["settings"]["training_seeds"] == 2 and {row["seed"] for row in report["rows"]} == {0, 1}
     assert {m["mesh"] for m in report["per_mesh"]} >= {"truck", "bicycle"}
+    assert {m["class"] for m in report["per_mesh"]} >= {"truck", "trailer"}
     assert (tmp_path / "heading.png").stat().st_size > 0
     assert "| points | noise (of box diagonal) | baseline | classifier |" in result.stdout
+    assert "| class | meshes | dense: baseline |" in result.stdout
 
 
 def test_training_draws_each_kind_of_set_equally_often():

@@ -314,7 +314,8 @@ def detect_front(context, obj, settings) -> prepare.Step:
     """The Detect Front step of ``obj``."""
     checkpoint = bpy.path.abspath(settings.checkpoint) if settings.checkpoint else None
     return prepare.automatic_heading_step(authoring.positions(obj), authoring.current_dims(obj),
-                                          settings.heading_method, checkpoint, obj.pgt.source_path or obj.name)
+                                          settings.heading_method, checkpoint, obj.pgt.source_path or obj.name,
+                                          settings.class_name)
 
 
 def set_size(context, obj, settings, seed: int | None = None) -> prepare.Step:
@@ -394,7 +395,7 @@ class OBJECT_OT_pgt_front_from_cursor(_AuthoringStep, bpy.types.Operator):
 
 
 class OBJECT_OT_pgt_auto_heading(_AuthoringStep, bpy.types.Operator):
-    """Decide front and back automatically (PointNet classifier or geometric baseline)"""
+    """Decide front and back automatically (PointNet classifier or geometric baseline; a trailer by its running gear)"""
 
     bl_idname = "object.pgt_auto_heading"
     bl_label = "Detect Front"

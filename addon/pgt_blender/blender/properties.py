@@ -97,8 +97,9 @@ class PGT_PG_authoring(bpy.types.PropertyGroup):
     heading_method: EnumProperty(name="Method", default="classifier",
                                  description="How Detect Front decides which end is the front", items=[
         ("classifier", "Classifier", "PointNet front/back classifier (needs torch); where it is unsure, the "
-                                     "geometric rule decides"),
-        ("baseline", "Baseline", "Geometric rule: the lower end is the front")])
+                                     "geometric rule decides, and for a trailer its running gear"),
+        ("baseline", "Baseline", "Geometric rule: the lower end is the front; a trailer's front is ahead of "
+                                 "its wheels")])
     checkpoint: StringProperty(name="Checkpoint", subtype="FILE_PATH", options=PATH_OPTIONS,
                                description="Heading classifier checkpoint; empty: the one shipped with pgt_blender")
     dataset: EnumProperty(name="Dataset", default="nuscenes", update=_check_class,
@@ -109,7 +110,8 @@ class PGT_PG_authoring(bpy.types.PropertyGroup):
     # in its list (a dataset switch turned truck into pedestrian), and an enum whose items
     # come from a callback crashes Blender 4.2 at exit.
     class_name: StringProperty(name="Class", search=_class_search, update=_check_class,
-                               description="Class of the chosen dataset whose mean size Set Size samples")
+                               description="Class of the chosen dataset: Set Size samples its mean size; Detect "
+                                           "Front heads a trailer by its running gear")
     class_note: StringProperty(name="Class note",
                                description="Why the class was cleared (shown in the Size panel until one is chosen)")
     size_mode: EnumProperty(name="Size", default="class", description="How Set Size scales the object", items=[

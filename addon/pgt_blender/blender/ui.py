@@ -106,6 +106,7 @@ class VIEW3D_PT_pgt_heading(_AuthoringPanel, bpy.types.Panel):
         layout.prop(settings, "heading_method")
         if settings.heading_method == "classifier":
             layout.prop(settings, "checkpoint")
+        layout.prop(settings, "class_name", icon="VIEWZOOM")  # a trailer is headed by its running gear
         layout.operator("object.pgt_auto_heading", icon="AUTO")
 
 

@@ -85,7 +85,7 @@ def main(argv: list) -> int:
         heading = next((s.details for s in rest if s.name == "heading"), {"by": "none"})
         score = f" {heading['score']:.2f}" if "score" in heading else ""
         decided_by = heading.get("decided_by", heading["by"])
-        by = heading["by"] if decided_by == heading["by"] else f"{heading['by']}/{decided_by}"  # unsure: baseline
+        by = heading["by"] if decided_by == heading["by"] else f"{heading['by']}/{decided_by}"  # unsure: baseline; a trailer: running gear
         dims = ", ".join(f"{d:.2f}" for d in authored.dims)
         print(f"{recon.name:32} {len(recon.positions):8d} {align.details['up_from']:>6} "
               f"{align.details['tilt_deg']:6.2f} "

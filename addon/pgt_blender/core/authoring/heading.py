@@ -8,10 +8,13 @@ already at +x:
 * manual: :func:`quarter_turns` (flip = 2 turns, +-90 degrees = +-1 turn) and
   :func:`front_towards` (a picked point or direction becomes the front);
 * geometric baseline: :func:`profile_front_score`, "the front end is the lower one"
-  (bonnet, cab, bucket), the rule the learned classifier has to beat;
+  (bonnet, cab, bucket), the rule the learned classifier has to beat; for trailers
+  (``RUNNING_GEAR_CLASSES``), whose two ends are equally high, :func:`running_gear_front_score`,
+  "the wheels are behind the middle" (:func:`baseline_score` picks);
 * learned: :mod:`.heading_classifier` (PointNet, needs torch), with the baseline as
   its floor: where the classifier is unsure (:func:`front_decision`), the baseline
-  decides.
+  decides; for trailers the running gear decides outright (held out, the classifier,
+  trained on one trailer, is at chance on another: bench/heading.md).
 """
 
 from pathlib import Path
@@ -24,6 +27,13 @@ from ..errors import InputError
 # baseline was right more often on such clouds, and deciding them by the baseline kept
 # every held-out mesh within one view of the baseline or better (bench/heading.md).
 CLASSIFIER_DOUBT = 0.2
+# A semi-trailer rests on its tractor in front and on its axles behind the middle; a
+# centre-axle or utility trailer keeps its axle behind the middle too, to load its
+# drawbar. Its floor is at about a third of its height, so the lowest quarter of the
+# box holds only running gear (and thin landing-gear legs in front).
+RUNNING_GEAR_CLASSES = ("trailer",)
+RUNNING_GEAR_BAND = 0.25
+RUNNING_GEAR_MIN_POINTS = 3
 
 
 def quarter_turns(turns: int) -> np.ndarray:
@@ -63,43 +73,70 @@ def profile_front_score(points: np.ndarray, end_share: float = 0.25) -> float:
     return float((np.percentile(rear, 90) - np.percentile(front, 90)) / height)
 
 
+def running_gear_front_score(points: np.ndarray, dims) -> float | None:
+    """Front/back score of a trailer's object-frame ``points`` (N, 3; box centred on the
+    origin, extents ``dims`` (3,)), in [-0.5, 0.5]: minus the mean x of the points in the
+    lowest ``RUNNING_GEAR_BAND`` of the box height, over the length. Positive: the running
+    gear sits behind the middle along +x, so +x is the front. None when fewer than
+    ``RUNNING_GEAR_MIN_POINTS`` points are that low (nothing of the wheels was seen)."""
+    points = np.asarray(points, np.float64)
+    length, _, height = np.asarray(dims, np.float64)
+    low = points[points[:, 2] <= (RUNNING_GEAR_BAND - 0.5) * height, 0]
+    if len(low) < RUNNING_GEAR_MIN_POINTS or length <= 0:
+        return None
+    return float(-low.mean() / length)
+
+
+def baseline_score(points: np.ndarray, dims, class_name: str = "") -> tuple:
+    """(score, rule): the geometric front/back score of object-frame ``points`` (N, 3) in
+    their box ``dims`` (3,), positive when the front is at +x, and the rule that gave it:
+    "running gear" (:func:`running_gear_front_score`) for ``RUNNING_GEAR_CLASSES`` when
+    it sees the wheels, else "baseline" (:func:`profile_front_score`)."""
+    if class_name in RUNNING_GEAR_CLASSES:
+        score = running_gear_front_score(points, dims)
+        if score is not None:
+            return score, "running gear"
+    return profile_front_score(points), "baseline"
+
+
 def transformed_dims(transform: np.ndarray, dims) -> np.ndarray:
     """(3,) box extents after ``transform`` (4, 4), for transforms that keep the box
     axis-aligned (quarter turns, axis scales): |M| @ dims."""
     return np.abs(np.asarray(transform)[:3, :3]) @ np.asarray(dims, np.float64)
 
 
-def front_decision(probability: float, score: float) -> tuple:
+def front_decision(probability: float, score: float, rule: str = "baseline") -> tuple:
     """(front at +x, decided by): the classifier's front ``probability`` unless it lies
-    within ``CLASSIFIER_DOUBT`` of 0.5, then the baseline's ``score``
-    (:func:`profile_front_score`); decided by "classifier" or "baseline"."""
-    if abs(probability - 0.5) > CLASSIFIER_DOUBT:
+    within ``CLASSIFIER_DOUBT`` of 0.5, then the geometric ``score`` of ``rule``
+    (:func:`baseline_score`); the running gear's score decides whatever the probability.
+    Decided by "classifier" or ``rule``."""
+    if rule != "running gear" and abs(probability - 0.5) > CLASSIFIER_DOUBT:
         return probability >= 0.5, "classifier"
-    return score >= 0, "baseline"
+    return score >= 0, rule
 
 
 def automatic_front(points: np.ndarray, dims, method: str = "classifier", checkpoint=None,
-                    source="points") -> tuple:
+                    source="points", class_name: str = "") -> tuple:
     """(turns, score, decided by): 0 quarter turns when the front is already at +x,
-    else 2 (the 180 degree flip), by ``method``: "baseline" (:func:`profile_front_score`,
-    score in [-1, 1], front at +x when >= 0) or "classifier" (front probability, front
-    at +x when >= 0.5, the baseline deciding where the classifier is unsure:
-    :func:`front_decision`; InputError when torch or the checkpoint is missing). The
-    score is the deciding method's. Only the points inside the box (2 % margin) are
-    looked at: floaters outside it would dominate a max-pooling network and the end
-    profiles alike."""
+    else 2 (the 180 degree flip), by ``method``: "baseline" (:func:`baseline_score` for
+    ``class_name``, front at +x when >= 0) or "classifier" (front probability, front at
+    +x when >= 0.5, the baseline deciding where the classifier is unsure and a trailer's
+    running gear always: :func:`front_decision`; InputError when torch or the checkpoint
+    is missing). The score is the deciding method's. Only the points inside the box (2 %
+    margin) are looked at: floaters outside it would dominate a max-pooling network and
+    the end profiles alike."""
     points = np.asarray(points)
     inside = (np.abs(points) <= np.asarray(dims) / 2 * 1.02).all(axis=1)
     points = points[inside] if inside.any() else points
     if method not in ("baseline", "classifier"):
         raise InputError(source, f"unknown heading method '{method}' (have: baseline, classifier)")
-    score = profile_front_score(points)
-    if method == "baseline":
-        return (0 if score >= 0 else 2), score, "baseline"
+    score, rule = baseline_score(points, dims, class_name)
+    if method == "baseline" or rule == "running gear":
+        return (0 if score >= 0 else 2), score, rule
     from .heading_classifier import DEFAULT_CHECKPOINT, front_probability
 
     probability = front_probability(points, dims, checkpoint or DEFAULT_CHECKPOINT, source=source)
-    front, decided_by = front_decision(probability, score)
+    front, decided_by = front_decision(probability, score, rule)
     return (0 if front else 2), (probability if decided_by == "classifier" else score), decided_by
 
 

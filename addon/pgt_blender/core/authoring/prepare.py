@@ -92,9 +92,11 @@ def front_step(direction, dims, source="direction") -> Step:
     return Step("heading", rotation, heading.transformed_dims(rotation, dims), {"by": "manual", "turns": None})
 
 
-def automatic_heading_step(positions, dims, method: str, checkpoint=None, source="points") -> Step:
-    """Baseline or classifier front/back decision (see :func:`.heading.automatic_front`)."""
-    turns, score, decided_by = heading.automatic_front(positions, dims, method, checkpoint, source)
+def automatic_heading_step(positions, dims, method: str, checkpoint=None, source="points",
+                           class_name: str = "") -> Step:
+    """Baseline or classifier front/back decision for an object of ``class_name`` (see
+    :func:`.heading.automatic_front`)."""
+    turns, score, decided_by = heading.automatic_front(positions, dims, method, checkpoint, source, class_name)
     step = turn_step(turns, dims)
     step.details.update(by=method, decided_by=decided_by, score=float(score))
     return step
@@ -182,7 +184,7 @@ def prepare(recon: Reconstruction, class_name: str, dataset: str = "nuscenes", u
                               recon.faces if len(recon.faces) else None))
     if heading_method != "none":  # a flat or empty box is refused by the classifier and the sizing
         authored.apply(automatic_heading_step(authored.positions, authored.dims, heading_method, checkpoint,
-                                              recon.source))
+                                              recon.source, class_name))
     return authored.apply(size_step(authored.dims, size, dataset, class_name, seed, uniform, exact, recon.source))
 
 
