@@ -20,8 +20,11 @@ diagonal). Scans: the held-out mesh scanned by the project's ray caster
 headings, one sweep), each view judged as it is and turned 180 degrees, with Gaussian
 noise (sigma = noise x box diagonal). The classifier is trained on the other meshes'
 dense samples and their scans alike (--no-scans: dense only, the former training).
-Prints Markdown tables (per cell, mean over held-out meshes; per mesh and noise) and
-writes <out>.json and <out>.png.
+Each mesh is judged as the class a user authors it as (a sample's own, a Chrono
+chassis' from MESH_CLASSES; any other mesh is its own name, so the class-less rules):
+that decides whether the running gear heads it. Prints Markdown tables (per cell, mean
+over held-out meshes; per class and noise; per mesh and noise) and writes <out>.json
+and <out>.png.
 """
 
 import argparse
@@ -59,7 +62,8 @@ def decisions(cloud, dims, classifier, front_at_x: bool, class_name: str) -> np.
 
 
 def class_of(held_out) -> str:
-    """The class ``held_out`` (a PointSet of a sample or a Chrono mesh) is authored as."""
+    """The class ``held_out`` (a PointSet of a sample or a Chrono mesh) is authored as;
+    another mesh's own name."""
     return MESH_CLASSES.get(held_out.name, held_out.name)
 
 

@@ -97,6 +97,10 @@ def test_running_gear_puts_a_trailers_front_ahead_of_its_wheels(tmp_path):
     dims = (10.0, 2.4, 4.0)
     assert heading.running_gear_front_score(np.r_[body, wheels], dims) == pytest.approx(0.3)
     assert heading.running_gear_front_score(body, dims) is None  # no wheels seen
+    three = np.r_[body, wheels[:3]]
+    assert heading.running_gear_front_score(three, dims) == pytest.approx(-wheels[:3, 0].mean() / 10)
+    assert heading.running_gear_front_score(three[:-1], dims) is None  # below RUNNING_GEAR_MIN_POINTS
+    assert heading.running_gear_front_score(np.r_[body, wheels] * [1, 1, 0], (10.0, 2.4, 1e-15)) is None  # flat
     assert heading.baseline_score(body, dims, "trailer") == (heading.profile_front_score(body), "baseline")
     trailer = sample_vehicle("trailer").trimesh()
     points, _ = trimesh.sample.sample_surface(trailer, 4000, seed=25)

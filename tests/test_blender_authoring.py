@@ -63,6 +63,7 @@ def test_detect_front_heads_a_trailer_by_its_running_gear(scene, tmp_path):
         assert operator() == {"FINISHED"}
     headless = prepare(load_reconstruction(path), "trailer", heading_method="classifier", size="keep")
     assert json.loads(obj.pgt.steps_json)[1]["decided_by"] == "running gear" == headless.steps[1].details["decided_by"]
+    assert authoring.status(obj)["heading"] == "classifier/running gear"  # the status line says so
     np.testing.assert_allclose(np.array(obj.pgt.object_from_source), headless.object_from_source, rtol=1e-6, atol=1e-6)
 
 

@@ -13,7 +13,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..core.authoring.prepare import Step, apply_to_splats, apply_transform
+from ..core.authoring.prepare import Step, apply_to_splats, apply_transform, heading_label
 from .objects import _BLENDER_FROM_OPENCV, POINTS_GROUP
 from .scanning import splat_attributes
 
@@ -149,15 +149,15 @@ def steps(obj: bpy.types.Object) -> list:
 
 
 def status(obj: bpy.types.Object) -> dict:
-    """What is done and what is left, read off the step record: aligned; the heading's
-    method since the last alignment (a new PCA may turn the front away); the last
-    size mode."""
+    """What is done and what is left, read off the step record: aligned; how the heading
+    was decided since the last alignment (heading_label; a new PCA may turn the
+    front away); the last size mode."""
     done = {"aligned": False, "heading": "", "size": ""}
     for step in steps(obj):
         if step["step"] == "align":
             done.update(aligned=True, heading="")
         elif step["step"] == "heading":
-            done["heading"] = step["by"]
+            done["heading"] = heading_label(step)
         else:
             done["size"] = step["mode"]
     return done

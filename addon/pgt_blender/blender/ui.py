@@ -92,6 +92,17 @@ class VIEW3D_PT_pgt_align(_AuthoringPanel, bpy.types.Panel):
             layout.label(text=refinement_text(obj))
 
 
+def _class_field(layout, settings, needed: bool):
+    """The Class field and what is wrong with it: a class the dataset lacks was cleared
+    (the note says so, in every section showing the field); none chosen, where ``needed``."""
+    layout.prop(settings, "class_name", icon="VIEWZOOM")
+    problem = properties.class_problem(settings)
+    if settings.class_note and not settings.class_name:
+        layout.label(text=settings.class_note, icon="ERROR")
+    elif problem and needed:
+        layout.label(text=problem.capitalize(), icon="ERROR")
+
+
 class VIEW3D_PT_pgt_heading(_AuthoringPanel, bpy.types.Panel):
     bl_label = "Heading"
     bl_idname = "VIEW3D_PT_pgt_heading"
@@ -106,7 +117,7 @@ class VIEW3D_PT_pgt_heading(_AuthoringPanel, bpy.types.Panel):
         layout.prop(settings, "heading_method")
         if settings.heading_method == "classifier":
             layout.prop(settings, "checkpoint")
-        layout.prop(settings, "class_name", icon="VIEWZOOM")  # a trailer is headed by its running gear
+        _class_field(layout, settings, needed=False)  # a trailer is headed by its running gear
         layout.operator("object.pgt_auto_heading", icon="AUTO")
 
 
@@ -119,11 +130,7 @@ class VIEW3D_PT_pgt_size(_AuthoringPanel, bpy.types.Panel):
         layout.prop(settings, "size_mode", expand=True)
         if settings.size_mode == "class":
             layout.prop(settings, "dataset")
-            layout.prop(settings, "class_name", icon="VIEWZOOM")
-            problem = properties.class_problem(settings)
-            if problem:
-                layout.label(text=settings.class_note if settings.class_note and not settings.class_name
-                             else problem.capitalize(), icon="ERROR")
+            _class_field(layout, settings, needed=True)
             layout.prop(settings, "seed")
         elif settings.size_mode == "exact":
             layout.prop(settings, "exact_dims")

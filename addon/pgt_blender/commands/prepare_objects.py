@@ -23,7 +23,7 @@ from pathlib import Path
 
 from .. import cli
 from ..core.authoring.heading import best_available_method
-from ..core.authoring.prepare import UP_CHOICES, prepare, write_prepared
+from ..core.authoring.prepare import UP_CHOICES, heading_label, prepare, write_prepared
 from ..core.classes import CLASS_SIZES
 from ..core.errors import InputError
 from ..core.importing import SUPPORTED, find_reconstructions, load_reconstruction
@@ -44,7 +44,8 @@ def size_argument(text: str):
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="prepare_objects.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--in", dest="inputs", type=Path, required=True, help="folder of reconstructions")
-    parser.add_argument("--class", dest="class_name", required=True, help="class name in --dataset")
+    parser.add_argument("--class", dest="class_name", required=True,
+                        help="class name in --dataset (a nuScenes trailer is headed by its running gear)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--dataset", choices=sorted(CLASS_SIZES), default="nuscenes")
     parser.add_argument("--up", choices=UP_CHOICES, default="auto",
@@ -70,7 +71,7 @@ def main(argv: list) -> int:
             print(f"note: {why_not}; heading by the geometric baseline", file=sys.stderr)
     mode, exact = (args.size, None) if isinstance(args.size, str) else ("exact", args.size)
     failures = 0
-    print(f"{'object':32} {'points':>8} {'up':>6} {'tilt °':>6} {'heading':>24}  dims [l, w, h] m")
+    print(f"{'object':32} {'points':>8} {'up':>6} {'tilt °':>6} {'heading':>29}  dims [l, w, h] m")
     for index, path in enumerate(inputs):
         try:
             recon = load_reconstruction(path)
@@ -84,12 +85,10 @@ def main(argv: list) -> int:
         align, *rest = authored.steps
         heading = next((s.details for s in rest if s.name == "heading"), {"by": "none"})
         score = f" {heading['score']:.2f}" if "score" in heading else ""
-        decided_by = heading.get("decided_by", heading["by"])
-        by = heading["by"] if decided_by == heading["by"] else f"{heading['by']}/{decided_by}"  # unsure: baseline; a trailer: running gear
         dims = ", ".join(f"{d:.2f}" for d in authored.dims)
         print(f"{recon.name:32} {len(recon.positions):8d} {align.details['up_from']:>6} "
               f"{align.details['tilt_deg']:6.2f} "
-              f"{by + score:>24}  [{dims}]")
+              f"{heading_label(heading) + score:>29}  [{dims}]")
     print(f"\n{len(inputs) - failures} of {len(inputs)} prepared into {args.out}")
     return 1 if failures else 0
 

@@ -14,7 +14,7 @@ already at +x:
 * learned: :mod:`.heading_classifier` (PointNet, needs torch), with the baseline as
   its floor: where the classifier is unsure (:func:`front_decision`), the baseline
   decides; for trailers the running gear decides outright (held out, the classifier,
-  trained on one trailer, is at chance on another: bench/heading.md).
+  trained on no trailer, gets the sample trailer wrong: bench/heading.md).
 """
 
 from pathlib import Path
@@ -27,13 +27,14 @@ from ..errors import InputError
 # baseline was right more often on such clouds, and deciding them by the baseline kept
 # every held-out mesh within one view of the baseline or better (bench/heading.md).
 CLASSIFIER_DOUBT = 0.2
-# A semi-trailer rests on its tractor in front and on its axles behind the middle; a
-# centre-axle or utility trailer keeps its axle behind the middle too, to load its
-# drawbar. Its floor is at about a third of its height, so the lowest quarter of the
-# box holds only running gear (and thin landing-gear legs in front).
+# A semi-trailer rests on its tractor in front and on its axles behind the middle; its
+# floor is at about a third of its height (1.1-1.3 m of 4 m), so the lowest quarter of
+# the box holds only running gear (and thin landing-gear legs in front). Built and
+# tested on the one synthetic semi-trailer of the samples (nuScenes' class name).
 RUNNING_GEAR_CLASSES = ("trailer",)
+RUNNING_GEAR = "running gear"
 RUNNING_GEAR_BAND = 0.25
-RUNNING_GEAR_MIN_POINTS = 3
+RUNNING_GEAR_MIN_POINTS = 3  # a wheel seen at all: a scan at 35 m returns a handful of points from it
 
 
 def quarter_turns(turns: int) -> np.ndarray:
@@ -75,14 +76,17 @@ def profile_front_score(points: np.ndarray, end_share: float = 0.25) -> float:
 
 def running_gear_front_score(points: np.ndarray, dims) -> float | None:
     """Front/back score of a trailer's object-frame ``points`` (N, 3; box centred on the
-    origin, extents ``dims`` (3,)), in [-0.5, 0.5]: minus the mean x of the points in the
-    lowest ``RUNNING_GEAR_BAND`` of the box height, over the length. Positive: the running
-    gear sits behind the middle along +x, so +x is the front. None when fewer than
-    ``RUNNING_GEAR_MIN_POINTS`` points are that low (nothing of the wheels was seen)."""
+    origin, extents ``dims`` (3,)), about [-0.5, 0.5]: minus the mean x of the points in
+    the lowest ``RUNNING_GEAR_BAND`` of the box height, over the length. Positive: the
+    running gear sits behind the middle along +x, so +x is the front. None when fewer
+    than ``RUNNING_GEAR_MIN_POINTS`` points are that low (nothing of the wheels was seen)
+    or the box is flat (no height to have a bottom in)."""
     points = np.asarray(points, np.float64)
     length, _, height = np.asarray(dims, np.float64)
+    if not height > 1e-9 * length:  # flat (a PCA leaves rounding-level heights), empty or NaN
+        return None
     low = points[points[:, 2] <= (RUNNING_GEAR_BAND - 0.5) * height, 0]
-    if len(low) < RUNNING_GEAR_MIN_POINTS or length <= 0:
+    if len(low) < RUNNING_GEAR_MIN_POINTS:
         return None
     return float(-low.mean() / length)
 
@@ -90,13 +94,19 @@ def running_gear_front_score(points: np.ndarray, dims) -> float | None:
 def baseline_score(points: np.ndarray, dims, class_name: str = "") -> tuple:
     """(score, rule): the geometric front/back score of object-frame ``points`` (N, 3) in
     their box ``dims`` (3,), positive when the front is at +x, and the rule that gave it:
-    "running gear" (:func:`running_gear_front_score`) for ``RUNNING_GEAR_CLASSES`` when
+    ``RUNNING_GEAR`` (:func:`running_gear_front_score`) for ``RUNNING_GEAR_CLASSES`` when
     it sees the wheels, else "baseline" (:func:`profile_front_score`)."""
     if class_name in RUNNING_GEAR_CLASSES:
         score = running_gear_front_score(points, dims)
         if score is not None:
-            return score, "running gear"
+            return score, RUNNING_GEAR
     return profile_front_score(points), "baseline"
+
+
+def consults_classifier(rule: str) -> bool:
+    """Whether the classifier may decide where the geometric ``rule`` gave the score: not
+    over a trailer's running gear (held out, the classifier got the trailer wrong)."""
+    return rule != RUNNING_GEAR
 
 
 def transformed_dims(transform: np.ndarray, dims) -> np.ndarray:
@@ -105,12 +115,12 @@ def transformed_dims(transform: np.ndarray, dims) -> np.ndarray:
     return np.abs(np.asarray(transform)[:3, :3]) @ np.asarray(dims, np.float64)
 
 
-def front_decision(probability: float, score: float, rule: str = "baseline") -> tuple:
-    """(front at +x, decided by): the classifier's front ``probability`` unless it lies
-    within ``CLASSIFIER_DOUBT`` of 0.5, then the geometric ``score`` of ``rule``
-    (:func:`baseline_score`); the running gear's score decides whatever the probability.
-    Decided by "classifier" or ``rule``."""
-    if rule != "running gear" and abs(probability - 0.5) > CLASSIFIER_DOUBT:
+def front_decision(probability: float | None, score: float, rule: str = "baseline") -> tuple:
+    """(front at +x, decided by): the classifier's front ``probability`` unless it is
+    None (not asked), lies within ``CLASSIFIER_DOUBT`` of 0.5 or the rule is not one the
+    classifier may overrule (:func:`consults_classifier`); else the geometric ``score``
+    of ``rule`` (:func:`baseline_score`). Decided by "classifier" or ``rule``."""
+    if probability is not None and consults_classifier(rule) and abs(probability - 0.5) > CLASSIFIER_DOUBT:
         return probability >= 0.5, "classifier"
     return score >= 0, rule
 
@@ -131,11 +141,11 @@ def automatic_front(points: np.ndarray, dims, method: str = "classifier", checkp
     if method not in ("baseline", "classifier"):
         raise InputError(source, f"unknown heading method '{method}' (have: baseline, classifier)")
     score, rule = baseline_score(points, dims, class_name)
-    if method == "baseline" or rule == "running gear":
-        return (0 if score >= 0 else 2), score, rule
-    from .heading_classifier import DEFAULT_CHECKPOINT, front_probability
+    probability = None
+    if method == "classifier" and consults_classifier(rule):
+        from .heading_classifier import DEFAULT_CHECKPOINT, front_probability
 
-    probability = front_probability(points, dims, checkpoint or DEFAULT_CHECKPOINT, source=source)
+        probability = front_probability(points, dims, checkpoint or DEFAULT_CHECKPOINT, source=source)
     front, decided_by = front_decision(probability, score, rule)
     return (0 if front else 2), (probability if decided_by == "classifier" else score), decided_by
 

@@ -92,6 +92,14 @@ def front_step(direction, dims, source="direction") -> Step:
     return Step("heading", rotation, heading.transformed_dims(rotation, dims), {"by": "manual", "turns": None})
 
 
+def heading_label(details: dict) -> str:
+    """How a heading step's ``details`` decided: its method ("manual", "baseline",
+    "classifier"), and after a slash the rule that decided for it where that differs
+    ("classifier/baseline": unsure; "classifier/running gear": a trailer)."""
+    decided_by = details.get("decided_by", details["by"])
+    return details["by"] if decided_by == details["by"] else f"{details['by']}/{decided_by}"
+
+
 def automatic_heading_step(positions, dims, method: str, checkpoint=None, source="points",
                            class_name: str = "") -> Step:
     """Baseline or classifier front/back decision for an object of ``class_name`` (see
