@@ -258,8 +258,6 @@ def test_authored_object_apply_accumulates():
 
 @pytest.fixture(scope="module")
 def sample_folder(tmp_path_factory):
-    from pgt_blender.core.samples import write_sample
-
     folder = tmp_path_factory.mktemp("reconstructions")
     for class_name in ("truck", "bus"):
         paths = write_sample(folder, class_name, seed=4, points=4000)
