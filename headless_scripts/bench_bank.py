@@ -40,7 +40,8 @@ writing the bank's files (file_write_cost: new files of an entry's size by one p
 by all cores at once, and by one right after deleting), the floor under the writes
 stage, and of a new page of memory the first time and again (page_touch_cost, measured
 first): on a virtual machine the first touch can cost many times more (the host backs
-the page then), and every new page-cache page of a bank pays it. Every bank stays on
+the page then); the export frees each chunk's page-cache pages once written back
+(folder.drop_cached), so the next chunk's files reuse them. Every bank stays on
 disk until the benchmark ends: on ext4 without a journal, files made within minutes of
 deleting many cost several times more (measured there), which would charge one export
 for the cleanup of the one before.
@@ -167,7 +168,7 @@ def page_touch_cost(size: int = 2**30) -> dict:
     memory, the first time and again right after freeing it. The kernel's own cost is the
     second; on a virtual machine whose host backs guest memory only when it is first
     touched, and takes free memory back (free page reporting), the first includes the
-    host's fault: every new page-cache page of a bank pays it."""
+    host's fault, which a new page-cache page pays too."""
     def touch() -> float:
         before = resource.getrusage(resource.RUSAGE_SELF).ru_stime
         block = np.ones(size // 8)
@@ -392,8 +393,8 @@ def tables(throughput: list, series: list, projected: list, files: dict, pages: 
     text += (f" Each new page of memory ({pages['page_bytes'] // 1024} kB; page_touch_cost, {pages['bytes'] / MIB:,.0f} MB written) cost "
              f"{pages['first_us']:.2f} µs of system CPU the first time and {pages['again_us']:.2f} µs again right "
              f"after freeing it: where the first is many times the second, the host backs the guest's memory only "
-             f"on first touch and takes free memory back, and each new page-cache page of the bank pays that "
-             f"first touch.")
+             f"on first touch and takes free memory back; the export frees each chunk's page-cache pages once "
+             f"written back (folder.drop_cached), so later chunks reuse them rather than pay that first touch.")
     text += ("\n\n## where a worker's time goes (export.ChunkDone stages, ms per entry; casts are part of scans)\n\n"
              + dev.markdown_table(["object", "grid", "workers", *stages],
                                   [[r["object"], r["grid"], r["workers"],

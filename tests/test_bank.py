@@ -1,7 +1,9 @@
 """The bank export: config, grid, the two frameworks' loading contracts for nuScenes and
 KITTI, determinism over workers, executors and shards, resume after a kill, bad input."""
 
+import ctypes
 import json
+import mmap
 import os
 import pickle
 import resource
@@ -638,6 +640,39 @@ def test_write_errors_end_cleanly(reference, prepared, tmp_path):
         assert result.returncode == 1 and str(locked) in last_line(result)
         assert "Permission denied" in last_line(result) or "Operation not permitted" in last_line(result)
         assert not (locked / "bank").exists()
+
+
+def resident_pages(path: Path) -> int:
+    """How many of ``path``'s pages are in the page cache (mincore on a mapping that
+    touches none of them)."""
+    size = path.stat().st_size
+    pages = (ctypes.c_ubyte * -(-size // mmap.PAGESIZE))()
+    with open(path, "rb") as stream, mmap.mmap(stream.fileno(), size, access=mmap.ACCESS_COPY) as mapping:
+        start = ctypes.c_char.from_buffer(mapping)
+        code = ctypes.CDLL(None, use_errno=True).mincore(ctypes.c_void_p(ctypes.addressof(start)),
+                                                          ctypes.c_size_t(size), pages)
+        del start  # the mapping closes only without exported pointers
+    assert code == 0, os.strerror(ctypes.get_errno())
+    return sum(page & 1 for page in pages)
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="posix_fadvise and mincore as Linux has them")
+def test_written_entry_files_leave_the_page_cache(tmp_path):
+    """A chunk's entry files leave the page cache once written back (folder.drop_cached,
+    which skips a file removed meanwhile); their bytes stay, and a file written the
+    usual way stays cached (what the check would otherwise see)."""
+    from pgt_blender.core.bank.folder import drop_cached, write_entry_file
+
+    data = np.arange(100_000, dtype=np.float32)
+    usual, entry = tmp_path / "usual.bin", tmp_path / "entry.bin"
+    usual.write_bytes(data.tobytes())
+    write_entry_file(entry, data)
+    for path in (usual, entry):
+        with open(path, "rb") as stream:
+            os.fsync(stream.fileno())
+    drop_cached([entry, tmp_path / "gone.bin"])
+    assert resident_pages(usual) == -(-data.nbytes // mmap.PAGESIZE) and resident_pages(entry) == 0
+    assert entry.read_bytes() == data.tobytes()
 
 
 def test_learned_intensity_paints_the_bank(objects, tmp_path):

@@ -15,7 +15,8 @@ from pgt_blender.core.importing.ply import read_vertices
 from pgt_blender.core.samples import sample_vehicle
 from pgt_blender.core.scan.physical_intensity import REFERENCE_RANGE
 from pgt_blender.core.scan.range_view import range_view_scan
-from pgt_blender.core.scan.raycast import ScanOptions, cast_rays, placement, scan_object
+from pgt_blender.core.scan import raycast
+from pgt_blender.core.scan.raycast import ScanOptions, cast_rays, placement, scan_object, trace_rays
 from pgt_blender.core.scan.returns import RETURN_DTYPE, write_scan
 from pgt_blender.core.scan.sensors import PRESETS, Sensor, load_sensor_toml
 from pgt_blender.core.scan.sweeps import Motion, sample_motion, scan_many, scan_sweeps
@@ -570,6 +571,28 @@ def test_a_stretched_target_scans_as_the_mesh_stretched(sample_truck, engine):
             by_mesh.returns[["sweep", "ring", "column"]], by_rays.returns[["sweep", "ring", "column"]])]
         assert np.abs(rows["range"] - others["range"]).max() < 1e-5
         assert np.abs(rows["intensity"] - others["intensity"]).max() <= 1.0  # whole numbers, the cosine's rounding
+
+
+@pytest.mark.parametrize("lasers_off_the_origin", [False, True])
+def test_a_rays_bits_do_not_depend_on_the_runs_it_is_worked_in(sample_truck, monkeypatch, lasers_off_the_origin):
+    """trace_rays works through a batch's rays in runs of about RAY_BLOCK (whole poses,
+    for the rays' frames): in tiny runs, with every pose split across several, the
+    trace of stretched targets seen by lasers on or off the origin is the same, bit for
+    bit, as in the default runs."""
+    sensor = NUSCENES
+    if lasers_off_the_origin:
+        sensor = replace(NUSCENES, vertical_offsets_m=tuple(np.linspace(-0.1, 0.1, NUSCENES.beams)),
+                         horizontal_offsets_m=tuple(np.linspace(0.03, -0.03, NUSCENES.beams)))
+    rng = np.random.default_rng(5)
+    poses = np.stack([pose(x, y, heading=h) for x, y, h in zip(rng.uniform(-25, 25, 6), rng.uniform(-25, 25, 6),
+                                                               rng.uniform(-np.pi, np.pi, 6))])
+    scales = rng.uniform(0.9, 1.1, (6, 3))
+    default = trace_rays(sample_truck, sensor, poses, scale=scales)
+    monkeypatch.setattr(raycast, "RAY_BLOCK", 97)
+    small = trace_rays(sample_truck, sensor, poses, scale=scales)
+    assert default.rays.min() > 97 and len(default.cells) > 1000
+    for name in ("rays", "pose", "cells", "ranges", "cos_incidence", "polygons"):
+        assert getattr(small, name).tobytes() == getattr(default, name).tobytes(), name
 
 
 @pytest.mark.parametrize("engine", ["bvh", "embree"])

@@ -29,8 +29,8 @@ from .entries import TargetCache, scan_entries
 from .formats import DATABASE_CLASSES, DATABASE_FOLDER, class_name_for, database_record, entry_points
 from .grid import object_entries, sweeps_of
 from .inputs import BankObject, safe_name
-from .folder import (INTENSITY_BINS, MANIFEST, STATS_DTYPE, chunk_record, chunk_record_path, pending_chunks,
-                     prepare_folder, read_identity, write_entry_file, write_file)
+from .folder import (INTENSITY_BINS, MANIFEST, STATS_DTYPE, chunk_record, chunk_record_path, drop_cached,
+                     pending_chunks, prepare_folder, read_identity, write_entry_file, write_file)
 from .records import write_record
 
 @dataclass
@@ -158,7 +158,8 @@ class ChunkDone:
 
 
 def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.ndarray) -> ChunkDone:
-    """Scan ``entries``, write their .bin files in every format, then the chunk record."""
+    """Scan ``entries``, write their .bin files in every format, then the chunk record;
+    the written files' pages leave the page cache (folder.drop_cached)."""
     config, sensor = job.config, job.sensor
     infos = {fmt: [] for fmt in config.formats}
     files, stats = {}, np.zeros(len(entries), STATS_DTYPE)
@@ -211,6 +212,7 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
     lap("records")
     record = {"chunk": chunk_id, "infos": infos, "files": files, "stats": stats, "intensity": histograms}
     write_file(chunk_record_path(job.out, chunk_id), write_record(record))
+    drop_cached(job.out / relative for relative in files)
     lap("writes")
     return ChunkDone(len(entries), seconds)
 

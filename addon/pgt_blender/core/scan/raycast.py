@@ -35,6 +35,9 @@ from .targets import TARGET_ENGINES, ScanTarget, embree_scene, ready_for, resolv
 ENGINES = ("auto", *TARGET_ENGINES)
 MAX_SEE_THROUGH = 4  # see-through surfaces a ray passes (both sides of a cabin, twice)
 SEE_THROUGH_STEP = 1e-4  # m: how far past a see-through hit the ray goes on
+# Rays per pass of the per-ray arithmetic: a bank chunk casts about 250k rays, whose
+# float64 temporaries (2 MB each) would spill out of a core's cache; measured 2x faster.
+RAY_BLOCK = 8192
 
 
 @dataclass(frozen=True)
@@ -207,20 +210,36 @@ def _in_object_frame(poses: np.ndarray, sizes: np.ndarray, cells: np.ndarray, se
     ``poses`` (T, 4, 4), ``sizes[t]`` rays from pose t, in the object frame shrunk by
     ``stretch`` (3,) or (T, 3) per pose (the frame of a target that the object is
     stretched from; the directions are unit ones over stretch). Written out elementwise
-    (no BLAS), so a ray's bits depend on its pose and cell only, never on its batch."""
+    (no BLAS), so a ray's bits depend on its pose and cell only, never on its batch; done
+    in runs of whole poses of about RAY_BLOCK rays, whose temporaries stay in cache."""
     rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
     stretch = np.broadcast_to(stretch, (len(poses), 3))
+    # coefficient [t, i, row]: how ray axis ``row`` of pose t adds to object axis i
+    coefficients = rotation.transpose(0, 2, 1) / stretch[:, :, None]
     sensor_origin = -np.einsum("tji,tj->ti", rotation, translation) / stretch
-    x, y, z = (axis[cells] for axis in sensor.direction_axes)
-    columns = [[np.repeat(rotation[:, row, i] / stretch[:, i], sizes) for row in range(3)] for i in range(3)]
-    directions = np.empty((len(cells), 3))
-    for axis, c in enumerate(columns):
-        directions[:, axis] = x * c[0] + y * c[1] + z * c[2]
-    origins = np.repeat(sensor_origin, sizes, axis=0)
-    if sensor.cell_origins is not None:
-        ox, oy, oz = sensor.cell_origins[cells].T
-        origins += np.column_stack([ox * c[0] + oy * c[1] + oz * c[2] for c in columns])
+    origins, directions = np.empty((len(cells), 3)), np.empty((len(cells), 3))
+    ends = np.cumsum(sizes)
+    for first, last in _pose_runs(ends, RAY_BLOCK):
+        run = slice(ends[first] - sizes[first], ends[last - 1])
+        counts = sizes[first:last]
+        block = cells[run]
+        axes = [axis[block] for axis in sensor.direction_axes]
+        offsets = None if sensor.cell_origins is None else sensor.cell_origins[block].T
+        for i in range(3):
+            weights = [np.repeat(coefficients[first:last, i, row], counts) for row in range(3)]
+            directions[run, i] = axes[0] * weights[0] + axes[1] * weights[1] + axes[2] * weights[2]
+            origins[run, i] = np.repeat(sensor_origin[first:last, i], counts)
+            if offsets is not None:
+                origins[run, i] += offsets[0] * weights[0] + offsets[1] * weights[1] + offsets[2] * weights[2]
     return origins, directions
+
+
+def _pose_runs(ends: np.ndarray, block: int) -> list:
+    """(first, last + 1) runs of whole poses of about ``block`` rays each (a pose of more
+    is a run alone), from ``ends`` (T,) the poses' cumulative ray counts; none for T = 0."""
+    cuts = np.searchsorted(ends, np.arange(block, ends[-1] if len(ends) else 0, block), side="right")
+    bounds = np.unique(np.concatenate([[0], cuts, [len(ends)]]))
+    return list(zip(bounds[:-1].tolist(), bounds[1:].tolist()))
 
 
 def _meets_box(origins: np.ndarray, directions: np.ndarray, box: np.ndarray, far: float) -> np.ndarray:
@@ -350,16 +369,20 @@ def trace_rays(target: ScanTarget, sensor: Sensor, poses: np.ndarray, window: bo
             polygons, engine_range = _through_glass(target, cast, origins, directions, polygons, engine_range,
                                                     sensor.max_range)
         engine_seconds = time.perf_counter() - engine_start
-        # misses are solved too (elementwise, cheaper than sorting them out)
-        planes = np.take(target.planes, np.maximum(polygons, 0), axis=0)
-        ranges, cos_incidence = _refined_ranges(planes, origins, directions, engine_range)
+        # Misses are solved too (elementwise, cheaper than sorting them out), in runs of
+        # RAY_BLOCK rays whose temporaries stay in cache.
+        ranges, cos_incidence = np.empty(len(cells)), np.empty(len(cells))
+        for first in range(0, len(cells), RAY_BLOCK):
+            run = slice(first, first + RAY_BLOCK)
+            planes = np.take(target.planes, np.maximum(polygons[run], 0), axis=0)
+            ranges[run], cos_incidence[run] = _refined_ranges(planes, origins[run], directions[run],
+                                                              engine_range[run])
+            if scale is not None:  # n . (direction / stretch) over |n / stretch|: the stretched polygon's cosine
+                normals = planes[:, :3] / np.take(stretch, pose[run], axis=0)
+                cos_incidence[run] *= 1.0 / np.sqrt(np.einsum("ij,ij->i", normals, normals))
     hit = np.flatnonzero(polygons >= 0)
     pose, cells, ranges, cos_incidence, polygons = (np.take(values, hit) for values in (
         pose, cells, ranges, cos_incidence, polygons))
-    if scale is not None:  # n . (direction / stretch) over |n / stretch|: the stretched polygon's cosine
-        # hits only, their planes taken from the rays' (nearby in memory, unlike the target's table)
-        normals = np.take(planes[:, :3], hit, axis=0) / np.take(stretch, pose, axis=0)
-        cos_incidence *= 1.0 / np.sqrt(np.einsum("ij,ij->i", normals, normals))
     return Trace(rays, pose, cells, ranges, cos_incidence, polygons, time.perf_counter() - start, engine_seconds)
 
 
