@@ -675,6 +675,21 @@ def test_written_entry_files_leave_the_page_cache(tmp_path):
     assert entry.read_bytes() == data.tobytes()
 
 
+def test_a_file_system_that_refuses_the_cache_advice_still_gets_the_files(tmp_path, monkeypatch):
+    """posix_fadvise is advice: where it fails (EINVAL on some file systems), the entry
+    file is written whole and dropping the cache does nothing."""
+    from pgt_blender.core.bank.folder import drop_cached, write_entry_file
+
+    def refuse(*args):
+        raise OSError(22, "Invalid argument")
+
+    monkeypatch.setattr(os, "posix_fadvise", refuse, raising=False)
+    data = np.arange(1000, dtype=np.float32)
+    write_entry_file(tmp_path / "entry.bin", data)
+    drop_cached([tmp_path / "entry.bin"])
+    assert (tmp_path / "entry.bin").read_bytes() == data.tobytes()
+
+
 def test_learned_intensity_paints_the_bank(objects, tmp_path):
     """A (tiny) trained estimator replaces the physical intensities, the same bytes on
     one worker or two (spawned: PyTorch does not survive a fork)."""

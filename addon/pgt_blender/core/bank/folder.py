@@ -215,7 +215,7 @@ def drop_cached(paths) -> None:
     """Free the page-cache pages of written files whose write-back has ended (others
     stay cached; nothing changes on disk). A bank is written once and read later by a
     trainer, so caching it would only evict the machine's useful cache, and every new
-    cache page costs system time to touch (up to 8 us per 4 kB page on a VM whose host
+    cache page costs system time to touch (8-10 us per 4 kB page on a VM whose host
     backs memory on first use: bench/bank_embree.md); dropped pages are reused hot. A
     no-op where the OS has no posix_fadvise (Windows, macOS)."""
     if not hasattr(os, "posix_fadvise"):
@@ -233,9 +233,13 @@ def drop_cached(paths) -> None:
 
 def _advise_dont_need(descriptor: int) -> None:
     """POSIX_FADV_DONTNEED on the whole file: Linux starts the write-back of its dirty
-    pages and frees its clean ones."""
+    pages and frees its clean ones. Advice only: where a file system refuses it, the
+    file just stays cached."""
     if hasattr(os, "posix_fadvise"):
-        os.posix_fadvise(descriptor, 0, 0, os.POSIX_FADV_DONTNEED)
+        try:
+            os.posix_fadvise(descriptor, 0, 0, os.POSIX_FADV_DONTNEED)
+        except OSError:
+            pass
 
 
 def write_file(path: Path, data: bytes) -> str:
