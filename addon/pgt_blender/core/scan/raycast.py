@@ -36,7 +36,8 @@ ENGINES = ("auto", *TARGET_ENGINES)
 MAX_SEE_THROUGH = 4  # see-through surfaces a ray passes (both sides of a cabin, twice)
 SEE_THROUGH_STEP = 1e-4  # m: how far past a see-through hit the ray goes on
 # Rays per pass of the per-ray arithmetic: a bank chunk casts about 250k rays, whose
-# float64 temporaries (2 MB each) would spill out of a core's cache; measured 2x faster.
+# float64 temporaries (2 MB each) would spill out of a core's cache (the rays' frames:
+# 1.3-1.5x faster in blocks, docs/benchmarks.md).
 RAY_BLOCK = 8192
 
 
