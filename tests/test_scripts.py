@@ -101,7 +101,8 @@ def test_demo(tmp_path):
     table = [line for line in result.stdout.splitlines() if "_reconstruction " in line and "[" in line]
     rows = [line.split() for line in table]
     errors = [float(row[2]) for row in rows]
-    assert len(rows) == 6 and all(min(e, abs(180 - e)) < 1.0 for e in errors)  # aligned, up to the front
+    assert "heading by: classifier" in result.stdout  # torch is a test dependency
+    assert len(rows) == 6 and all(e < 1.0 for e in errors)  # aligned, front at +x (180: front/back wrong)
     scanned = [int(line.split("]")[1].split()[0]) for line in table]
     assert len(scanned) == 6 and min(scanned) > 100  # every object scanned at 15 m
 
