@@ -33,7 +33,7 @@ def truck_file(tmp_path_factory):
     return write_sample(tmp_path_factory.mktemp("samples"), "truck", seed=2, points=6000)["reconstruction.ply"]
 
 
-def test_ui_and_headless_give_identical_objects(scene, truck_file):
+def test_ui_and_headless_give_identical_objects(scene, truck_file, capfd):
     """Align, detect front (baseline), set a class size in the UI; prepare() on the same
     file with the same settings gives the same points, box and transform."""
     obj = imported(scene, truck_file)
@@ -49,11 +49,12 @@ def test_ui_and_headless_give_identical_objects(scene, truck_file):
     np.testing.assert_allclose(obj.pgt.dims, sizing.sample_dims("nuscenes", "truck", 9), rtol=1e-6)
     assert (obj.pgt.class_name, obj.pgt.dataset) == ("truck", "nuscenes")
     assert [s["step"] for s in json.loads(obj.pgt.steps_json)] == ["align", "heading", "size"]
+    assert f"{obj.name}: detect front by baseline as truck (score " in capfd.readouterr().out
 
 
-def test_detect_front_heads_a_trailer_by_its_running_gear(scene, tmp_path):
+def test_detect_front_heads_a_trailer_by_its_running_gear(scene, tmp_path, capfd):
     """With the class set to trailer, Detect Front decides by the running gear, as
-    prepare() does for that class, and turns the object the same way."""
+    prepare() does for that class, turns the object the same way and says so."""
     path = write_sample(tmp_path, "trailer", seed=1, points=6000)["reconstruction.ply"]
     obj = imported(scene, path)
     settings = scene.pgt_authoring
@@ -64,6 +65,10 @@ def test_detect_front_heads_a_trailer_by_its_running_gear(scene, tmp_path):
     headless = prepare(load_reconstruction(path), "trailer", heading_method="classifier", size="keep")
     assert json.loads(obj.pgt.steps_json)[1]["decided_by"] == "running gear" == headless.steps[1].details["decided_by"]
     assert authoring.status(obj)["heading"] == "classifier/running gear"  # the status line says so
+    step = json.loads(obj.pgt.steps_json)[1]
+    turned = "turned 180" if step["turns"] == 2 else "front kept"
+    assert (f"{obj.name}: detect front by classifier/running gear as trailer (score {step['score']:.3g}; {turned}), "
+            "box" in capfd.readouterr().out)
     np.testing.assert_allclose(np.array(obj.pgt.object_from_source), headless.object_from_source, rtol=1e-6, atol=1e-6)
 
 

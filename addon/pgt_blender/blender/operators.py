@@ -354,9 +354,13 @@ class _AuthoringStep:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         authoring.apply_step(obj, step)
-        self.report({"INFO"}, f"{obj.name}: {self.bl_label.lower()}, box "
-                              + " x ".join(f"{d:.3g}" for d in obj.pgt.dims))
+        self.report({"INFO"}, f"{obj.name}: {self.bl_label.lower()}{self.outcome(step, context.scene.pgt_authoring)}"
+                              ", box " + " x ".join(f"{d:.3g}" for d in obj.pgt.dims))
         return {"FINISHED"}
+
+    def outcome(self, step, settings) -> str:
+        """What the INFO report says about how ``step`` came about (after the label)."""
+        return ""
 
 
 class OBJECT_OT_pgt_align(_AuthoringStep, bpy.types.Operator):
@@ -402,6 +406,16 @@ class OBJECT_OT_pgt_auto_heading(_AuthoringStep, bpy.types.Operator):
 
     def step(self, context, obj, settings):
         return detect_front(context, obj, settings)
+
+    def outcome(self, step, settings) -> str:
+        """The deciding rule, the class it headed the object as (a trailer's running gear;
+        the class field is the scene's, possibly left from another object), its score
+        and whether the object turned."""
+        details = step.details
+        measure = "front probability" if details["decided_by"] == "classifier" else "score"
+        as_class = f" as {settings.class_name}" if settings.class_name else ""
+        turned = "turned 180" if details["turns"] == 2 else "front kept"
+        return f" by {prepare.heading_label(details)}{as_class} ({measure} {details['score']:.3g}; {turned})"
 
 
 class OBJECT_OT_pgt_set_size(_AuthoringStep, bpy.types.Operator):
