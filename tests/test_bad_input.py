@@ -15,14 +15,17 @@ test_blender_authoring, test_blender_bank).
 """
 
 import json
+import os
 import pickle
 import shutil
+import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from pgt_blender.core.authoring.prepare import prepare, write_prepared
+from pgt_blender.core.errors import InputError
 from pgt_blender.core.importing import load_reconstruction
 from pgt_blender.core.importing.ply import read_vertices, write_ply
 from pgt_blender.core.samples import write_sample
@@ -112,6 +115,22 @@ def plenoxels(change, problem):
         np.savez(folder / "grid.npz", **arrays)
         return ["import_reconstruction.py", folder / "grid.npz", "--out", folder / "scene.blend"], folder / "grid.npz", problem
     return build
+
+
+def import_pipe(folder, _):
+    os.mkfifo(folder / "cloud.ply")  # a read would wait for a writer forever
+    return ["import_reconstruction.py", folder / "cloud.ply", "--out", folder / "scene.blend"], folder / "cloud.ply", \
+        "not a regular file (a pipe, socket or device)"
+
+
+def colmap_nan_principal_point(folder, inputs):
+    model = Path(shutil.copytree(inputs["statue"], folder / "model"))
+    for text in model.glob("*.txt"):
+        text.unlink()
+    cameras = bytearray((model / "cameras.bin").read_bytes())
+    struct.pack_into("<d", cameras, 40, np.nan)  # the first camera's cx (SIMPLE_RADIAL f, cx, cy, k from byte 32)
+    (model / "cameras.bin").write_bytes(bytes(cameras))
+    return ["import_reconstruction.py", model, "--out", folder / "scene.blend"], model, "principal point nan"
 
 
 def import_out_is_a_folder(folder, inputs):
@@ -267,6 +286,8 @@ CASES = {
                                              "have NaN or Inf values in scale_1"),
     "splat without opacity": import_columns(lambda c: c.pop("opacity"), "missing vertex properties opacity"),
     "COLMAP points3D.bin cut in half": colmap_points_cut_in_half,
+    "COLMAP camera with a NaN principal point": colmap_nan_principal_point,
+    "PLY that is a pipe": import_pipe,
     "3DGS cameras.json cut short": lambda folder, inputs: capture_run(
         folder, lambda run, masks: (run / "cameras.json").write_text('[{"id": 0, "img_name": "view_000", "wid'),
         "not a readable cameras.json (JSONDecodeError", lambda run, masks: run / "cameras.json"),
@@ -378,3 +399,62 @@ def test_a_non_finite_pose_is_a_usage_error(inputs, tmp_path, flag, value):
                         "--out", tmp_path / "scan.bin")
     assert result.returncode == 2 and f"argument {flag}: expected a finite number, got '{value}'" in result.stderr
     assert not any(tmp_path.iterdir())
+
+
+def _intensity_label(path):
+    from pgt_blender.core.intensity.objects import kitti_label_boxes
+
+    return kitti_label_boxes(path, path)
+
+
+def _mask(path):
+    from pgt_blender.core.capture.masks import read_mask
+
+    return read_mask(path, None)
+
+
+# Every reader of a file a user names: (its module, function) or a wrapper, the suffix it expects.
+FILE_READERS = {
+    "reconstruction": (load_reconstruction, ".ply"),
+    "cameras.json": (("pgt_blender.core.importing.cameras", "read_cameras_json"), ".json"),
+    "nerfstudio transform": (("pgt_blender.core.importing.nerfstudio", "read_dataparser_transform"), ".json"),
+    "sensor TOML": (("pgt_blender.core.scan.sensors", "load_sensor_toml"), ".toml"),
+    "Velodyne calibration": (("pgt_blender.core.scan.sensors", "read_velodyne_calibration"), ".yaml"),
+    "bank config": (("pgt_blender.core.bank.config", "load_config"), ".toml"),
+    "info pickle": (("pgt_blender.core.safe_pickle", "load_pickle"), ".pkl"),
+    "raw float32 scan": (("pgt_blender.core.files", "read_float32_rows"), ".bin"),
+    "prepared sidecar": (("pgt_blender.core.authoring.prepare", "read_sidecar"), ".json"),
+    "map polygons": (("pgt_blender.core.placement.maps", "read_polygons"), ".json"),
+    "KITTI label and calib": (_intensity_label, ".txt"),
+    "foreground mask": (_mask, ".npy"),
+}
+
+
+@pytest.mark.parametrize("special", ["pipe", "device"])
+@pytest.mark.parametrize("reader", list(FILE_READERS))
+def test_a_pipe_or_device_named_as_a_file_is_refused_unread(tmp_path, reader, special):
+    """A pipe would block the read forever and a device such as /dev/zero never ends:
+    both are refused before any read (an alarm turns a blocked read into a failure; the
+    device here is /dev/null, whose read would end at once, so a missed check fails
+    rather than fills the memory)."""
+    import importlib
+    import signal
+
+    function, suffix = FILE_READERS[reader]
+    if isinstance(function, tuple):
+        function = getattr(importlib.import_module(function[0]), function[1])
+    path = tmp_path / f"input{suffix}"
+    os.mkfifo(path) if special == "pipe" else path.symlink_to("/dev/null")
+
+    def blocked(*_):
+        raise TimeoutError(f"{reader} read the {special}")
+
+    previous = signal.signal(signal.SIGALRM, blocked)
+    signal.alarm(10)
+    try:
+        with pytest.raises(InputError) as error:
+            function(path)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    assert error.value.path == path and "not a regular file (a pipe, socket or device)" in error.value.problem

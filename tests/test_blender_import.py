@@ -208,6 +208,8 @@ def broken_inputs(tmp_path, statue, donut):
     for name in ("position", "sharp_face"):  # Blender's own attribute names: refused, not renamed .001
         clashes[name] = tmp_path / f"{name}.ply"
         write_ply(clashes[name], {axis: np.zeros(2, np.float32) for axis in ("x", "y", "z", name)})
+    long_name = tmp_path / "long_name.ply"  # longer than an attribute name Blender keeps
+    write_ply(long_name, {axis: np.zeros(2, np.float32) for axis in ("x", "y", "z", "a" * 70 + "1")})
     no_opacity = tmp_path / "no_opacity.ply"
     write_ply(no_opacity, {name: values[:5] for name, values in read_vertices(donut).items() if name != "opacity"})
     splats, masks = capture_run(tmp_path)
@@ -226,6 +228,7 @@ def broken_inputs(tmp_path, statue, donut):
         ("pgt_plenoxels", {"filepath": str(no_links)}, no_links, "no links"),
         *[("pgt_point_cloud", {"filepath": str(path)}, path, f"property '{name}' has the name")
           for name, path in clashes.items()],
+        ("pgt_point_cloud", {"filepath": str(long_name)}, long_name, "is 71 bytes long, too long for a Blender"),
         ("pgt_gaussian_splat", {"filepath": str(no_opacity)}, no_opacity, "missing vertex properties opacity"),
         ("pgt_point_cloud", {"filepath": str(nan)}, nan, "NaN/Inf coordinates"),
         ("pgt_gaussian_splat", {"filepath": str(truncated)}, truncated, "truncated"),

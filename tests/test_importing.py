@@ -1,6 +1,12 @@
 """Core importers on the real data in ../shared/data and on bad input (no bpy)."""
 
+import io
+import json
+import os
 import shutil
+import struct
+import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -236,6 +242,158 @@ def test_colmap_damaged_binaries_are_refused_before_pycolmap_reads_them(statue_c
     with pytest.raises(InputError) as caught:
         load_reconstruction(statue_copy)
     assert caught.value.path == statue_copy / name and problem in str(caught.value)
+
+
+# --- malformed inputs found by fuzzing the importers: each (folder, donut, statue) ->
+# (the input, the path the error names) ----------------------------------------------------
+
+def _splat(change):
+    """The first 10 donut splats with ``change(columns)`` applied."""
+    def build(folder, donut, statue):
+        columns = {name: values[:10].copy() for name, values in read_vertices(donut).items()}
+        change(columns)
+        write_ply(folder / "splat.ply", columns)
+        return folder / "splat.ply", folder / "splat.ply"
+    return build
+
+
+def _file(name, content: bytes):
+    def build(folder, donut, statue):
+        (folder / name).write_bytes(content)
+        return folder / name, folder / name
+    return build
+
+
+def _fifo(folder, donut, statue):
+    os.mkfifo(folder / "cloud.ply")  # reading it would wait for a writer forever
+    return folder / "cloud.ply", folder / "cloud.ply"
+
+
+CAMERA = {"img_name": "a", "width": 8, "height": 8, "fx": 5, "fy": 5, "position": [0, 0, 0],
+          "rotation": np.eye(3).tolist()}
+
+
+def _cameras_json(text: str):
+    """A splat with ``text`` as the cameras.json beside it."""
+    def build(folder, donut, statue):
+        splat, _ = _splat(lambda columns: None)(folder, donut, statue)
+        (folder / "cameras.json").write_text(text)
+        return splat, folder / "cameras.json"
+    return build
+
+
+def _svox2(change):
+    """A 2^3 svox2 checkpoint with ``change(arrays)`` applied."""
+    def build(folder, donut, statue):
+        arrays = {"links": np.arange(8, dtype=np.int32).reshape(2, 2, 2), "density_data": np.ones((8, 1), np.float32),
+                  "sh_data": np.zeros((8, 3), np.float32), "basis_type": np.array(1)}
+        change(arrays)
+        np.savez(folder / "grid.npz", **arrays)
+        return folder / "grid.npz", folder / "grid.npz"
+    return build
+
+
+def _npz_member_claiming_petabytes(folder, donut, statue):
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<i4", "fortran_order": False, "shape": (10**5,) * 3})
+    with zipfile.ZipFile(folder / "grid.npz", "w") as archive:
+        archive.writestr("links.npy", header.getvalue() + bytes(64))
+    return folder / "grid.npz", folder / "grid.npz"
+
+
+def _colmap(file: str, change):
+    """A binary copy of the statue model with ``change(path of file)`` applied; -> (model, model / file)."""
+    def build(folder, donut, statue):
+        model = Path(shutil.copytree(statue, folder / "model"))
+        for text in model.glob("*.txt"):
+            text.unlink()
+        change(model / file)
+        return model, model / file
+    return build
+
+
+def _packed(offset: int, layout: str, value):
+    def change(path):
+        data = bytearray(path.read_bytes())
+        struct.pack_into("<" + layout, data, offset, value)
+        path.write_bytes(bytes(data))
+    return change
+
+
+def _replaced_by(make):
+    def change(path):
+        path.unlink()
+        make(path)
+    return change
+
+
+def _named_folder(build):
+    """``build`` whose error names the model folder (a camera's problem) rather than the file."""
+    def named(folder, donut, statue):
+        model, _ = build(folder, donut, statue)
+        return model, model
+    return named
+
+
+# Byte offsets in the statue's binaries: cameras.bin (count, then id i32, model i32,
+# width u64, height u64, SIMPLE_RADIAL f cx cy k), images.bin (count, id u32, qvec 4d,
+# tvec 3d), points3D.bin (count, id u64, xyz 3d, rgb 3B, error d).
+MALFORMED = {
+    "PLY element with rows but no properties": (
+        _file("cloud.ply", b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nend_header\n"),
+        "PLY element 'vertex' declares 1 rows but no properties"),
+    "PLY that is a pipe": (_fifo, "not a regular file (a pipe, socket or device)"),
+    "splat f_rest_ field not numbered": (_splat(lambda c: c.update(f_rest_a=c["x"])), "1 f_rest_* fields"),
+    "splat log-scale overflowing": (_splat(lambda c: c["scale_0"].__setitem__(3, 100.0)),
+                                    "1 splats have a log-scale beyond float32"),
+    "splat f_dc beyond float32 (a double property)": (_splat(lambda c: c.update(f_dc_0=np.full(10, 1e300))),
+                                                      "10 of 10 splats have NaN or Inf values in f_dc_0 (10)"),
+    "splat NaN normal": (_splat(lambda c: c.update(nx=np.where(np.arange(10) == 3, np.nan, 1).astype(np.float32),
+                                                   ny=np.zeros(10, np.float32), nz=np.zeros(10, np.float32))),
+                         "NaN or Inf values in nx (1)"),
+    "OBJ vertex with a vertical tab": (_file("v.obj", b"v 0 0 0\nv 0 \x0b 1\nf 1 1 2\n"),
+                                       "vertices are not 3-D coordinates"),
+    "cameras.json nested 100,000 deep": (_cameras_json("[" * 100_000), "RecursionError"),
+    "cameras.json width Infinity": (_cameras_json(json.dumps([{**CAMERA, "width": float("inf")}])),
+                                    "camera 0: width, height, fx, fy must be numbers"),
+    "cameras.json width 1e20 px": (_cameras_json(json.dumps([{**CAMERA, "width": 10**20}])),
+                                   "width and height must be whole numbers of pixels, 1 .. 65536"),
+    "cameras.json fx of 400 digits": (_cameras_json(json.dumps([{**CAMERA, "fx": 10**400}])),
+                                      "camera 0: width, height, fx, fy must be numbers"),
+    "npz that is a .npy": (_file("grid.npz", b"\x93NUMPY\x01\x00v\x00{'descr': '<f8', 'fortran_order': False, "
+                                             b"'shape': (10**9,), }" + b" " * 60 + b"\n"),
+                           "not an .npz archive"),
+    "npz basis_type a vector": (_svox2(lambda a: a.update(basis_type=np.array([1, 1]))),
+                                "basis_type must be one integer, not int64 (2,)"),
+    "npz basis_type a string": (_svox2(lambda a: a.update(basis_type=np.array("sh"))), "basis_type must be one integer"),
+    "npz density as text": (_svox2(lambda a: a.update(density_data=np.full((8, 1), "x"))),
+                            "arrays that must hold numbers do not: density_data (<U1)"),
+    "npz old data array 0-d": (_svox2(lambda a: [a.pop("density_data"), a.pop("sh_data"), a.update(data=np.array(1.0))]),
+                               "data () must be (C, 1 + 3 K)"),
+    "npz member claiming petabytes": (_npz_member_claiming_petabytes,
+                                      "member links.npy declares (100000, 100000, 100000) int32"),
+    "COLMAP focal length -inf": (_named_folder(_colmap("cameras.bin", _packed(32, "d", -np.inf))),
+                                 "focal lengths -inf, -inf px must be positive finite numbers"),
+    "COLMAP principal point NaN": (_named_folder(_colmap("cameras.bin", _packed(40, "d", np.nan))),
+                                   "principal point nan"),
+    "COLMAP image width 0": (_named_folder(_colmap("cameras.bin", _packed(16, "Q", 0))), "image size 0 x"),
+    "COLMAP translation NaN": (_named_folder(_colmap("images.bin", _packed(60, "d", np.nan))), "its pose is not finite"),
+    "COLMAP reprojection error overflowing float32": (_colmap("points3D.bin", _packed(43, "d", 1e308)),
+                                                      "1 of 1816 points have a reprojection error that is NaN or beyond float32"),
+    "COLMAP cameras.bin a folder": (_colmap("cameras.bin", _replaced_by(Path.mkdir)), "is a folder; expected a file"),
+    "COLMAP images.bin a pipe": (_colmap("images.bin", _replaced_by(os.mkfifo)), "not a regular file"),
+    "COLMAP points3D.bin a link to a device": (_colmap("points3D.bin", _replaced_by(lambda p: p.symlink_to("/dev/null"))),
+                                               "not a regular file"),  # /dev/zero would never end
+}
+
+
+@pytest.mark.parametrize("case", list(MALFORMED))
+def test_malformed_input_is_one_input_error_naming_the_file(tmp_path, donut, statue, case):
+    build, problem = MALFORMED[case]
+    path, named = build(tmp_path, donut, statue)
+    with pytest.raises(InputError) as error:
+        load_reconstruction(path)
+    assert error.value.path == named and problem in error.value.problem, str(error.value)
 
 
 def test_colmap_folder_without_model(statue, tmp_path):

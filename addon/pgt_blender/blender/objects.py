@@ -134,13 +134,16 @@ def _mesh(recon: Reconstruction, made: list) -> bpy.types.Mesh:
 def add_attribute(mesh: bpy.types.Mesh, name: str, values: np.ndarray, source=None) -> None:
     """A new per-point attribute ``name`` holding ``values`` (N,) or (N, k); InputError
     naming ``source`` when Blender reserves the name for a built-in attribute of
-    another type or domain (``id``, ``sharp_face``, ``material_index``, ...)."""
+    another type or domain (``id``, ``sharp_face``, ``material_index``, ...) or the
+    name is longer than Blender keeps (67 bytes in 4.5)."""
     columns = 1 if values.ndim == 1 else values.shape[1]
     data_type, field = _ATTRIBUTE_TYPES[(values.dtype.kind, columns)]
     attribute = mesh.attributes.new(name, data_type, "POINT")
     if attribute is None or attribute.name != name:
-        raise InputError(source or mesh.name, f"property '{name}' has the name of a built-in Blender attribute; "
-                                              f"rename it")
+        size = len(name.encode())
+        reason = (f"is {size} bytes long, too long for a Blender attribute name" if size > 63
+                  else "has the name of a built-in Blender attribute")
+        raise InputError(source or mesh.name, f"property '{name}' {reason}; rename it")
     attribute.data.foreach_set(field, np.ascontiguousarray(values).ravel())
 
 

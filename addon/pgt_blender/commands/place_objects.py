@@ -26,6 +26,7 @@ import numpy as np
 
 from .. import cli
 from ..core.errors import InputError
+from ..core.files import regular_file
 from ..core.placement.bandit import ThompsonCells
 from ..core.placement.birdseye import birdseye_png
 from ..core.placement.entries import open_database
@@ -106,11 +107,12 @@ def main(argv: list) -> int:
 def _json(path: Path | None):
     if path is None:
         return None
+    regular_file(path)
     try:
         return json.loads(path.read_text())
     except OSError as error:
         raise InputError(path, f"cannot read the file ({error.strerror or error})") from None
-    except ValueError as error:
+    except (ValueError, RecursionError) as error:
         raise InputError(path, f"not JSON ({error})") from None
 
 

@@ -1,8 +1,11 @@
-"""Output files that appear complete or not at all."""
+"""Output files that appear complete or not at all, and the checks of input files."""
 
 import os
+import stat
 from contextlib import contextmanager
 from pathlib import Path
+
+from .errors import InputError
 
 
 @contextmanager
@@ -33,9 +36,7 @@ def read_float32_rows(path, columns: int = 1, what: str = "values"):
     be read or its size is not a whole number of rows (a cut or padded file)."""
     import numpy as np
 
-    from .errors import InputError
-
-    path = Path(path)
+    path = regular_file(path)
     try:
         data = np.fromfile(path, "<f4")
         size = path.stat().st_size
@@ -44,3 +45,18 @@ def read_float32_rows(path, columns: int = 1, what: str = "values"):
     if size % (4 * columns):
         raise InputError(path, f"{size} bytes are not whole rows of {columns} float32 {what}")
     return data.reshape(-1, columns)
+
+
+def regular_file(path) -> Path:
+    """``path`` when it names a regular file (links followed); InputError for a missing
+    path, a folder, or a pipe or device, which a read would wait on or never finish."""
+    path = Path(path)
+    try:
+        mode = path.stat().st_mode
+    except OSError as error:
+        raise InputError(path, f"cannot read the file ({error.strerror or error})") from None
+    if stat.S_ISDIR(mode):
+        raise InputError(path, "is a folder; expected a file")
+    if not stat.S_ISREG(mode):
+        raise InputError(path, "not a regular file (a pipe, socket or device); expected a file")
+    return path

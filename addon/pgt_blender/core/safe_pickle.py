@@ -13,6 +13,7 @@ import pickle
 from pathlib import Path
 
 from .errors import InputError
+from .files import regular_file
 
 _ALLOWED = {
     ("builtins", name) for name in ("dict", "list", "tuple", "set", "frozenset", "str", "bytes", "bytearray",
@@ -42,7 +43,7 @@ def load_pickle(path, data: bytes | None = None):
     """The object pickled in ``path`` (or in ``data``, read from ``path``), built only
     from allowed types. InputError "<path>: <problem>" for an unreadable, damaged or
     refused file."""
-    path = Path(path)
+    path = Path(path) if data is not None else regular_file(path)
     try:
         data = path.read_bytes() if data is None else data
         return _Unpickler(io.BytesIO(data)).load()

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..files import atomic_output
+from ..files import atomic_output, regular_file
 from ..reconstruction import Reconstruction
 from . import heading, sizing
 from .alignment import align_axes, camera_up
@@ -225,10 +225,10 @@ def read_sidecar(path) -> dict:
     """The sidecar ``<name>.json`` that write_prepared wrote, checked: a JSON object whose
     ``class`` (when present) is a string, ``dims`` three positive finite metres and
     ``steps`` a list of objects. InputError naming the file and the field otherwise."""
-    path = Path(path)
+    path = regular_file(path)
     try:
         record = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+    except (OSError, ValueError, RecursionError) as error:  # ValueError: bad JSON, UTF-8 or a huge integer
         raise InputError(path, f"not a prepared-object sidecar ({type(error).__name__}: {error})") from None
     if not isinstance(record, dict):
         raise InputError(path, "not a prepared-object sidecar: expected a JSON object")

@@ -53,6 +53,7 @@ import numpy as np
 
 from ..classes import DATASETS
 from ..errors import InputError
+from ..files import regular_file
 from ..scan.raycast import ENGINES
 from ..scan.sensors import INTENSITY_MAX
 
@@ -178,7 +179,7 @@ _SECTIONS = {"bank", "grid", "jitter", "scan", "ground", "classes"}
 def load_config(path) -> BankConfig:
     """The BankConfig of a TOML file; relative sensor and checkpoint paths are taken
     relative to the file. A bad file, section, key or value raises InputError."""
-    path = Path(path)
+    path = regular_file(path)
     try:
         table = tomllib.loads(path.read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:

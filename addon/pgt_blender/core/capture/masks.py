@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..files import regular_file
 
 MASK_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".npy")
 
@@ -52,7 +53,7 @@ def match_masks(folder, cameras: list) -> list:
 def read_mask(path: Path, view) -> np.ndarray:
     """(h, w) bool foreground of the mask file ``path`` for ``view``; InputError naming
     the file when it cannot be read or its size does not fit the image's."""
-    path = Path(path)
+    path = regular_file(path)
     try:
         if path.suffix.lower() == ".npy":
             mask = np.load(path, allow_pickle=False)

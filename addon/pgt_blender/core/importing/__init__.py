@@ -16,6 +16,7 @@
 from pathlib import Path
 
 from ..errors import InputError
+from ..files import regular_file
 from ..reconstruction import Reconstruction
 from .cameras import load_cameras
 from .colmap import load_colmap
@@ -37,6 +38,7 @@ def detect_kind(path) -> str:
         return "gaussian_splat" if run_ply(path) else "colmap"
     if not path.exists():
         raise InputError(path, "no such file or folder")
+    regular_file(path)
     suffix = path.suffix.lower()
     if suffix == ".ply":
         header = read_header(path)

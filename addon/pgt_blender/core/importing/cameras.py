@@ -23,8 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..files import atomic_output
+from ..files import atomic_output, regular_file
 from ..reconstruction import CameraView
+from .source import MAX_IMAGE_SIDE, checked_camera
 
 _KEYS = ("img_name", "width", "height", "position", "rotation", "fx", "fy")
 
@@ -33,10 +34,10 @@ def read_cameras_json(path) -> list:
     """The CameraViews of a 3DGS ``cameras.json``; InputError naming the file and the
     entry for anything that is not a valid camera (missing key, non-finite or
     non-positive size or focal length, a rotation that is not a rotation)."""
-    path = Path(path)
+    path = regular_file(path)
     try:
         entries = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+    except (OSError, ValueError, RecursionError) as error:  # ValueError: bad JSON, UTF-8 or a huge integer
         raise InputError(path, f"not a readable cameras.json ({type(error).__name__}: {error})") from None
     if not isinstance(entries, list) or not entries:
         raise InputError(path, "a cameras.json holds a non-empty list of cameras")
@@ -55,22 +56,21 @@ def _camera(path: Path, index: int, entry) -> CameraView:
         fx, fy = float(entry["fx"]), float(entry["fy"])
         position = np.array(entry["position"], np.float64).reshape(3)
         rotation = np.array(entry["rotation"], np.float64).reshape(3, 3)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(path, f"{where}: width, height, fx, fy must be numbers, position 3 and "
                                f"rotation 3x3 numbers") from None
-    if width <= 0 or height <= 0 or width != entry["width"] or height != entry["height"]:
-        raise InputError(path, f"{where}: width and height must be positive whole numbers")
-    if not (np.isfinite([fx, fy]).all() and fx > 0 and fy > 0):
-        raise InputError(path, f"{where}: fx and fy must be positive finite numbers")
+    if width != entry["width"] or height != entry["height"] or not (0 < width <= MAX_IMAGE_SIDE
+                                                                    and 0 < height <= MAX_IMAGE_SIDE):
+        raise InputError(path, f"{where}: width and height must be whole numbers of pixels, 1 .. {MAX_IMAGE_SIDE}")
     if not (np.isfinite(position).all() and np.isfinite(rotation).all()):
         raise InputError(path, f"{where}: position and rotation must be finite")
     if not (np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4) and np.linalg.det(rotation) > 0):
         raise InputError(path, f"{where}: rotation is not a rotation matrix (orthonormal, determinant 1)")
     world_from_camera = np.eye(4)
     world_from_camera[:3, :3], world_from_camera[:3, 3] = rotation, position
-    return CameraView(name=str(entry["img_name"]), width=width, height=height, fx=fx, fy=fy,
-                      cx=width / 2, cy=height / 2, world_from_camera=world_from_camera,
-                      model="PINHOLE", params=(fx, fy, width / 2, height / 2))
+    return checked_camera(path, CameraView(name=str(entry["img_name"]), width=width, height=height, fx=fx, fy=fy,
+                                           cx=width / 2, cy=height / 2, world_from_camera=world_from_camera,
+                                           model="PINHOLE", params=(fx, fy, width / 2, height / 2)))
 
 
 def write_cameras_json(path, cameras: list) -> None:

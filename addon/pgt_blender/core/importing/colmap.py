@@ -12,7 +12,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..reconstruction import CameraView, Reconstruction
-from .source import checked_positions, sha256_of_files
+from ..files import regular_file
+from .source import checked_camera, checked_positions, sha256_of_files
 
 MODEL_FILES = ("cameras", "images", "points3D")
 
@@ -27,7 +28,7 @@ def model_files(folder: Path) -> list:
         files = [folder / (name + extension) for name in MODEL_FILES]
         present = [f.exists() for f in files]
         if all(present):
-            return files
+            return [regular_file(f) for f in files]
         if any(present):
             missing = ", ".join(f.name for f, ok in zip(files, present) if not ok)
             raise InputError(folder, f"COLMAP model is missing {missing}")
@@ -54,11 +55,17 @@ def load_colmap(folder: Path, with_cameras: bool = True) -> Reconstruction:
     positions = np.array([p.xyz for p in points], np.float64).reshape(-1, 3)
     colors = np.ones((len(points), 4), np.float32)
     colors[:, :3] = np.array([p.color for p in points], np.float32).reshape(-1, 3) / 255.0
+    errors = np.array([p.error for p in points], np.float64)
+    unusable = ~(np.abs(errors) <= np.finfo(np.float32).max)  # NaN, Inf, or Inf once stored as float32
+    if unusable.any():
+        raise InputError(files[2], f"{int(unusable.sum())} of {len(points)} points have a reprojection error that is "
+                                   f"NaN or beyond float32")
     attributes = {
         "track_length": np.array([p.track.length() for p in points], np.int32),
-        "reprojection_error": np.array([p.error for p in points], np.float32),
+        "reprojection_error": errors.astype(np.float32),
     }
-    cameras = [_camera_view(image) for image in model.images.values() if image.has_pose] if with_cameras else []
+    cameras = [checked_camera(folder, _camera_view(image)) for image in model.images.values()
+               if image.has_pose] if with_cameras else []
     return Reconstruction(
         positions=checked_positions(folder, positions),
         kind="colmap", source=folder, sha256=sha256_of_files(files),

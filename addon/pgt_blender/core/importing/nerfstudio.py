@@ -12,11 +12,11 @@ camera axes (OpenCV) -> R axes.
 
 import json
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from ..files import regular_file
 
 DATAPARSER_TRANSFORMS = "dataparser_transforms.json"
 
@@ -24,12 +24,12 @@ DATAPARSER_TRANSFORMS = "dataparser_transforms.json"
 def read_dataparser_transform(path) -> tuple:
     """(R (3, 3), t (3,), s) of a ``dataparser_transforms.json``; InputError naming the
     file unless R is a rotation and s a positive finite number."""
-    path = Path(path)
+    path = regular_file(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
         transform = np.array(data["transform"], np.float64).reshape(3, 4)
         scale = float(data["scale"])
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError) as error:
+    except (OSError, KeyError, TypeError, ValueError, OverflowError, RecursionError) as error:
         raise InputError(path, f"not a nerfstudio dataparser transform: {{'transform': 3x4, 'scale': s}} "
                                f"({type(error).__name__}: {error})") from None
     rotation, translation = transform[:, :3], transform[:, 3]

@@ -46,16 +46,21 @@ def load_plenoxels(path) -> Reconstruction:
     if links.ndim != 3 or links.dtype.kind not in "iu" or min(links.shape) < 1:
         raise InputError(path, f"links must be a 3-D integer grid, not {links.dtype} {links.shape}")
     if "data" in arrays and "sh_data" not in arrays:
-        density, sh = arrays["data"][..., :1], arrays["data"][..., 1:]
+        if arrays["data"].ndim != 2:
+            raise InputError(path, f"data {arrays['data'].shape} must be (C, 1 + 3 K)")
+        density, sh = arrays["data"][:, :1], arrays["data"][:, 1:]
     else:
         density, sh = arrays["density_data"], arrays["sh_data"]
-    rows = len(density)
+    rows = len(density) if density.ndim else 0
     count = sh.shape[1] // 3 if sh.ndim == 2 else 0
     if density.shape != (rows, 1) or sh.ndim != 2 or len(sh) != rows or sh.shape[1] != 3 * count \
             or count not in COEFFICIENT_COUNTS:
         raise InputError(path, f"density_data {density.shape} and sh_data {sh.shape} must be (C, 1) and (C, 3 K) "
                                f"with K one of {COEFFICIENT_COUNTS} (SH degree 0-3)")
-    basis = int(arrays["basis_type"]) if "basis_type" in arrays else BASIS_SH
+    basis = arrays.get("basis_type", np.array(BASIS_SH))
+    if basis.size != 1 or basis.dtype.kind not in "iu":
+        raise InputError(path, f"basis_type must be one integer, not {basis.dtype} {basis.shape}")
+    basis = int(basis.ravel()[0])
     if basis != BASIS_SH:
         raise InputError(path, f"basis_type {basis} ({_LEARNED_BASES.get(basis, 'unknown')}): only spherical "
                                f"harmonics (basis_type 1) are read")
@@ -88,13 +93,28 @@ def load_plenoxels(path) -> Reconstruction:
                           source=path, sha256=sha256_of_files([path]), colors=colors, attributes=attributes)
 
 
+_NUMERIC = ("links", "density_data", "sh_data", "data", "radius", "center")  # integer or float arrays where present
+
+
 def _read(path: Path) -> dict:
-    """Every array of the archive (no pickled objects: ``allow_pickle=False``)."""
+    """Every array of the archive (no pickled objects: ``allow_pickle=False``), each
+    member's declared size checked against its bytes before it is read."""
     try:
+        with open(path, "rb") as stream:
+            is_zip = stream.read(4) in (b"PK\x03\x04", b"PK\x05\x06")  # np.load would read a .npy or pickle too
+        if not is_zip:
+            raise InputError(path, "not an .npz archive (a zip of .npy arrays)")
         with np.load(path, allow_pickle=False) as archive:
+            for member in archive.zip.infolist():
+                _check_member_size(path, archive.zip, member)
             arrays = {name: archive[name] for name in archive.files}
+    except InputError:
+        raise
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
         raise InputError(path, f"not a readable .npz archive ({type(error).__name__}: {error})") from None
+    wrong = [f"{key} ({arrays[key].dtype})" for key in _NUMERIC if key in arrays and arrays[key].dtype.kind not in "iuf"]
+    if wrong:
+        raise InputError(path, f"arrays that must hold numbers do not: {', '.join(wrong)}")
     missing = [key for key in ("links",) if key not in arrays]
     if "data" not in arrays:
         missing += [key for key in ("density_data", "sh_data") if key not in arrays]
@@ -102,6 +122,23 @@ def _read(path: Path) -> dict:
         raise InputError(path, f"not a Plenoxels (svox2) checkpoint: no {', '.join(missing)} "
                                f"(has {', '.join(sorted(arrays)) or 'nothing'})")
     return arrays
+
+
+def _check_member_size(path: Path, archive: zipfile.ZipFile, member: zipfile.ZipInfo) -> None:
+    """InputError when an .npy member's header declares more bytes than the member
+    holds: numpy would allocate what the header says before reading."""
+    if not member.filename.endswith(".npy"):
+        return
+    with archive.open(member) as stream:
+        version = np.lib.format.read_magic(stream)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+        if version not in read_header:
+            raise InputError(path, f"member {member.filename}: .npy format version {version} is not read")
+        shape, _, dtype = read_header[version](stream)
+    declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    if declared > member.file_size:
+        raise InputError(path, f"member {member.filename} declares {shape} {dtype} ({declared:,} bytes) but holds "
+                               f"{member.file_size:,}")
 
 
 def _vector(path: Path, arrays: dict, key: str, default: float) -> np.ndarray:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..files import atomic_output
+from ..files import atomic_output, regular_file
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -49,7 +49,7 @@ class PlyHeader:
 
 def read_header(path: Path) -> PlyHeader:
     """Parse the header of ``path``; InputError when it is not a valid PLY header."""
-    path = Path(path)
+    path = regular_file(path)
     try:
         with open(path, "rb") as stream:
             head = stream.read(_MAX_HEADER_BYTES)
@@ -92,6 +92,9 @@ def read_header(path: Path) -> PlyHeader:
             raise InputError(path, f"bad PLY header line {number} '{raw.strip()}': {error}") from None
     if fmt is None:
         raise InputError(path, "PLY header has no 'format' line")
+    for element in elements:
+        if element.count and not (element.properties or element.list_properties):
+            raise InputError(path, f"PLY element '{element.name}' declares {element.count} rows but no properties")
     return PlyHeader(fmt, elements, size)
 
 

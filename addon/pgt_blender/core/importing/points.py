@@ -16,6 +16,7 @@ SPLAT_FIELDS = _DC + _SHAPE  # what a 3DGS PLY has besides x y z (and f_rest_* f
 _XYZ = ("x", "y", "z")
 _RGB = ("red", "green", "blue")
 _NORMAL = ("nx", "ny", "nz")
+_MAX_LOG_SCALE = float(np.log(np.finfo(np.float32).max))  # a larger stored log-scale is an infinite scale
 
 
 def is_gaussian_splat(path: Path, header: PlyHeader) -> bool:
@@ -76,13 +77,13 @@ def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
     names = set(data)
     color = _DC if set(_DC) <= names else _RGB
     _require(path, names, _XYZ + _SHAPE + color, "a Gaussian-splat PLY")
-    rest = sorted((n for n in names if n.startswith("f_rest_")), key=lambda n: int(n[7:]))
-    if len(rest) not in (0, 9, 24, 45) or rest != [f"f_rest_{i}" for i in range(len(rest))]:
+    rest = [f"f_rest_{i}" for i in range(sum(name.startswith("f_rest_") for name in names))]
+    if len(rest) not in (0, 9, 24, 45) or not names.issuperset(rest):
         raise InputError(
             path, f"{len(rest)} f_rest_* fields; spherical harmonics of degree 1, 2 or 3 "
             "need 9, 24 or 45 numbered from f_rest_0"
         )
-    _require_finite(path, data, color + _SHAPE + tuple(rest), "splats")
+    _require_finite(path, data, color + _SHAPE + tuple(rest) + (_NORMAL if set(_NORMAL) <= names else ()), "splats")
     rotation = _stack(data, ("rot_0", "rot_1", "rot_2", "rot_3")).astype(np.float64)
     length = np.linalg.norm(rotation, axis=1)
     if not (length > 0).all():
@@ -91,7 +92,12 @@ def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
     consumed = _XYZ + _SHAPE + empty_normals + (_RGB if color == _RGB else ())
     attributes = _leftover_attributes(path, data, consumed, ("opacity", "scale", "rotation"))
     attributes["opacity"] = (1.0 / (1.0 + np.exp(-data["opacity"].astype(np.float64)))).astype(np.float32)
-    attributes["scale"] = np.exp(_stack(data, ("scale_0", "scale_1", "scale_2")).astype(np.float64)).astype(np.float32)
+    log_scale = _stack(data, ("scale_0", "scale_1", "scale_2")).astype(np.float64)
+    huge = int((log_scale > _MAX_LOG_SCALE).any(axis=1).sum())
+    if huge:
+        raise InputError(path, f"{huge} splats have a log-scale beyond float32 once exponentiated (scale_* above "
+                               f"{_MAX_LOG_SCALE:.1f})")
+    attributes["scale"] = np.exp(log_scale).astype(np.float32)
     attributes["rotation"] = (rotation / length[:, None]).astype(np.float32)
     colors = np.ones((len(data["x"]), 4), np.float32)
     if color == _DC:
@@ -106,8 +112,10 @@ def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
 
 
 def _require_finite(path, data: dict, names, what: str) -> None:
-    """InputError naming the properties where some values are NaN or infinite."""
-    bad = {name: int((~np.isfinite(data[name])).sum()) for name in names if data[name].dtype.kind == "f"}
+    """InputError naming the properties where some values are NaN or infinite, here or
+    once stored as float32 (as the importer keeps them)."""
+    largest = np.finfo(np.float32).max
+    bad = {name: int((~(np.abs(data[name]) <= largest)).sum()) for name in names if data[name].dtype.kind == "f"}
     bad = {name: count for name, count in bad.items() if count}
     if bad:
         listed = ", ".join(f"{name} ({count})" for name, count in bad.items())

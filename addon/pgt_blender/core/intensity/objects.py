@@ -18,7 +18,7 @@ import numpy as np
 
 from ..boxes import box_frame, kitti_camera_to_lidar
 from ..errors import InputError
-from ..files import read_float32_rows
+from ..files import read_float32_rows, regular_file
 from ..scan.sensors import INTENSITY_MAX
 
 DEFAULT_POINTS = 256  # the paper's point count per object, and its minimum
@@ -90,7 +90,7 @@ def gt_database_objects(path, convention: str, dataset: str, min_points: int = 1
 def _read_calibration(path: Path) -> np.ndarray:
     """(4, 4) rect_from_velodyne of a KITTI calib file (R0_rect @ Tr_velo_to_cam)."""
     rows = {}
-    for line in path.read_text().splitlines():
+    for line in regular_file(path).read_text().splitlines():
         if ":" in line:
             key, numbers = line.split(":", 1)
             rows[key.strip()] = np.array(numbers.split(), np.float64)
@@ -109,7 +109,7 @@ def kitti_label_boxes(label_path: Path, calib_path: Path) -> list:
     -y axis: heading = -ry - pi/2 in the velodyne frame."""
     velodyne_from_rect = np.linalg.inv(_read_calibration(calib_path))
     kinds, camera_boxes = [], []
-    for number, line in enumerate(label_path.read_text().splitlines(), 1):
+    for number, line in enumerate(regular_file(label_path).read_text().splitlines(), 1):
         fields = line.split()
         if not fields or fields[0] in KITTI_SKIPPED:
             continue

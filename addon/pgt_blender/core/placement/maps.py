@@ -25,11 +25,11 @@ Which layers a class may stand on: ``CLASS_LAYERS`` by default (configurable).
 
 import json
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from ..files import regular_file
 
 RADIUS = 51.2  # m: the paper's map extent around the ego
 RESOLUTION = 0.128  # m per pixel: the paper's
@@ -109,12 +109,12 @@ def class_layers(class_name: str, table: dict | None = None) -> tuple:
 def read_polygons(path) -> list:
     """[(layer, [ring (K, 2) float64, ...]), ...] of a GeoJSON FeatureCollection or a JSON
     list of {"layer", "polygon"} (the module docstring); InputError naming ``path``."""
-    path = Path(path)
+    path = regular_file(path)
     try:
         data = json.loads(path.read_text())
     except OSError as error:
         raise InputError(path, f"cannot read the file ({error.strerror or error})") from None
-    except ValueError as error:
+    except (ValueError, RecursionError) as error:
         raise InputError(path, f"not JSON ({error})") from None
     if isinstance(data, dict) and data.get("type") == "FeatureCollection":
         shapes = []

@@ -28,12 +28,12 @@ ray meeting a surface returns nothing, fitted to real scans (empty: none known).
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from functools import cached_property
-from pathlib import Path
 
 import numpy as np
 
 from ..classes import DATASETS
 from ..errors import InputError
+from ..files import regular_file
 
 # Point formats of the datasets: intensity scale and .bin columns (REFERENCE.md 1-2).
 INTENSITY_MAX = {"nuscenes": 255.0, "kitti": 1.0, "lyft": 255.0}
@@ -360,7 +360,7 @@ def read_velodyne_calibration(path) -> dict:
     the file for anything else."""
     import yaml
 
-    path = Path(path)
+    path = regular_file(path)
     try:
         table = yaml.safe_load(path.read_text())
         lasers = table["lasers"]
@@ -393,7 +393,7 @@ def load_sensor_toml(path) -> Sensor:
         base = "nuscenes"
         calibration = "32db.yaml"
     """
-    path = Path(path)
+    path = regular_file(path)
     try:
         table = tomllib.loads(path.read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
