@@ -147,6 +147,6 @@ def test_bad_inputs_leave_scene_and_disk_as_they_were(scene, folder, tmp_path):
     refused(bpy.ops.scene.pgt_preview_bank, "is not a finished bank")
     refused(bpy.ops.scene.pgt_open_bank_report, "no report yet")
     bank_settings.config_file = str(tmp_path / "missing.toml")
-    refused(bpy.ops.scene.pgt_save_bank_config, "missing.toml: not a readable TOML file",
+    refused(bpy.ops.scene.pgt_save_bank_config, "missing.toml: cannot read the file",
             filepath=str(tmp_path / "saved.toml"))
     assert not (tmp_path / "saved.toml").exists()

@@ -365,7 +365,7 @@ def test_bvh_is_built_once_per_object_and_rebuilt_after_an_edit(scene, monkeypat
 
 def _missing_toml(scene, tmp_path):
     scene.pgt_scan.sensor, scene.pgt_scan.sensor_file = "CUSTOM", str(tmp_path / "nowhere.toml")
-    return "nowhere.toml: not a readable TOML file"
+    return "nowhere.toml: cannot read the file (No such file or directory)"
 
 
 def _bad_toml(scene, tmp_path):
