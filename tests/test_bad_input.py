@@ -458,3 +458,15 @@ def test_a_pipe_or_device_named_as_a_file_is_refused_unread(tmp_path, reader, sp
         signal.alarm(0)
         signal.signal(signal.SIGALRM, previous)
     assert error.value.path == path and "not a regular file (a pipe, socket or device)" in error.value.problem
+
+
+@pytest.mark.parametrize("flag, value, problem", [
+    ("--max-distance", "inf", "expected a finite number, got 'inf'"),
+    ("--seed", "-1", "expected a whole number >= 0, got '-1'"),
+    ("--objects", "Pedestrian=100000000", "expected CLASS=N (a class and a count up to 1000)"),
+])
+def test_place_objects_out_of_range_arguments_are_usage_errors(tmp_path, flag, value, problem):
+    result = run_script("place_objects.py", "--scan", tmp_path / "a.bin", "--info", tmp_path / "a.txt", "--bank",
+                        tmp_path, "--out", tmp_path / "placed", f"{flag}={value}")
+    assert result.returncode == 2 and f"argument {flag}: {problem}" in result.stderr
+    assert not (tmp_path / "placed").exists()

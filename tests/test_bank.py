@@ -125,6 +125,16 @@ def test_default_config_is_the_papers_nuscenes_bank():
     ("[bank]\nintensity = \"bright\"\n", "bank.intensity"),
     ("[bank]\nintensity = 300\n", "above nuscenes's maximum 255"),
     ("[bank]\ndataset = \"lyft\"\nintensity_checkpoint = \"m.pt\"\n", "set bank.intensity = \"model\""),
+    # values whose arrays or run would not fit a machine, numbers beyond a float
+    ("[grid]\nx = [0, 1e9, 1e-9]\n", "grid.x"),
+    ("[grid]\nx = [-1e4, 1e4, 0.1]\ny = [-1e4, 1e4, 0.1]\n", "the grid has 5.2e+11 headings x positions"),
+    ("[grid]\nheadings_deg = [0, inf, 1]\n", "grid.headings_deg"),
+    ("[bank]\nsweeps = 1000000\n", "bank.sweeps"),
+    ("[jitter]\nsize_variants = 1000000000\n", "jitter.size_variants"),
+    ("[jitter]\ncentre = 1" + "0" * 400 + "\n", "jitter.centre"),
+    ("[bank]\nradius_scale = inf\n", "bank.radius_scale"),
+    ("[bank]\nsensor = \"a\\u0000b.toml\"\n", "bank.sensor"),
+    ("[classes]\ntruck = \"" + "T" * 300 + "\"\n", "classes.truck"),  # a file name too long for the disk
 ])
 def test_a_bad_config_names_the_bad_key(tmp_path, text, named):
     path = tmp_path / "bank.toml"
@@ -552,6 +562,7 @@ def test_incomplete_objects_are_listed_and_refused(prepared, tmp_path, reference
 @pytest.mark.parametrize("damage, problem", [
     (lambda record: json.dumps({**record, "dims": "big"}).encode(), "dims must be three positive lengths"),
     (lambda record: json.dumps({**record, "dims": [4, 2, -1]}).encode(), "dims must be three positive lengths"),
+    (lambda record: json.dumps({**record, "dims": [4, 2, 10**400]}).encode(), "dims must be three positive lengths"),
     (lambda record: json.dumps({**record, "class": 7}).encode(), "class must be a string, got 7"),
     (lambda record: json.dumps([record]).encode(), "expected a JSON object"),
     (lambda record: "\N{LATIN SMALL LETTER E WITH ACUTE}".encode("latin-1") + b"{}", "UnicodeDecodeError"),

@@ -291,7 +291,11 @@ def test_a_crafted_database_runs_no_code(real, bank, tmp_path, crafted):
 @pytest.mark.parametrize("key, value, problem", [
     ("box3d_lidar", np.array([0, 0, np.nan, 1, 1, 1, 0], np.float32), "box3d_lidar must be 7 or more finite numbers"),
     ("box3d_lidar", "big", "box3d_lidar must be 7 or more finite numbers"),
+    ("box3d_lidar", np.array([0, 0, 0, 4, 0, 1.5, 0], np.float32), "box3d_lidar must be .* its dimensions positive"),
     ("num_points_in_gt", -3, "num_points_in_gt must be a count >= 0, got -3"),
+    ("num_points_in_gt", 10**30, "num_points_in_gt must be a count >= 0"),
+    ("path", 5, "path must be a file path string, got 5"),
+    ("path", "a\0b.bin", "path must be a file path string"),
 ])
 def test_garbage_infos_are_refused_not_copied(real, bank, tmp_path, key, value, problem):
     infos = load(bank)

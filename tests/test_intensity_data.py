@@ -47,6 +47,40 @@ def test_kitti_label_boxes_match_the_database_box(kitti, gt_database):
     assert np.isclose(np.cos(heading - box[6]), 1.0, atol=1e-9)
 
 
+def _label_line(change):
+    def damage(label, calib):
+        fields = label.read_text().splitlines()[0].split()
+        change(fields)
+        label.write_text(" ".join(fields) + "\n")
+    return damage
+
+
+def _calib_line(key, numbers):
+    def damage(label, calib):
+        calib.write_text("\n".join(f"{key}: {numbers}" if line.startswith(key + ":") else line
+                                   for line in calib.read_text().splitlines()) + "\n")
+    return damage
+
+
+@pytest.mark.parametrize("damage, named, problem", [
+    (_label_line(lambda f: f.__setitem__(8, "nan")), "label", "line 1: the box must be finite numbers"),
+    (_label_line(lambda f: f.__setitem__(9, "-1.5")), "label", "line 1: the box must be finite numbers with positive"),
+    (lambda label, calib: label.write_bytes(b"Car \xff\xfe 0 0\n"), "label", "not a readable text file"),
+    (lambda label, calib: calib.write_bytes(b"R0_rect: \xff\n"), "calib", "not a readable text file"),
+    (_calib_line("R0_rect", "abc"), "calib", "not a KITTI calib file"),
+    (_calib_line("R0_rect", " ".join(["0"] * 9)), "calib", "not a finite, invertible transform"),
+    (_calib_line("Tr_velo_to_cam", " ".join(["1e308"] * 12)), "calib", "not a finite, invertible transform"),
+])
+def test_damaged_kitti_labels_and_calibs_name_the_file(kitti, tmp_path, damage, named, problem):
+    label, calib = tmp_path / "label.txt", tmp_path / "calib.txt"
+    label.write_bytes((kitti / "label_2" / "000000.txt").read_bytes())
+    calib.write_bytes((kitti / "calib" / "000000.txt").read_bytes())
+    damage(label, calib)
+    with pytest.raises(InputError) as error:
+        kitti_label_boxes(label, calib)
+    assert error.value.path == {"label": label, "calib": calib}[named] and problem in error.value.problem
+
+
 def test_farthest_point_sampling_by_hand():
     points = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [10, 0, 0], [4, 0, 0]])
     first = farthest_point_sample(points, 3, seed=0)
@@ -109,7 +143,7 @@ def write_database(folder, columns: np.ndarray, count: int):
 
 @pytest.mark.parametrize("columns, problem", [
     (np.zeros((10, 3)), "has no intensity column"),
-    (np.column_stack([np.zeros((10, 3)), np.full(10, np.nan)]), "10 intensities are NaN"),
+    (np.column_stack([np.zeros((10, 3)), np.full(10, np.nan)]), "0_Car_0.bin: 10 of 40 float32 values are NaN"),
     (np.column_stack([np.zeros((10, 3)), np.full(10, 200.0)]), "outside kitti's 0..1"),
     (np.zeros(31), "do not split into the 10 points"),
 ])

@@ -213,6 +213,9 @@ def test_polygons_and_an_image_of_the_same_map_agree_and_holes_are_cut(tmp_path)
                                                  "geometry": {"type": "LineString", "coordinates": [[0, 0], [1, 1]]}}]},
      "is a 'LineString', not a Polygon"),
     ({"road": []}, "not a GeoJSON FeatureCollection"),
+    ({"type": "FeatureCollection", "features": None}, "features must be a list"),
+    ({"type": "FeatureCollection", "features": [{"properties": {"layer": "road"}, "geometry": 5}]},
+     "is a None, not a Polygon"),
 ])
 def test_bad_map_polygons_are_named(tmp_path, content, problem):
     path = tmp_path / "map.json"
@@ -269,9 +272,10 @@ def test_thompson_cells_count_as_the_paper_defines_and_draw_towards_failures(tmp
     np.testing.assert_array_equal(again.failures, cells.failures)
     np.testing.assert_array_equal(ThompsonCells.from_state_dict(pickle.loads(pickle.dumps(cells.state_dict()))).successes,
                                   cells.successes)
-    path.write_text('{"format": "something else"}')
-    with pytest.raises(InputError, match="cells.json: not a Thompson cells state"):
-        ThompsonCells.load(path)
+    for text in ('{"format": "something else"}', "[" * 100_000):
+        path.write_text(text)
+        with pytest.raises(InputError, match="cells.json: not a Thompson cells state"):
+            ThompsonCells.load(path)
 
 
 def test_a_thompson_file_is_read_again_when_the_trainer_saves_it(tmp_path):

@@ -50,6 +50,28 @@ def test_kitti_infos_of_both_frameworks_give_the_label_files_boxes(shared_data, 
         np.testing.assert_array_equal(scene.lidar_to_world, np.eye(4))
 
 
+@pytest.mark.parametrize("sample", [
+    {"lidar_points": {"lidar_path": f"{FRAME}.bin"}, "instances": [None]},
+    {"lidar_points": {"lidar_path": f"{FRAME}.bin"}, "instances": [{"bbox_label_3d": 0, "bbox_3d": "big"}]},
+    {"lidar_points": {"lidar_path": f"{FRAME}.bin"}, "images": {"CAM2": {"lidar2cam": np.zeros((4, 4)).tolist()}},
+     "instances": [{"bbox_label_3d": 0, "bbox_3d": [0, 0, 0, 1, 1, 1, 0]}]},
+])
+def test_an_info_sample_of_other_types_is_named_not_a_traceback(shared_data, tmp_path, sample):
+    data = {"metainfo": {"categories": {"Car": 0}, "dataset": "kitti"}, "data_list": [sample]}
+    (tmp_path / "infos.pkl").write_bytes(pickle.dumps(data))
+    with pytest.raises(InputError, match="infos.pkl: the scan's sample is not a usable info"):
+        read_scene(shared_data / "kitti_scans" / "velodyne" / f"{FRAME}.bin", tmp_path / "infos.pkl")
+
+
+def test_a_scan_with_nan_points_is_named(shared_data, tmp_path):
+    folder = shared_data / "kitti_scans"
+    points = np.fromfile(folder / "velodyne" / f"{FRAME}.bin", np.float32)
+    points[:40] = np.nan
+    (tmp_path / f"{FRAME}.bin").write_bytes(points.tobytes())
+    with pytest.raises(InputError, match=f"{FRAME}.bin: 40 of {points.size} float32 point columns .* are NaN or Inf"):
+        read_scene(tmp_path / f"{FRAME}.bin", folder / "label_2" / f"{FRAME}.txt")
+
+
 def test_a_nuscenes_openpcdet_info_keeps_its_boxes_and_pose(shared_data, tmp_path):
     folder = shared_data / "nuscenes_format_sample"
     scan = folder / "samples" / "LIDAR_TOP" / "n015-2018-08-02-17-16-37+0800__LIDAR_TOP__1533201470948018.pcd.bin"

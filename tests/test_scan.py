@@ -95,6 +95,7 @@ def test_paper_ablation_settings_are_expressible(tmp_path):
     ("columns = 1e9", "columns must be a positive integer"),
     ('elevations_deg = "12"', "elevations_deg must be a list of numbers"),
     ('firing_us = [0, "a"]', "firing_us must be a list of numbers"),
+    ("firing_us = [1" + "0" * 400 + "]", "firing_us must be a list of numbers"),  # beyond a float
 ])
 def test_bad_sensor_files_name_the_file_and_the_problem(tmp_path, body, problem):
     path = tmp_path / "bad.toml"

@@ -108,6 +108,8 @@ def test_a_real_hdl64e_table_keeps_its_two_blocks_of_laser_origins(shared_data, 
     ("lasers:\n- {rot_correction: 0.1}\n", "(KeyError: 'vert_correction')"),
     ("lasers:\n- {vert_correction: .nan}\n", "calibration values must be finite numbers"),
     ("lasers: [\n", "not a readable YAML file"),
+    ("lasers:\n- {vert_correction: 1" + "0" * 400 + "}\n", "(OverflowError"),  # beyond a float
+    ("lasers: " + "[" * 20_000 + "\n", "not a readable YAML file"),  # RecursionError in the parser
 ])
 def test_bad_calibration_tables_name_the_file(tmp_path, text, problem):
     (tmp_path / "bad.yaml").write_text(text)

@@ -4,7 +4,9 @@ the same command runs as a console script (``pgt-export-bank ARGS``), as
 ``blender -b [file.blend] -P headless_scripts/export_bank.py -- ARGS``, and reports bad
 input as one line and exit code 1. Benchmark helpers live in dev.py, which does not ship."""
 
+import argparse
 import atexit
+import math
 import os
 import sys
 
@@ -61,3 +63,21 @@ def command(main):
     def run() -> None:
         exit(run_main(main, script_argv()))
     return run
+
+
+def finite(text: str) -> float:
+    """A finite number, as an argparse type (NaN and infinities are refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got '{text}'")
+    return value
+
+
+def count(text: str) -> int:
+    """A whole number >= 0, as an argparse type."""
+    if not text.isdigit():
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got '{text}'")
+    return int(text)

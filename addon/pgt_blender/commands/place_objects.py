@@ -37,13 +37,14 @@ from ..core.placement.scenes import read_scene
 from ..core.scan.sensors import PRESETS, sensor_from_name
 
 DEFAULT_COUNT = 3  # objects per bank class when --objects is not given
+MAX_OBJECTS = 1000  # per class: more than a scene holds
 
 
 def objects_argument(text: str) -> tuple:
     """"CLASS=N" -> (class, n), as an argparse type."""
     name, _, count = text.partition("=")
-    if not name or not count.isdigit():
-        raise argparse.ArgumentTypeError(f"expected CLASS=N (a class and a count), got {text!r}")
+    if not name or not count.isdigit() or int(count) > MAX_OBJECTS:
+        raise argparse.ArgumentTypeError(f"expected CLASS=N (a class and a count up to {MAX_OBJECTS}), got {text!r}")
     return name, int(count)
 
 
@@ -63,14 +64,14 @@ def main(argv: list) -> int:
                                          "(default: the dataset's)")
     parser.add_argument("--map-polygons", type=Path, help="map layers as polygons (GeoJSON or JSON list), world frame")
     parser.add_argument("--map", type=Path, help="semantic map image (Lyft-style raster)")
-    parser.add_argument("--map-pose", type=float, nargs="+", metavar="V",
+    parser.add_argument("--map-pose", type=cli.finite, nargs="+", metavar="V",
                         help="X0 Y0 RESOLUTION [YAW_DEG]: the image's top-left corner in the world, m per pixel")
     parser.add_argument("--map-legend", type=Path, help="JSON {layer: label or [r, g, b]} of the map image")
     parser.add_argument("--class-layers", type=Path, help="JSON {class: [layer, ...]} over the default layers")
     parser.add_argument("--thompson", type=Path, help="Thompson cells state (JSON) to draw cells from")
-    parser.add_argument("--max-distance", type=float, default=54.0, help="farthest entry placed, m (default 54)")
+    parser.add_argument("--max-distance", type=cli.finite, default=54.0, help="farthest entry placed, m (default 54)")
     parser.add_argument("--no-occlusion", action="store_true", help="skip the range-view ray tracing")
-    parser.add_argument("--seed", type=int, default=0, help="seed of every draw (default 0)")
+    parser.add_argument("--seed", type=cli.count, default=0, help="seed of every draw (default 0)")
     args = parser.parse_args(argv)
     if args.map is not None and (args.map_pose is None or args.map_legend is None):
         parser.error("--map needs --map-pose and --map-legend")
@@ -122,11 +123,15 @@ def _scene_map(args, lidar_to_world: np.ndarray):
     if args.map is None:
         return None
     from matplotlib.image import imread
+    from PIL import Image
 
+    regular_file(args.map)
     try:
+        with Image.open(args.map):  # refuses a header claiming more pixels than memory holds
+            pass
         image = imread(args.map)
-    except (OSError, ValueError, SyntaxError) as error:
-        raise InputError(args.map, f"not a readable image ({error})") from None
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as error:
+        raise InputError(args.map, f"not a readable image ({type(error).__name__}: {error})") from None
     if image.dtype.kind == "f":  # matplotlib reads PNGs as floats in [0, 1]
         image = np.round(image * 255).astype(np.uint8)
     legend = _json(args.map_legend)

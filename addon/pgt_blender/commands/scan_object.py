@@ -103,35 +103,24 @@ def moving_class(args, class_name: str) -> str:
     return known
 
 
-def finite(text: str) -> float:
-    """A finite number, as an argparse type (NaN and infinities are refused)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not np.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got '{text}'")
-    return value
-
-
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="scan_object.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--object", type=Path, required=True, help="mesh, point or splat file, object frame")
     parser.add_argument("--sensor", default="nuscenes", help=f"{', '.join(PRESETS)} or a .toml file")
-    parser.add_argument("--x", type=finite, required=True, help="object position, sensor frame (m)")
-    parser.add_argument("--y", type=finite, required=True, help="object position, sensor frame (m)")
-    parser.add_argument("--heading", type=finite, default=0.0, help="deg, counter-clockwise from +x")
+    parser.add_argument("--x", type=cli.finite, required=True, help="object position, sensor frame (m)")
+    parser.add_argument("--y", type=cli.finite, required=True, help="object position, sensor frame (m)")
+    parser.add_argument("--heading", type=cli.finite, default=0.0, help="deg, counter-clockwise from +x")
     parser.add_argument("--sweeps", type=int, default=1, help="merged sweeps of a moving object (nuScenes: 10)")
     parser.add_argument("--class", dest="class_name", help="class for the motion model (default: sidecar JSON)")
-    parser.add_argument("--speed", type=finite, help="m/s along the heading, instead of the class's draw")
-    parser.add_argument("--acceleration", type=finite, default=0.0, help="m/s^2, with --speed")
+    parser.add_argument("--speed", type=cli.finite, help="m/s along the heading, instead of the class's draw")
+    parser.add_argument("--acceleration", type=cli.finite, default=0.0, help="m/s^2, with --speed")
     parser.add_argument("--surface", choices=("auto", "mesh", "gaussians", "surfels", "range-view"), default="auto",
                         help="auto: mesh when the file has faces, Gaussians for a splat, else surfels")
-    parser.add_argument("--radius-scale", type=finite, default=1.0, help="surfel radius / local point spacing")
+    parser.add_argument("--radius-scale", type=cli.finite, default=1.0, help="surfel radius / local point spacing")
     parser.add_argument("--intensity-checkpoint", type=Path,
                         help="intensity.pt of train_intensity.py: learned intensities instead of the physical law")
     parser.add_argument("--noise", action="store_true", help="add the sensor's range noise")
-    parser.add_argument("--drop-rate", type=finite, default=0.0, help="random ray drop probability")
+    parser.add_argument("--drop-rate", type=cli.finite, default=0.0, help="random ray drop probability")
     parser.add_argument("--ray-drop", action="store_true", help="drop returns with the sensor's fitted ray-drop "
                                                                  "model (kitti has one)")
     parser.add_argument("--seed", type=int, default=0)

@@ -1,6 +1,18 @@
 """The one error type bad input raises, so every front end can report it the same way."""
 
+import math
 from pathlib import Path
+
+
+def finite_number(value) -> bool:
+    """True for an int or float that is finite as a float (a bool is not a number here,
+    nor an integer too large for a float)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 class InputError(ValueError):

@@ -44,6 +44,9 @@ def read_float32_rows(path, columns: int = 1, what: str = "values"):
         raise InputError(path, f"cannot read the file ({error.strerror or error})") from None
     if size % (4 * columns):
         raise InputError(path, f"{size} bytes are not whole rows of {columns} float32 {what}")
+    unusable = int(np.count_nonzero(~np.isfinite(data)))
+    if unusable:
+        raise InputError(path, f"{unusable} of {data.size} float32 {what} are NaN or Inf")
     return data.reshape(-1, columns)
 
 
@@ -55,6 +58,8 @@ def regular_file(path) -> Path:
         mode = path.stat().st_mode
     except OSError as error:
         raise InputError(path, f"cannot read the file ({error.strerror or error})") from None
+    except ValueError:  # a NUL byte in the path
+        raise InputError(path, "not a usable file name (it holds a NUL byte)") from None
     if stat.S_ISDIR(mode):
         raise InputError(path, "is a folder; expected a file")
     if not stat.S_ISREG(mode):

@@ -59,13 +59,17 @@ def load_infos(path, required: tuple = REQUIRED_KEYS) -> dict:
             if missing:
                 raise InputError(path, f"info {index} of '{name}' lacks {', '.join(missing)}")
             box = np.asarray(info["box3d_lidar"])
-            if box.dtype.kind not in "fiu" or box.ndim != 1 or box.size < 7 or not np.isfinite(box).all():
+            if box.dtype.kind not in "fiu" or box.ndim != 1 or box.size < 7 or not np.isfinite(box).all() \
+                    or not (box[3:6] > 0).all():
                 raise InputError(path, f"info {index} of '{name}': box3d_lidar must be 7 or more finite numbers, "
-                                       f"got {info['box3d_lidar']!r}")
+                                       f"its dimensions positive, got {info['box3d_lidar']!r}")
             count = info["num_points_in_gt"]
-            if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 0:
+            if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or not 0 <= count < 2**31:
                 raise InputError(path, f"info {index} of '{name}': num_points_in_gt must be a count >= 0, "
                                        f"got {count!r}")
+            if "path" in info and not (isinstance(info["path"], str) and "\0" not in info["path"]):
+                raise InputError(path, f"info {index} of '{name}': path must be a file path string, "
+                                       f"got {info['path']!r}")
     return infos
 
 

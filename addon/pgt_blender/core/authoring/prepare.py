@@ -7,13 +7,12 @@ UI and ``prepare_objects.py`` give identical points, boxes and transforms.
 """
 
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, finite_number
 from ..files import atomic_output, regular_file
 from ..reconstruction import Reconstruction
 from . import heading, sizing
@@ -236,7 +235,7 @@ def read_sidecar(path) -> dict:
         raise InputError(path, f"class must be a string, got {record['class']!r}")
     dims = record.get("dims")
     if dims is not None and not (isinstance(dims, list) and len(dims) == 3 and all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in dims)):
+            finite_number(v) and v > 0 for v in dims)):
         raise InputError(path, f"dims must be three positive lengths [l, w, h] in metres, got {dims!r}")
     steps = record.get("steps", [])
     if not (isinstance(steps, list) and all(isinstance(step, dict) for step in steps)):

@@ -52,7 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from ..classes import DATASETS
-from ..errors import InputError
+from ..errors import InputError, finite_number
 from ..files import regular_file
 from ..scan.raycast import ENGINES
 from ..scan.sensors import INTENSITY_MAX
@@ -121,49 +121,55 @@ class BankConfig:
         return {key: list(value) if isinstance(value, tuple) else value for key, value in asdict(self).items()}
 
 
+# Bounds that keep a config's arrays and run time finite (a bank at 1,000 entries/s).
+MAX_GRID_POSES = 10**8  # headings x positions of one object's grid: over a day of export
+MAX_SWEEPS = 100  # the datasets merge 10
+MAX_SIZE_VARIANTS = 10_000
+
+
 # TOML section.key -> BankConfig field and the check of its value.
 def _positive_int(value):
     return isinstance(value, int) and not isinstance(value, bool) and value > 0
 
 
 def _non_negative(value):
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 0
+    return _number(value) and value >= 0
 
 
 def _grid_range(value):
     if not (isinstance(value, list) and len(value) == 3 and all(_number(v) for v in value)):
         return False
     start, stop, step = value
-    return step > 0 and stop >= start
+    return step > 0 and stop >= start and (stop - start) / step < MAX_GRID_POSES
 
 
-def _number(value):
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+_number = finite_number
 
 
 _KEYS = {
     "bank.dataset": ("dataset", lambda v: v in DATASETS, f"one of {', '.join(DATASETS)}"),
-    "bank.sensor": ("sensor", lambda v: isinstance(v, str), "a preset name or a .toml path"),
+    "bank.sensor": ("sensor", lambda v: isinstance(v, str) and "\0" not in v, "a preset name or a .toml path"),
     "bank.formats": ("formats", lambda v: isinstance(v, list) and v and set(v) <= set(FORMATS),
                      f"a non-empty list of {', '.join(FORMATS)}"),
     "bank.seed": ("seed", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
                   "an integer >= 0"),
     "bank.min_points": ("min_points", _positive_int, "an integer >= 1"),
     "bank.max_distance": ("max_distance", _non_negative, "metres >= 0 (0: no filter)"),
-    "bank.sweeps": ("sweeps", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
-                    "an integer >= 0 (0: the dataset's)"),
+    "bank.sweeps": ("sweeps", lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= MAX_SWEEPS,
+                    f"an integer in 0 .. {MAX_SWEEPS} (0: the dataset's)"),
     "bank.radius_scale": ("radius_scale", lambda v: _number(v) and v > 0, "a number > 0"),
     "bank.intensity": ("intensity", lambda v: v in ("auto", "model") or (_number(v) and v >= 0),
                        '"auto", "model" or a number >= 0'),
-    "bank.intensity_checkpoint": ("intensity_checkpoint", lambda v: isinstance(v, str), "a path"),
+    "bank.intensity_checkpoint": ("intensity_checkpoint", lambda v: isinstance(v, str) and "\0" not in v, "a path"),
     "bank.chunk_size": ("chunk_size", _positive_int, "an integer >= 1"),
-    "grid.headings_deg": ("headings_deg", _grid_range, "[start, stop, step] degrees, step > 0"),
-    "grid.x": ("x", _grid_range, "[start, stop, step] metres, step > 0"),
-    "grid.y": ("y", _grid_range, "[start, stop, step] metres, step > 0"),
+    "grid.headings_deg": ("headings_deg", _grid_range, "[start, stop, step] degrees, step > 0, under 1e8 steps"),
+    "grid.x": ("x", _grid_range, "[start, stop, step] metres, step > 0, under 1e8 steps"),
+    "grid.y": ("y", _grid_range, "[start, stop, step] metres, step > 0, under 1e8 steps"),
     "grid.ego_clearance": ("ego_clearance", _non_negative, "metres >= 0"),
     "jitter.centre": ("centre_jitter", _non_negative, "metres >= 0"),
     "jitter.size": ("size_jitter", lambda v: _number(v) and 0 <= v < 0.5, "a fraction in [0, 0.5)"),
-    "jitter.size_variants": ("size_variants", _positive_int, "an integer >= 1"),
+    "jitter.size_variants": ("size_variants", lambda v: _positive_int(v) and v <= MAX_SIZE_VARIANTS,
+                             f"an integer in 1 .. {MAX_SIZE_VARIANTS}"),
     "scan.range_noise": ("range_noise", lambda v: isinstance(v, bool), "true or false"),
     "scan.drop_rate": ("drop_rate", lambda v: _number(v) and 0 <= v < 1, "a fraction in [0, 1)"),
     "scan.ray_drop": ("ray_drop", lambda v: isinstance(v, bool), "true or false"),
@@ -196,10 +202,10 @@ def config_from_table(table: dict, path="bank config") -> BankConfig:
             raise InputError(path, f"{section} must be a [{section}] table")
         if section == "classes":
             bad = [key for key, name in entries.items()
-                   if not (isinstance(name, str) and re.fullmatch(r"[A-Za-z0-9_-]*", name))]
+                   if not (isinstance(name, str) and re.fullmatch(r"[A-Za-z0-9_-]{0,64}", name))]
             if bad:
                 raise InputError(path, f"classes.{bad[0]} = {entries[bad[0]]!r}: expected a dataset class name "
-                                       f"(letters, digits, '_' and '-'; \"\" skips the class)")
+                                       f"(up to 64 letters, digits, '_' and '-'; \"\" skips the class)")
             values["classes"] = dict(entries)
             continue
         for key, value in entries.items():
@@ -216,6 +222,10 @@ def config_from_table(table: dict, path="bank config") -> BankConfig:
         if value.endswith((".toml", ".pt")) and not Path(value).is_absolute() and isinstance(path, Path):
             values[attribute] = str((path.parent / value).resolve())
     config = BankConfig(**values)
+    poses = np.prod([grid_count(*values) for values in (config.headings_deg, config.x, config.y)], dtype=float)
+    if poses > MAX_GRID_POSES:
+        raise InputError(path, f"the grid has {poses:.3g} headings x positions per object, more than "
+                               f"{MAX_GRID_POSES:.0e}: widen the steps")
     if config.constant_intensity is not None and config.constant_intensity > INTENSITY_MAX[config.dataset]:
         raise InputError(path, f"bank.intensity = {config.intensity!r}: above {config.dataset}'s maximum "
                                f"{INTENSITY_MAX[config.dataset]:g}")
@@ -248,8 +258,12 @@ def _toml_value(value) -> str:
     return repr(value)
 
 
+def grid_count(start: float, stop: float, step: float) -> int:
+    """How many values ``grid_values`` gives."""
+    return int(np.floor((stop - start) / step + 1e-9)) + 1
+
+
 def grid_values(start: float, stop: float, step: float) -> np.ndarray:
     """start, start + step, ... up to stop included (to 1e-9 of a step)."""
-    count = int(np.floor((stop - start) / step + 1e-9)) + 1
-    return start + step * np.arange(count)
+    return start + step * np.arange(grid_count(start, stop, step))
 

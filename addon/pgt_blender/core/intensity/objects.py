@@ -62,11 +62,9 @@ class ObjectSet:
 
 
 def _intensities(path, values: np.ndarray, dataset: str) -> np.ndarray:
-    """(N, 1) float32 in [0, 1] from a dataset's raw intensity column; InputError for
-    NaN or values beyond the dataset's range."""
+    """(N, 1) float32 in [0, 1] from a dataset's raw intensity column (finite, as
+    files.read_float32_rows reads it); InputError for values beyond the dataset's range."""
     maximum = INTENSITY_MAX[dataset]
-    if not np.isfinite(values).all():
-        raise InputError(path, f"{int((~np.isfinite(values)).sum())} intensities are NaN or infinite")
     if len(values) and (values.min() < 0 or values.max() > maximum * (1 + 1e-6)):
         raise InputError(path, f"intensities span {values.min():g}..{values.max():g}, outside {dataset}'s 0..{maximum:g}")
     return (values / maximum).astype(np.float32)[:, None]
@@ -87,20 +85,28 @@ def gt_database_objects(path, convention: str, dataset: str, min_points: int = 1
     return objects
 
 
+def _text_lines(path: Path) -> list:
+    """The lines of a text file a user names; InputError when it is not readable text."""
+    try:
+        return regular_file(path).read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as error:
+        raise InputError(path, f"not a readable text file ({type(error).__name__}: {error})") from None
+
+
 def _read_calibration(path: Path) -> np.ndarray:
     """(4, 4) rect_from_velodyne of a KITTI calib file (R0_rect @ Tr_velo_to_cam)."""
-    rows = {}
-    for line in regular_file(path).read_text().splitlines():
-        if ":" in line:
-            key, numbers = line.split(":", 1)
-            rows[key.strip()] = np.array(numbers.split(), np.float64)
+    rows = dict(line.split(":", 1) for line in _text_lines(path) if ":" in line)
+    rows = {key.strip(): numbers for key, numbers in rows.items()}
     try:
         rect, velo_to_cam = np.eye(4), np.eye(4)
-        rect[:3, :3] = rows["R0_rect"].reshape(3, 3)
-        velo_to_cam[:3, :4] = rows["Tr_velo_to_cam"].reshape(3, 4)
+        rect[:3, :3] = np.array(rows["R0_rect"].split(), np.float64).reshape(3, 3)
+        velo_to_cam[:3, :4] = np.array(rows["Tr_velo_to_cam"].split(), np.float64).reshape(3, 4)
     except (KeyError, ValueError):
         raise InputError(path, "not a KITTI calib file (needs R0_rect and Tr_velo_to_cam)") from None
-    return rect @ velo_to_cam
+    matrix = rect @ velo_to_cam
+    if not (np.isfinite(matrix).all() and abs(np.linalg.det(matrix)) > 1e-6):
+        raise InputError(path, "R0_rect @ Tr_velo_to_cam is not a finite, invertible transform")
+    return matrix
 
 
 def kitti_label_boxes(label_path: Path, calib_path: Path) -> list:
@@ -109,7 +115,7 @@ def kitti_label_boxes(label_path: Path, calib_path: Path) -> list:
     -y axis: heading = -ry - pi/2 in the velodyne frame."""
     velodyne_from_rect = np.linalg.inv(_read_calibration(calib_path))
     kinds, camera_boxes = [], []
-    for number, line in enumerate(regular_file(label_path).read_text().splitlines(), 1):
+    for number, line in enumerate(_text_lines(label_path), 1):
         fields = line.split()
         if not fields or fields[0] in KITTI_SKIPPED:
             continue
@@ -117,6 +123,8 @@ def kitti_label_boxes(label_path: Path, calib_path: Path) -> list:
             height, width, length, x, y, z, ry = map(float, fields[8:15])
         except ValueError:
             raise InputError(label_path, f"line {number} is not a KITTI label (15 fields)") from None
+        if not (np.isfinite([height, width, length, x, y, z, ry]).all() and min(height, width, length) > 0):
+            raise InputError(label_path, f"line {number}: the box must be finite numbers with positive dimensions")
         kinds.append(fields[0])
         camera_boxes.append([x, y, z, length, height, width, ry])
     boxes = kitti_camera_to_lidar(np.array(camera_boxes).reshape(-1, 7), velodyne_from_rect)

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..files import atomic_output
+from ..files import atomic_output, regular_file
 
 STATE_FORMAT = "pgt-thompson-cells/1"
 
@@ -120,12 +120,12 @@ class ThompsonCells:
     @classmethod
     def load(cls, path) -> "ThompsonCells":
         """The state ``save`` wrote; InputError naming ``path`` when it is not one."""
-        path = Path(path)
+        path = regular_file(path)
         try:
             return cls.from_state_dict(json.loads(path.read_text()))
         except OSError as error:
             raise InputError(path, f"cannot read the file ({error.strerror or error})") from None
-        except (ValueError, KeyError, TypeError) as error:
+        except (ValueError, KeyError, TypeError, RecursionError) as error:
             raise InputError(path, f"not a Thompson cells state: {error}") from None
 
 

@@ -118,9 +118,13 @@ def read_polygons(path) -> list:
         raise InputError(path, f"not JSON ({error})") from None
     if isinstance(data, dict) and data.get("type") == "FeatureCollection":
         shapes = []
+        if not isinstance(data.get("features", []), list):
+            raise InputError(path, "features must be a list")
         for index, feature in enumerate(data.get("features", [])):
-            geometry = (feature or {}).get("geometry") or {}
-            layer = ((feature or {}).get("properties") or {}).get("layer")
+            geometry = (feature if isinstance(feature, dict) else {}).get("geometry")
+            geometry = geometry if isinstance(geometry, dict) else {}
+            properties = (feature if isinstance(feature, dict) else {}).get("properties")
+            layer = (properties if isinstance(properties, dict) else {}).get("layer")
             if not isinstance(layer, str):
                 raise InputError(path, f"feature {index} has no 'layer' property naming its map layer")
             if geometry.get("type") == "Polygon":

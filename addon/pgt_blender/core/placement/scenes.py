@@ -62,12 +62,18 @@ def read_scene(scan, info, dataset: str | None = None) -> Scene:
         boxes, names, pose, implied = _kitti_label(info)
     else:
         data = load_pickle(info)
-        if isinstance(data, dict) and isinstance(data.get("data_list"), list):
-            boxes, names, pose, implied = _mmdet3d_sample(info, data, scan.name)
-        elif isinstance(data, list):
-            boxes, names, pose, implied = _openpcdet_sample(info, data, scan)
-        else:
-            raise InputError(info, "not a KITTI label file or an OpenPCDet / mmdetection3d info pickle")
+        try:  # third-party structures: any field may be missing or of another type
+            if isinstance(data, dict) and isinstance(data.get("data_list"), list):
+                boxes, names, pose, implied = _mmdet3d_sample(info, data, scan.name)
+            elif isinstance(data, list):
+                boxes, names, pose, implied = _openpcdet_sample(info, data, scan)
+            else:
+                raise InputError(info, "not a KITTI label file or an OpenPCDet / mmdetection3d info pickle")
+        except InputError:
+            raise
+        except (AttributeError, KeyError, IndexError, TypeError, ValueError) as error:  # LinAlgError is a ValueError
+            raise InputError(info, f"the scan's sample is not a usable info ({type(error).__name__}: "
+                                   f"{error})") from None
     dataset = dataset or implied
     if dataset not in BIN_COLUMNS:
         raise InputError(info, f"unknown dataset {dataset!r} ({', '.join(BIN_COLUMNS)})")

@@ -86,7 +86,7 @@ class Sensor:
                 if isinstance(getattr(self, name), (str, bytes)):
                     raise TypeError
                 values = tuple(float(v) for v in getattr(self, name))
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 raise ValueError(f"sensor {self.name!r}: {name} must be a list of numbers, got "
                                  f"{getattr(self, name)!r}") from None
             object.__setattr__(self, name, values or ((0.0,) * len(self.elevations_deg) if name != "elevations_deg"
@@ -94,7 +94,7 @@ class Sensor:
         for name, meaning in _MODELS.items():
             try:
                 object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 raise ValueError(f"sensor {self.name!r}: {name} must be {meaning}, got "
                                  f"{getattr(self, name)!r}") from None
         validate(self)
@@ -369,9 +369,9 @@ def read_velodyne_calibration(path) -> dict:
         rows = np.array([[float(laser["vert_correction"]), float(laser.get("rot_correction", 0.0)),
                           float(laser.get("vert_offset_correction", 0.0)),
                           float(laser.get("horiz_offset_correction", 0.0))] for laser in lasers])
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as error:
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, RecursionError) as error:
         raise InputError(path, f"not a readable YAML file: {' '.join(str(error).split())}") from None
-    except (KeyError, TypeError, ValueError) as error:
+    except (KeyError, TypeError, ValueError, OverflowError) as error:
         raise InputError(path, f"not a velodyne_pointcloud calibration ({type(error).__name__}: {error})") from None
     if not np.isfinite(rows).all():
         raise InputError(path, "calibration values must be finite numbers")
