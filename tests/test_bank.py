@@ -511,7 +511,10 @@ def test_an_empty_bank_is_an_error_not_an_empty_database(prepared, tmp_path, tab
     out = tmp_path / "bank"
     result = run_export("--objects", prepared, "--config", config, "--out", out, "--workers", 1, check=False)
     assert result.returncode == 1 and problem in last_line(result)
-    assert not (out / "manifest.json").exists() and not list(out.glob("*/*_dbinfos_pgt.pkl"))
+    assert not out.exists()  # nothing left behind: there is no bank to resume
+    out.mkdir()  # a folder that existed stays, empty
+    result = run_export("--objects", prepared, "--config", config, "--out", out, "--workers", 1, check=False)
+    assert result.returncode == 1 and problem in last_line(result) and not any(out.iterdir())
 
 
 @pytest.mark.parametrize("flags", [(), ("--resume",), ("--overwrite",)])

@@ -114,6 +114,7 @@ class BankRun:
         self.real = real_database(settings)
         self.reference = real_reference(self.real[0], config.to_dict()) if self.real else None
         self.out = Path(bpy.path.abspath(settings.output))
+        self.existed = self.out.exists()
         self.plan = export.plan_bank(checked, config, self.out, resume=settings.existing == "RESUME",
                                      overwrite=settings.existing == "OVERWRITE")
         self.total, self.done = self.plan.pending_entries, 0
@@ -130,7 +131,11 @@ class BankRun:
     def finish(self) -> Path:
         """Assemble the info pickles and the manifest, write the report (write_bank_report);
         its path."""
-        export.assemble(self.out)
+        try:
+            export.assemble(self.out)
+        except export.NoEntryKept:
+            export.discard_bank(self.out, keep_folder=self.existed)
+            raise
         return write_bank_report(self.out, self.real, self.reference)
 
     def stop(self) -> None:

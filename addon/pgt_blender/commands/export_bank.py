@@ -100,6 +100,7 @@ def export_bank(args) -> int:
     config = load_config(args.config) if args.config else BankConfig()
     reference = real_reference(args, config.to_dict())
     objects, source = gather(args)
+    existed = args.out.exists()
     plan = export.plan_bank(objects, config, args.out, args.resume, args.overwrite, args.shard)
     print(f"{len(plan.job.objects)} object(s) from {source}: {sum(map(len, plan.chunks)):,} poses in "
           f"{len(plan.chunks)} chunks, {len(plan.pending)} to do ({config.dataset}, {', '.join(config.formats)})")
@@ -110,7 +111,12 @@ def export_bank(args) -> int:
         print(f"shard {args.shard[0]}/{args.shard[1]} done in {seconds:.1f} s; "
               f"when every shard is done: export_bank.py --assemble --out {args.out}")
         return 0
-    return finish(args, export.assemble(args.out, args.data_root), reference, seconds, plan.pending_entries)
+    try:
+        manifest = export.assemble(args.out, args.data_root)
+    except export.NoEntryKept:
+        export.discard_bank(args.out, keep_folder=existed)
+        raise
+    return finish(args, manifest, reference, seconds, plan.pending_entries)
 
 
 def _progress(finished, total: int) -> None:

@@ -11,6 +11,7 @@ are written last, from the chunk records, in chunk order.
 import json
 import os
 import pickle
+import shutil
 import time
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -285,7 +286,7 @@ def assemble(out: Path, data_root=None) -> dict:
             bucket = counts if row["kept"] else dropped
             bucket[name] = bucket.get(name, 0) + 1
     if not counts:
-        raise InputError(out, f"no entry kept: all {sum(dropped.values()):,} poses had fewer than "
+        raise NoEntryKept(out, f"no entry kept: all {sum(dropped.values()):,} poses had fewer than "
                               f"{config['min_points']} points in their box; lower bank.min_points or bring the "
                               f"grid closer")
     pickle_name = f"{config['dataset']}_dbinfos_pgt.pkl"
@@ -305,6 +306,20 @@ def assemble(out: Path, data_root=None) -> dict:
     with atomic_output(out / MANIFEST) as stream:
         stream.write(json.dumps(manifest, indent=1).encode())
     return manifest
+
+
+class NoEntryKept(InputError):
+    """Every pose of the bank fell below min_points: nothing to assemble or resume."""
+
+
+def discard_bank(out: Path, keep_folder: bool) -> None:
+    """Remove what an export wrote into ``out`` (after NoEntryKept: its work folder and
+    empty format folders; the folder held nothing else, prepare_folder saw to it), and
+    ``out`` itself unless ``keep_folder`` (it existed before the export)."""
+    for child in out.iterdir():
+        shutil.rmtree(child) if child.is_dir() else child.unlink()
+    if not keep_folder:
+        out.rmdir()
 
 
 def _path_prefix(format_folder: Path, data_root) -> str:
