@@ -131,11 +131,7 @@ class BankRun:
     def finish(self) -> Path:
         """Assemble the info pickles and the manifest, write the report (write_bank_report);
         its path."""
-        try:
-            export.assemble(self.out)
-        except export.NoEntryKept:
-            export.discard_bank(self.out, keep_folder=self.existed)
-            raise
+        export.assemble(self.out, existed=self.existed)
         return write_bank_report(self.out, self.real, self.reference)
 
     def stop(self) -> None:

@@ -111,12 +111,7 @@ def export_bank(args) -> int:
         print(f"shard {args.shard[0]}/{args.shard[1]} done in {seconds:.1f} s; "
               f"when every shard is done: export_bank.py --assemble --out {args.out}")
         return 0
-    try:
-        manifest = export.assemble(args.out, args.data_root)
-    except export.NoEntryKept:
-        export.discard_bank(args.out, keep_folder=existed)
-        raise
-    return finish(args, manifest, reference, seconds, plan.pending_entries)
+    return finish(args, export.assemble(args.out, args.data_root, existed), reference, seconds, plan.pending_entries)
 
 
 def _progress(finished, total: int) -> None:

@@ -133,17 +133,15 @@ def _positive_int(value):
 
 
 def _non_negative(value):
-    return _number(value) and value >= 0
+    return finite_number(value) and value >= 0
 
 
 def _grid_range(value):
-    if not (isinstance(value, list) and len(value) == 3 and all(_number(v) for v in value)):
+    if not (isinstance(value, list) and len(value) == 3 and all(finite_number(v) for v in value)):
         return False
     start, stop, step = value
     return step > 0 and stop >= start and (stop - start) / step < MAX_GRID_POSES
 
-
-_number = finite_number
 
 
 _KEYS = {
@@ -157,8 +155,8 @@ _KEYS = {
     "bank.max_distance": ("max_distance", _non_negative, "metres >= 0 (0: no filter)"),
     "bank.sweeps": ("sweeps", lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= MAX_SWEEPS,
                     f"an integer in 0 .. {MAX_SWEEPS} (0: the dataset's)"),
-    "bank.radius_scale": ("radius_scale", lambda v: _number(v) and v > 0, "a number > 0"),
-    "bank.intensity": ("intensity", lambda v: v in ("auto", "model") or (_number(v) and v >= 0),
+    "bank.radius_scale": ("radius_scale", lambda v: finite_number(v) and v > 0, "a number > 0"),
+    "bank.intensity": ("intensity", lambda v: v in ("auto", "model") or (finite_number(v) and v >= 0),
                        '"auto", "model" or a number >= 0'),
     "bank.intensity_checkpoint": ("intensity_checkpoint", lambda v: isinstance(v, str) and "\0" not in v, "a path"),
     "bank.chunk_size": ("chunk_size", _positive_int, "an integer >= 1"),
@@ -167,17 +165,17 @@ _KEYS = {
     "grid.y": ("y", _grid_range, "[start, stop, step] metres, step > 0, under 1e8 steps"),
     "grid.ego_clearance": ("ego_clearance", _non_negative, "metres >= 0"),
     "jitter.centre": ("centre_jitter", _non_negative, "metres >= 0"),
-    "jitter.size": ("size_jitter", lambda v: _number(v) and 0 <= v < 0.5, "a fraction in [0, 0.5)"),
+    "jitter.size": ("size_jitter", lambda v: finite_number(v) and 0 <= v < 0.5, "a fraction in [0, 0.5)"),
     "jitter.size_variants": ("size_variants", lambda v: _positive_int(v) and v <= MAX_SIZE_VARIANTS,
                              f"an integer in 1 .. {MAX_SIZE_VARIANTS}"),
     "scan.range_noise": ("range_noise", lambda v: isinstance(v, bool), "true or false"),
-    "scan.drop_rate": ("drop_rate", lambda v: _number(v) and 0 <= v < 1, "a fraction in [0, 1)"),
+    "scan.drop_rate": ("drop_rate", lambda v: finite_number(v) and 0 <= v < 1, "a fraction in [0, 1)"),
     "scan.ray_drop": ("ray_drop", lambda v: isinstance(v, bool), "true or false"),
-    "scan.max_incidence_deg": ("max_incidence_deg", lambda v: _number(v) and 0 < v <= 90, "degrees in (0, 90]"),
+    "scan.max_incidence_deg": ("max_incidence_deg", lambda v: finite_number(v) and 0 < v <= 90, "degrees in (0, 90]"),
     "scan.engine": ("engine", lambda v: v in ENGINES, f"one of {', '.join(ENGINES)}"),
     "scan.ego_motion": ("ego_motion", lambda v: isinstance(v, bool), "true or false"),
-    "ground.grade_deg": ("grade_deg", lambda v: _number(v) and 0 <= v <= 10, "degrees in [0, 10]"),
-    "ground.slope_deg": ("slope_deg", lambda v: _number(v) and 0 <= v <= 10, "degrees in [0, 10]"),
+    "ground.grade_deg": ("grade_deg", lambda v: finite_number(v) and 0 <= v <= 10, "degrees in [0, 10]"),
+    "ground.slope_deg": ("slope_deg", lambda v: finite_number(v) and 0 <= v <= 10, "degrees in [0, 10]"),
 }
 _SECTIONS = {"bank", "grid", "jitter", "scan", "ground", "classes"}
 

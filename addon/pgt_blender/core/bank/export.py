@@ -250,9 +250,12 @@ def _learned_intensity(config: BankConfig, cache: TargetCache, entry, obj: BankO
     return values
 
 
-def assemble(out: Path, data_root=None) -> dict:
+def assemble(out: Path, data_root=None, existed: bool | None = None) -> dict:
     """Write every format's info pickle and then the manifest from the chunk records
     (all must exist: InputError names the missing ones). Returns the manifest.
+    ``existed``: right after an export into ``out``, whether the folder was there before
+    it; a bank that kept no entry is then removed (``out`` too when the export made
+    it), since there is nothing to resume. None (assembling shards) leaves ``out`` as is.
 
     Info paths: both frameworks join ``path`` to their dataset root (OpenPCDet
     ``root_path / path``, where root_path is DATA_PATH for KITTI and DATA_PATH/VERSION
@@ -286,7 +289,9 @@ def assemble(out: Path, data_root=None) -> dict:
             bucket = counts if row["kept"] else dropped
             bucket[name] = bucket.get(name, 0) + 1
     if not counts:
-        raise NoEntryKept(out, f"no entry kept: all {sum(dropped.values()):,} poses had fewer than "
+        if existed is not None:
+            _discard_bank(out, keep_folder=existed)
+        raise InputError(out, f"no entry kept: all {sum(dropped.values()):,} poses had fewer than "
                               f"{config['min_points']} points in their box; lower bank.min_points or bring the "
                               f"grid closer")
     pickle_name = f"{config['dataset']}_dbinfos_pgt.pkl"
@@ -308,14 +313,10 @@ def assemble(out: Path, data_root=None) -> dict:
     return manifest
 
 
-class NoEntryKept(InputError):
-    """Every pose of the bank fell below min_points: nothing to assemble or resume."""
-
-
-def discard_bank(out: Path, keep_folder: bool) -> None:
-    """Remove what an export wrote into ``out`` (after NoEntryKept: its work folder and
+def _discard_bank(out: Path, keep_folder: bool) -> None:
+    """Remove what an export that kept no entry wrote into ``out`` (its work folder and
     empty format folders; the folder held nothing else, prepare_folder saw to it), and
-    ``out`` itself unless ``keep_folder`` (it existed before the export)."""
+    ``out`` itself unless ``keep_folder``."""
     for child in out.iterdir():
         shutil.rmtree(child) if child.is_dir() else child.unlink()
     if not keep_folder:

@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import InputError
 from ..reconstruction import CameraView, Reconstruction
 from ..files import regular_file
-from .source import checked_camera, checked_positions, sha256_of_files
+from .source import checked_camera, checked_positions, sha256_of_files, unusable_as_float32
 
 MODEL_FILES = ("cameras", "images", "points3D")
 
@@ -56,7 +56,7 @@ def load_colmap(folder: Path, with_cameras: bool = True) -> Reconstruction:
     colors = np.ones((len(points), 4), np.float32)
     colors[:, :3] = np.array([p.color for p in points], np.float32).reshape(-1, 3) / 255.0
     errors = np.array([p.error for p in points], np.float64)
-    unusable = ~(np.abs(errors) <= np.finfo(np.float32).max)  # NaN, Inf, or Inf once stored as float32
+    unusable = unusable_as_float32(errors)
     if unusable.any():
         raise InputError(files[2], f"{int(unusable.sum())} of {len(points)} points have a reprojection error that is "
                                    f"NaN or beyond float32")

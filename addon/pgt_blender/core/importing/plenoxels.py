@@ -112,7 +112,8 @@ def _read(path: Path) -> dict:
         raise
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
         raise InputError(path, f"not a readable .npz archive ({type(error).__name__}: {error})") from None
-    wrong = [f"{key} ({arrays[key].dtype})" for key in _NUMERIC if key in arrays and arrays[key].dtype.kind not in "iuf"]
+    wrong = [f"{key} ({arrays[key].dtype})" for key in _NUMERIC
+             if key in arrays and arrays[key].dtype.kind not in "iuf"]
     if wrong:
         raise InputError(path, f"arrays that must hold numbers do not: {', '.join(wrong)}")
     missing = [key for key in ("links",) if key not in arrays]

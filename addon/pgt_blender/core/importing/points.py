@@ -8,7 +8,7 @@ from ..errors import InputError
 from ..reconstruction import Reconstruction
 from .ply import PlyHeader, read_vertices
 from .sh import SH_C0
-from .source import checked_positions, sha256_of_files
+from .source import FLOAT32_MAX, checked_positions, sha256_of_files, unusable_as_float32
 
 _DC = ("f_dc_0", "f_dc_1", "f_dc_2")
 _SHAPE = ("opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
@@ -16,7 +16,7 @@ SPLAT_FIELDS = _DC + _SHAPE  # what a 3DGS PLY has besides x y z (and f_rest_* f
 _XYZ = ("x", "y", "z")
 _RGB = ("red", "green", "blue")
 _NORMAL = ("nx", "ny", "nz")
-_MAX_LOG_SCALE = float(np.log(np.finfo(np.float32).max))  # a larger stored log-scale is an infinite scale
+_MAX_LOG_SCALE = float(np.log(FLOAT32_MAX))  # a larger stored log-scale is an infinite scale
 
 
 def is_gaussian_splat(path: Path, header: PlyHeader) -> bool:
@@ -114,8 +114,7 @@ def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
 def _require_finite(path, data: dict, names, what: str) -> None:
     """InputError naming the properties where some values are NaN or infinite, here or
     once stored as float32 (as the importer keeps them)."""
-    largest = np.finfo(np.float32).max
-    bad = {name: int((~(np.abs(data[name]) <= largest)).sum()) for name in names if data[name].dtype.kind == "f"}
+    bad = {name: int(unusable_as_float32(data[name]).sum()) for name in names if data[name].dtype.kind == "f"}
     bad = {name: count for name, count in bad.items() if count}
     if bad:
         listed = ", ".join(f"{name} ({count})" for name, count in bad.items())

@@ -10,6 +10,7 @@ from ..reconstruction import CameraView
 
 _CHUNK = 1 << 20
 MAX_IMAGE_SIDE = 65536  # px: Blender's largest render resolution, which an imported view's camera takes
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def sha256_of_files(paths) -> str:
@@ -40,6 +41,12 @@ def checked_positions(path: Path, positions: np.ndarray, what: str = "points") -
             f"(first at index {bad[0]})",
         )
     return positions
+
+
+def unusable_as_float32(values: np.ndarray) -> np.ndarray:
+    """Bool per value: NaN or infinite, here or once stored as float32 (as the importers
+    keep attributes)."""
+    return ~(np.abs(values) <= FLOAT32_MAX)
 
 
 def checked_camera(path: Path, view: CameraView) -> CameraView:

@@ -95,8 +95,7 @@ def _text_lines(path: Path) -> list:
 
 def _read_calibration(path: Path) -> np.ndarray:
     """(4, 4) rect_from_velodyne of a KITTI calib file (R0_rect @ Tr_velo_to_cam)."""
-    rows = dict(line.split(":", 1) for line in _text_lines(path) if ":" in line)
-    rows = {key.strip(): numbers for key, numbers in rows.items()}
+    rows = {key.strip(): numbers for key, numbers in (line.split(":", 1) for line in _text_lines(path) if ":" in line)}
     try:
         rect, velo_to_cam = np.eye(4), np.eye(4)
         rect[:3, :3] = np.array(rows["R0_rect"].split(), np.float64).reshape(3, 3)

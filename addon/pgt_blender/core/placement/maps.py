@@ -106,6 +106,11 @@ def class_layers(class_name: str, table: dict | None = None) -> tuple:
     return tuple(merged.get(class_name.lower(), ()))
 
 
+def _mapping(value) -> dict:
+    """``value`` when it is a JSON object, else an empty one (a GeoJSON member of another type)."""
+    return value if isinstance(value, dict) else {}
+
+
 def read_polygons(path) -> list:
     """[(layer, [ring (K, 2) float64, ...]), ...] of a GeoJSON FeatureCollection or a JSON
     list of {"layer", "polygon"} (the module docstring); InputError naming ``path``."""
@@ -121,10 +126,9 @@ def read_polygons(path) -> list:
         if not isinstance(data.get("features", []), list):
             raise InputError(path, "features must be a list")
         for index, feature in enumerate(data.get("features", [])):
-            geometry = (feature if isinstance(feature, dict) else {}).get("geometry")
-            geometry = geometry if isinstance(geometry, dict) else {}
-            properties = (feature if isinstance(feature, dict) else {}).get("properties")
-            layer = (properties if isinstance(properties, dict) else {}).get("layer")
+            feature = _mapping(feature)
+            geometry = _mapping(feature.get("geometry"))
+            layer = _mapping(feature.get("properties")).get("layer")
             if not isinstance(layer, str):
                 raise InputError(path, f"feature {index} has no 'layer' property naming its map layer")
             if geometry.get("type") == "Polygon":
