@@ -183,7 +183,7 @@ def main(argv: list) -> int:
 
     sensor = PRESETS["kitti"]
     real = objects.kitti_scan_objects(args.kitti)
-    frames = replay.replay_frames(((scan.stem, rows, labels) for scan, rows, labels in objects.kitti_frames(args.kitti)),
+    frames = replay.replay_frames(objects.kitti_frames(args.kitti),
                                   sensor, replay.class_meshes(str(dev.CHRONO_VEHICLES)))
     scans = args.holdout or [frame["frame"] for frame in frames]
     merged = not args.per_class

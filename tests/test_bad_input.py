@@ -233,6 +233,15 @@ def cut_velodyne(folder, inputs):
     return ["fit_ground.py", kitti], scan_file, "bytes are not whole rows of 4 float32 values"
 
 
+def shuffled_velodyne(folder, inputs):
+    """A KITTI scan whose rows are shuffled: no longer stored laser by laser, as the ring fit needs."""
+    kitti = Path(shutil.copytree(inputs["kitti"], folder / "kitti"))
+    scan_file = kitti / "velodyne" / "000001.bin"
+    rows = np.fromfile(scan_file, np.float32).reshape(-1, 4)
+    np.random.default_rng(0).permutation(rows).tofile(scan_file)
+    return ["fit_returns.py", kitti, "--meshes", "samples"], scan_file, "the fit needs 50"
+
+
 def place(change, problem, named):
     """place_objects.py on a copy of KITTI frame 000001 with the real mmdet3d KITTI
     database (one pedestrian) as the bank, after ``change(folder, shared data, kitti copy)
@@ -364,6 +373,11 @@ CASES = {
                                                     lambda folder, kitti, inputs: kitti / "velodyne" / "000001.bin"),
     "place_objects with a map that does not cover the scene": place(
         map_elsewhere, "the map image does not cover the scene", lambda folder, kitti, inputs: folder / "map.png"),
+    "place_objects with a class layer table of letters": place(
+        lambda folder, shared, kitti: (folder / "layers.json").write_text('{"Pedestrian": "sidewalk"}')
+        and ["--class-layers", folder / "layers.json"],
+        "class 'Pedestrian' has 'sidewalk': expected a list of layer names",
+        lambda folder, kitti, inputs: folder / "layers.json"),
     "place_objects asking for a class the bank lacks": place(
         lambda folder, shared, kitti: ["--objects", "Car=2"], "no 'Car' entry within 54 m",
         lambda folder, kitti, inputs: inputs["infos"]),
@@ -371,6 +385,7 @@ CASES = {
     "velodyne file padded by two bytes": cut_velodyne,
     "fit_sensor on a folder without scans": lambda folder, inputs: (["fit_sensor.py", folder], folder,
                                                                     "holds no *.bin scans"),
+    "fit_returns on a scan not stored laser by laser": shuffled_velodyne,
     "fit_returns on a folder without scans": lambda folder, inputs: (["fit_returns.py", folder, "--meshes", "samples"], folder,
                                                                      "no velodyne/*.bin scans"),
 }

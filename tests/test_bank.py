@@ -515,6 +515,11 @@ def test_an_empty_bank_is_an_error_not_an_empty_database(prepared, tmp_path, tab
     out.mkdir()  # a folder that existed stays, empty
     result = run_export("--objects", prepared, "--config", config, "--out", out, "--workers", 1, check=False)
     assert result.returncode == 1 and problem in last_line(result) and not any(out.iterdir())
+    out.rmdir()
+    objects = checked_objects(*prepared_objects(prepared), False, prepared)
+    with pytest.raises(InputError, match=problem):  # the library call, too
+        export.export_bank(objects, load_config(config), out)
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("flags", [(), ("--resume",), ("--overwrite",)])

@@ -97,7 +97,8 @@ def test_point_ply_with_colors_matches_splat_centres(donut):
 
 def test_point_ply_normals_and_float_colors(tmp_path):
     rng = np.random.default_rng(3)
-    xyz, normals, rgb = rng.normal(size=(3, 50, 3)).astype(np.float32)
+    xyz, normals = rng.normal(size=(2, 50, 3)).astype(np.float32)
+    rgb = rng.uniform(size=(50, 3)).astype(np.float32)
     path = tmp_path / "n.ply"
     write_ply(path, {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "nx": normals[:, 0], "ny": normals[:, 1],
                      "nz": normals[:, 2], "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2],
@@ -351,6 +352,14 @@ MALFORMED = {
     "splat NaN normal": (_splat(lambda c: c.update(nx=np.where(np.arange(10) == 3, np.nan, 1).astype(np.float32),
                                                    ny=np.zeros(10, np.float32), nz=np.zeros(10, np.float32))),
                          "NaN or Inf values in nx (1)"),
+    "point PLY with float colors written 0..255": (
+        _file("cloud.ply", b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+                           b"property float z\nproperty float red\nproperty float green\nproperty float blue\n"
+                           b"end_header\n0 0 0 0.5 0.5 0.5\n1 0 0 200 10 0\n"),
+        "1 of 2 points have colors outside float 0..1 in 'red' (values 0.5 to 200)"),
+    "splat rgb as ushort": (_splat(lambda c: [c.pop(f"f_dc_{i}") for i in range(3)] and c.update(
+        red=np.full(10, 60000, np.uint16), green=np.zeros(10, np.uint16), blue=np.zeros(10, np.uint16))),
+        "10 of 10 points have colors outside uchar 0..255 in 'red'"),
     "OBJ vertex with a vertical tab": (_file("v.obj", b"v 0 0 0\nv 0 \x0b 1\nf 1 1 2\n"),
                                        "vertices are not 3-D coordinates"),
     "cameras.json nested 100,000 deep": (_cameras_json("[" * 100_000), "RecursionError"),

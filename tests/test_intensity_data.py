@@ -158,7 +158,7 @@ def test_training_sets_from_the_shared_data(kitti, gt_database):
     assert real.classes == rgb.classes == ("truck",)
     assert real.values.shape == (1, 256, 1) and rgb.values.shape[1:] == (256, 3) and len(rgb.names) >= 8
     assert real.dataset == "kitti" and abs(real.values.mean() - 0.15) < 0.02
-    with pytest.raises(InputError, match="too few objects with at least 256 points"):
+    with pytest.raises(InputError, match=f"^{kitti}: too few objects with at least 256 points"):
         training_sets([kitti], [], "kitti")
     from pgt_blender.core.intensity.objects import paired_classes
 

@@ -24,7 +24,8 @@ from pgt_blender.core.placement.entries import EntryPool, column_turn, open_data
 from pgt_blender.core.placement.feasibility import scene_feasibility
 from pgt_blender.core.placement.folder import read_placement
 from pgt_blender.core.placement.ground import estimate_ground
-from pgt_blender.core.placement.maps import ImagePose, map_from_image, map_from_polygons, read_polygons
+from pgt_blender.core.placement.maps import (ImagePose, checked_class_layers, checked_legend, map_from_image,
+                                             map_from_polygons, read_polygons)
 from pgt_blender.core.placement.occlusion import occlude
 from pgt_blender.core.placement.place import PlacementConfig, place_objects
 from pgt_blender.core.placement.scenes import read_scene
@@ -202,6 +203,35 @@ def test_polygons_and_an_image_of_the_same_map_agree_and_holes_are_cut(tmp_path)
     with pytest.raises(InputError, match="map.png: the map image does not cover the scene"):
         map_from_image(image, {"road": 1}, ImagePose(0.0, 300.0, 0.1), yaw_pose(0, 5.0, 200.0), 20.0, 0.2,
                        source="map.png")
+    with pytest.raises(InputError, match="map.png: the map image does not cover the scene"):
+        map_from_image(image, {"road": 1}, ImagePose(1e308, 300.0, 1e-300), pose, 20.0, 0.2, source="map.png")
+
+
+@pytest.mark.parametrize("legend, channels, problem", [
+    ({}, 1, "expected a JSON object"),
+    ([1], 1, "expected a JSON object"),
+    ({"road": [300, 300, 300]}, 3, "legend entry 'road' is [300, 300, 300]: expected [r, g, b] of 0-255"),
+    ({"road": float("nan")}, 1, "legend entry 'road' is nan: expected a label 0-255"),
+    ({"road": True}, 1, "legend entry 'road' is True"),
+    ({"road": [1, 2, 3]}, 1, "expected a label 0-255 for a one-channel image"),
+    ({"road": 4}, 3, "expected [r, g, b] of 0-255 for a colour image"),
+])
+def test_map_legends_hold_8_bit_keys_for_the_image(legend, channels, problem):
+    with pytest.raises(InputError) as caught:
+        checked_legend(legend, channels, "legend.json")
+    assert str(caught.value).startswith("legend.json: ") and problem in str(caught.value)
+
+
+@pytest.mark.parametrize("table, problem", [
+    ([], "expected a JSON object {class: [layer, ...]}"),
+    ({"car": "road"}, "class 'car' has 'road': expected a list of layer names"),  # not the letters r, o, a, d
+    ({"car": [1]}, "class 'car' has [1]"),
+])
+def test_class_layer_tables_are_lists_of_layer_names(table, problem):
+    with pytest.raises(InputError) as caught:
+        checked_class_layers(table, "layers.json")
+    assert str(caught.value).startswith("layers.json: ") and problem in str(caught.value)
+    assert checked_class_layers({"car": ["road", "parking"]}, "layers.json") == {"car": ("road", "parking")}
 
 
 @pytest.mark.parametrize("content, problem", [

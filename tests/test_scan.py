@@ -85,7 +85,12 @@ def test_paper_ablation_settings_are_expressible(tmp_path):
     ("elevations_deg = [-95.0, 0.0]", "between -90 and 90"),
     ("columns = 0", "columns must be a positive integer"),
     ("columns = 10.5", "columns must be a positive integer"),
-    ("rate_hz = -1.0", "rate_hz must be positive"),
+    ("rate_hz = -1.0", "rate_hz must lie between 0.1 and 1000, got -1.0"),
+    ("rate_hz = 1e-300", "rate_hz must lie between 0.1 and 1000"),  # time lags beyond a float32
+    ("max_range = 0.0", "max_range must be positive"),
+    ("direction = true", "direction must be -1 (clockwise) or 1"),
+    ("name = 7", "the sensor's name must be a non-empty text, got 7"),
+    ('name = ""', "the sensor's name must be a non-empty text"),
     ("azimuth_offsets_deg = [1.0]", "azimuth_offsets_deg has 1 entries for 32 beams"),
     ("colums = 1080", "unknown sensor keys colums"),
     ("columns = ", "not a readable TOML file"),

@@ -31,7 +31,7 @@ from ..core.placement.bandit import ThompsonCells
 from ..core.placement.birdseye import birdseye_png
 from ..core.placement.entries import open_database
 from ..core.placement.folder import write_placement
-from ..core.placement.maps import ImagePose, map_from_image, map_from_polygons, read_polygons
+from ..core.placement.maps import ImagePose, checked_class_layers, map_from_image, map_from_polygons, read_polygons
 from ..core.placement.place import PlacementConfig, place_objects
 from ..core.placement.scenes import read_scene
 from ..core.scan.sensors import PRESETS, sensor_from_name
@@ -85,7 +85,7 @@ def main(argv: list) -> int:
     scene_map = _scene_map(args, scene.lidar_to_world)
     bandit = ThompsonCells.load(args.thompson) if args.thompson else None
     config = PlacementConfig(sensor_from_name(args.sensor or scene.dataset), max_distance=args.max_distance,
-                             occlusion=not args.no_occlusion, class_layers=_json(args.class_layers))
+                             occlusion=not args.no_occlusion, class_layers=_class_layers(args.class_layers))
     placement = place_objects(scene.points, scene.boxes, scene.names, pool, counts, config,
                               np.random.default_rng(args.seed), scene_map, bandit, source=args.scan)
     title = f"{args.scan.name}: {int(placement.inserted.sum())} objects placed (seed {args.seed})"
@@ -117,6 +117,10 @@ def _json(path: Path | None):
         raise InputError(path, f"not JSON ({error})") from None
 
 
+def _class_layers(path: Path | None):
+    return None if path is None else checked_class_layers(_json(path), path)
+
+
 def _scene_map(args, lidar_to_world: np.ndarray):
     if args.map_polygons is not None:
         return map_from_polygons(read_polygons(args.map_polygons), lidar_to_world)
@@ -134,10 +138,8 @@ def _scene_map(args, lidar_to_world: np.ndarray):
         raise InputError(args.map, f"not a readable image ({type(error).__name__}: {error})") from None
     if image.dtype.kind == "f":  # matplotlib reads PNGs as floats in [0, 1]
         image = np.round(image * 255).astype(np.uint8)
-    legend = _json(args.map_legend)
-    if not isinstance(legend, dict) or not legend:
-        raise InputError(args.map_legend, "expected a JSON object {layer: label or [r, g, b]}")
-    return map_from_image(image, legend, ImagePose(*args.map_pose), lidar_to_world, source=args.map)
+    return map_from_image(image, _json(args.map_legend), ImagePose(*args.map_pose), lidar_to_world,
+                          source=args.map, legend_source=args.map_legend)
 
 
 run = cli.command(main)

@@ -130,12 +130,13 @@ def run_plan(plan: Plan, workers: int = 1, executor: str = "local", address: str
 
 def export_bank(objects: list, config: BankConfig, out, workers: int = 1, overwrite: bool = False,
                 data_root=None) -> dict:
-    """The whole export in one call (no progress bar): returns the manifest. ``data_root``:
-    see ``assemble``."""
+    """The whole export in one call (no progress bar): returns the manifest. ``data_root``
+    and a bank that keeps no entry: see ``assemble``."""
+    existed = Path(out).exists()
     plan = plan_bank(objects, config, out, overwrite=overwrite)
     for _ in run_plan(plan, workers):
         pass
-    return assemble(plan.job.out, data_root)
+    return assemble(plan.job.out, data_root, existed)
 
 
 CHUNK_STAGES = ("targets", "scans", "casts", "intensity", "records", "writes")

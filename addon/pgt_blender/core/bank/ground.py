@@ -68,13 +68,19 @@ def fit_kitti_frames(folder, mounting_height: float) -> dict:
     Returns {"boxes": [{"frame", "type", "distance" (m), "offset" (ground height +
     mounting_height, m), "grade" (degrees: atan(offset / distance)), and fit_ground's
     keys}], "grade_deg", "slope_deg", "used": boxes with >= MIN_GROUND_POINTS returns}."""
+    from scipy.spatial import cKDTree
+
     from ..intensity.objects import kitti_frames
 
     boxes = []
     for scan, rows, labels in kitti_frames(folder):
         points = rows[:, :3]
+        tree = cKDTree(points[:, :2])
         for kind, centre, dims, heading in labels:
-            fit = fit_ground(points, centre, dims, heading)
+            # Only returns within the ring's reach of the box, in scan order: the same fit,
+            # without a pass over the whole scan per box.
+            near = tree.query_ball_point(centre[:2], np.hypot(*dims[:2]) / 2 + RING[1], return_sorted=True)
+            fit = fit_ground(points[near], centre, dims, heading)
             distance = float(np.hypot(*centre[:2]))
             offset = None if fit["height"] is None else fit["height"] + mounting_height
             boxes.append({"frame": scan.stem, "type": kind, "distance": distance, "offset": offset,

@@ -51,9 +51,7 @@ def load_point_ply(path: Path, header: PlyHeader) -> Reconstruction:
     if set(_RGB) <= names:
         channels = _RGB + (("alpha",) if "alpha" in names else ())
         colors = np.ones((len(data["x"]), 4), np.float32)
-        colors[:, : len(channels)] = _stack(data, channels)
-        if data["red"].dtype.kind in "iu":
-            colors[:, : len(channels)] /= 255.0
+        colors[:, : len(channels)] = _unit_colors(path, data, channels)
     return Reconstruction(
         positions=checked_positions(path, _stack(data, _XYZ)),
         kind="point_ply", source=Path(path), sha256=sha256_of_files([path]),
@@ -103,7 +101,7 @@ def load_gaussian_splat(path: Path, header: PlyHeader) -> Reconstruction:
     if color == _DC:
         colors[:, :3] = np.clip(0.5 + SH_C0 * _stack(data, _DC), 0.0, 1.0)
     else:
-        colors[:, :3] = _stack(data, _RGB) / (255.0 if data["red"].dtype.kind in "iu" else 1.0)
+        colors[:, :3] = _unit_colors(path, data, _RGB)
     return Reconstruction(
         positions=checked_positions(path, _stack(data, _XYZ)),
         kind="gaussian_splat", source=Path(path), sha256=sha256_of_files([path]),
@@ -120,6 +118,21 @@ def _require_finite(path, data: dict, names, what: str) -> None:
         listed = ", ".join(f"{name} ({count})" for name, count in bad.items())
         raise InputError(path, f"{max(bad.values())} of {len(data[names[0]])} {what} have NaN or Inf values in "
                                f"{listed}")
+
+
+def _unit_colors(path, data: dict, channels) -> np.ndarray:
+    """(N, len(channels)) float32 colors in 0..1: integer properties / 255, floats as
+    they are. InputError naming the property when a value falls outside 0..1 (float
+    colors written 0..255, or ushort colors)."""
+    colors = _stack(data, channels) / np.array([255.0 if data[name].dtype.kind in "iu" else 1.0
+                                                 for name in channels], np.float32)
+    outside = ((colors < 0) | (colors > 1)).sum(axis=0)
+    if outside.any():
+        name = channels[int(np.flatnonzero(outside)[0])]
+        kind = "uchar 0..255" if data[name].dtype.kind in "iu" else "float 0..1"
+        raise InputError(path, f"{int(outside.max())} of {len(colors)} points have colors outside {kind} in "
+                               f"'{name}' (values {float(data[name].min()):g} to {float(data[name].max()):g})")
+    return colors
 
 
 def _require(path, names, required, what):

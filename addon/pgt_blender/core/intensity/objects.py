@@ -187,10 +187,12 @@ def object_set(objects: list, classes: tuple, dataset: str, points: int = DEFAUL
     return ObjectSet(xyz, values, index, tuple(classes), [obj.name for obj in kept], dataset)
 
 
-def paired_classes(real: list, rgb: list, min_points: int, min_objects: int = 1, classes=None) -> tuple:
+def paired_classes(real: list, rgb: list, min_points: int, min_objects: int = 1, classes=None,
+                   source="training data") -> tuple:
     """The classes to train: ``classes`` if given (each must have ``min_objects`` objects
     of at least ``min_points`` points in both domains), else every class that has them.
-    InputError naming the class, the count and the thresholds otherwise."""
+    InputError naming ``source`` (the real data), the class, the count and the
+    thresholds otherwise."""
     def counts(objects):
         found = {}
         for obj in objects:
@@ -205,8 +207,8 @@ def paired_classes(real: list, rgb: list, min_points: int, min_objects: int = 1,
     if classes and short or not usable:
         detail = "; ".join(f"{c}: {real_counts.get(c, 0)} real, {rgb_counts.get(c, 0)} rgb" for c in short) \
             or f"no class has any (real: {len(real)} objects, rgb: {len(rgb)} objects)"
-        raise InputError("training data", f"too few objects with at least {min_points} points "
-                                          f"(need {min_objects} per class in each domain): {detail}")
+        raise InputError(source, f"too few objects with at least {min_points} points "
+                                 f"(need {min_objects} per class in each domain): {detail}")
     return tuple(usable)
 
 
@@ -311,13 +313,13 @@ def training_sets(real_sources: list, rgb_sources: list, dataset: str, min_point
     real = [obj for source in real_sources for obj in real_objects(source, dataset, convention)]
     sensor = PRESETS[dataset]
     rgb = [obj for source in rgb_sources for obj in rgb_objects(source, sensor)] or builtin_rgb_objects(sensor)
-    return paired_sets(real, rgb, dataset, min_points, points, seed, classes)
+    return paired_sets(real, rgb, dataset, min_points, points, seed, classes, source=real_sources[0])
 
 
 def paired_sets(real: list, rgb: list, dataset: str, min_points: int = DEFAULT_POINTS,
-                points: int = DEFAULT_POINTS, seed: int = 0, classes=None) -> tuple:
+                points: int = DEFAULT_POINTS, seed: int = 0, classes=None, source="training data") -> tuple:
     """(real ObjectSet, rgb ObjectSet) of LidarObject lists, over paired_classes."""
-    chosen = paired_classes(real, rgb, min_points, classes=classes)
+    chosen = paired_classes(real, rgb, min_points, classes=classes, source=source)
     rng = np.random.default_rng(seed)
     sets = []
     for objects in (real, rgb):

@@ -106,6 +106,33 @@ def class_layers(class_name: str, table: dict | None = None) -> tuple:
     return tuple(merged.get(class_name.lower(), ()))
 
 
+def checked_legend(legend, channels: int, source) -> dict:
+    """{layer: (channels,) int64 key} of a map legend {layer: label or [r, g, b]} for an
+    8-bit image of ``channels`` (1 or 3); InputError naming ``source`` otherwise."""
+    if not isinstance(legend, dict) or not legend:
+        raise InputError(source, "expected a JSON object {layer: label or [r, g, b]}")
+    keys = {}
+    for layer, value in legend.items():
+        key = value if isinstance(value, list) else [value]
+        if len(key) != channels or not all(type(part) is int and 0 <= part <= 255 for part in key):
+            raise InputError(source, f"legend entry {layer!r} is {value!r}: expected " +
+                             ("a label 0-255 for a one-channel image" if channels == 1 else
+                              "[r, g, b] of 0-255 for a colour image"))
+        keys[layer] = np.array(key, np.int64)
+    return keys
+
+
+def checked_class_layers(table, source) -> dict:
+    """{class: (layer, ...)} of a JSON {class: [layer, ...]}; InputError naming ``source``
+    otherwise (a bare string would be read as its letters)."""
+    if not isinstance(table, dict):
+        raise InputError(source, "expected a JSON object {class: [layer, ...]}")
+    for name, layers in table.items():
+        if not isinstance(layers, list) or not all(isinstance(layer, str) for layer in layers):
+            raise InputError(source, f"class {name!r} has {layers!r}: expected a list of layer names")
+    return {name: tuple(layers) for name, layers in table.items()}
+
+
 def _mapping(value) -> dict:
     """``value`` when it is a JSON object, else an empty one (a GeoJSON member of another type)."""
     return value if isinstance(value, dict) else {}
@@ -209,11 +236,13 @@ class ImagePose:
 
 
 def map_from_image(image: np.ndarray, legend: dict, pose: ImagePose, lidar_to_world: np.ndarray,
-                   radius: float = RADIUS, resolution: float = RESOLUTION, source="map") -> MapRaster:
-    """The MapRaster of a semantic ``image`` (H, W) labels or (H, W, >= 3) colours, its
-    ``legend`` {layer: label or [r, g, b]} and ``pose``, seen from a sensor at
+                   radius: float = RADIUS, resolution: float = RESOLUTION, source="map",
+                   legend_source="legend") -> MapRaster:
+    """The MapRaster of a semantic ``image`` (H, W) 8-bit labels or (H, W, >= 3) 8-bit
+    colours, its ``legend`` {layer: label or [r, g, b]} and ``pose``, seen from a sensor at
     ``lidar_to_world``: each raster pixel takes the image pixel under its centre. InputError
-    naming ``source`` when the image does not cover the raster's circle of ``radius``."""
+    naming ``source`` when the image does not cover the raster's circle of ``radius``, or
+    ``legend_source`` when the legend does not fit the image (checked_legend)."""
     image = np.asarray(image)
     if pose.resolution <= 0:
         raise InputError(source, f"the map's resolution must be > 0 m per pixel, got {pose.resolution}")
@@ -223,22 +252,23 @@ def map_from_image(image: np.ndarray, legend: dict, pose: ImagePose, lidar_to_wo
     world = local @ np.asarray(lidar_to_world, np.float64).T
     yaw = np.radians(pose.yaw_deg)
     dx, dy = world[:, 0] - pose.x0, world[:, 1] - pose.y0
-    columns = np.floor((dx * np.cos(yaw) + dy * np.sin(yaw)) / pose.resolution).astype(np.int64)
-    rows = np.floor(-(-dx * np.sin(yaw) + dy * np.cos(yaw)) / pose.resolution).astype(np.int64)
+    # In floats first: a pose far off (or a tiny resolution) gives indexes beyond int64, or inf.
+    with np.errstate(over="ignore", invalid="ignore"):
+        columns = np.floor((dx * np.cos(yaw) + dy * np.sin(yaw)) / pose.resolution)
+        rows = np.floor(-(-dx * np.sin(yaw) + dy * np.cos(yaw)) / pose.resolution)
     inside = (rows >= 0) & (rows < image.shape[0]) & (columns >= 0) & (columns < image.shape[1])
+    rows, columns = np.where(inside, rows, 0).astype(np.int64), np.where(inside, columns, 0).astype(np.int64)
     within = np.hypot(grid_x.ravel(), grid_y.ravel()) <= radius
     if not inside[within].all():
         raise InputError(source, f"the map image does not cover the scene: {int((within & ~inside).sum())} map "
                                  f"pixels within {radius:g} m of the sensor fall outside it (check --map-pose)")
-    values = image[np.clip(rows, 0, image.shape[0] - 1), np.clip(columns, 0, image.shape[1] - 1)]
+    values = image[rows, columns]
     size = len(xs)
-    layers = tuple(sorted(legend))
+    keys = checked_legend(legend, 1 if image.ndim == 2 else 3, legend_source)
+    layers = tuple(sorted(keys))
     masks = np.zeros((len(layers), size, size), bool)
     for index, layer in enumerate(layers):
-        key = np.atleast_1d(np.asarray(legend[layer]))
-        if image.ndim == 2 and key.size != 1 or image.ndim == 3 and key.size != 3:
-            raise InputError(source, f"legend entry {layer!r} is {legend[layer]!r}: a label value for a one-channel "
-                                     f"image, [r, g, b] for a colour image")
+        key = keys[layer]
         hit = values == key[0] if image.ndim == 2 else (values[:, :3] == key).all(axis=1)
         masks[index] = (hit & inside).reshape(size, size)
     return MapRaster(layers, masks, resolution, radius)

@@ -87,11 +87,12 @@ def labelled_scene(labels: list, meshes: dict, glass: bool = True, engine: str =
     return target, owner_of_face, chosen
 
 
-def real_rings(rows: np.ndarray) -> np.ndarray:
+def real_rings(rows: np.ndarray, source="scan") -> np.ndarray:
     """(N,) ring (0 = lowest) of each point of a raw scan stored laser by laser: its laser
-    from scan order, ranked by the elevation fitted on the scan itself (sensor_fit.py)."""
-    fit = sensor_fit.fit_lasers([rows])
-    return np.argsort(np.argsort(fit.elevations_deg))[sensor_fit.scan_order_lasers(rows)]
+    from scan order, ranked by the elevation fitted on the scan itself (sensor_fit.py).
+    InputError naming ``source`` when the scan's lasers cannot be told apart."""
+    fit = sensor_fit.fit_lasers([rows], [source])
+    return np.argsort(np.argsort(fit.elevations_deg))[sensor_fit.scan_order_lasers(rows, source)]
 
 
 def azimuth_columns(points: np.ndarray, sensor: Sensor) -> np.ndarray:
@@ -101,18 +102,18 @@ def azimuth_columns(points: np.ndarray, sensor: Sensor) -> np.ndarray:
     return np.minimum(np.floor(degrees / sensor.azimuth_step_deg).astype(np.int64), sensor.columns - 1)
 
 
-def hit_outcomes(rows: np.ndarray, labels: list, sensor: Sensor, meshes: dict) -> tuple:
+def hit_outcomes(rows: np.ndarray, labels: list, sensor: Sensor, meshes: dict, source="scan") -> tuple:
     """One real frame replayed noiseless: (hits, real_label). ``rows`` (N, 3+) float64 the
     frame's points. ``hits`` holds arrays over every simulated hit on a labelled object:
     "outcome" (ray_drop.cell_outcomes: KEPT, DROPPED, ELSEWHERE), "label",
     "reflectivity", "cos_incidence", "range" (m); ``real_label`` (N,) the label whose box
-    holds each real point, -1 for none."""
+    holds each real point, -1 for none. Errors name ``source``, the scan's file."""
     target, owner_of_face, _ = labelled_scene(labels, meshes, engine=OUTCOME_ENGINE)
     trace = trace_rays(target, sensor, np.eye(4), window=False, engine=OUTCOME_ENGINE)
     owner = owner_of_face[target.source_index[trace.polygons]]
     points = sensor.return_points(trace.cells, trace.ranges)
     sim_cells = trace.cells // sensor.columns * sensor.columns + azimuth_columns(points, sensor)
-    real_cells = real_rings(rows) * sensor.columns + azimuth_columns(rows, sensor)
+    real_cells = real_rings(rows, source) * sensor.columns + azimuth_columns(rows, sensor)
     outcome = np.full(len(owner), -1, np.int8)
     real_label = np.full(len(rows), -1, np.int64)
     for index, (_, centre, dims, heading) in enumerate(labels):
@@ -126,20 +127,20 @@ def hit_outcomes(rows: np.ndarray, labels: list, sensor: Sensor, meshes: dict) -
 
 
 def replay_frames(frames, sensor: Sensor, meshes: dict) -> list:
-    """``frames``: (name, rows (N, 4+) float64 x y z intensity, labels) as
-    intensity/objects.kitti_frames yields them. Per frame with labels: "frame" (its
-    name), "labels", "hits" (hit_outcomes, plus "object": an id unique over frames) and
+    """``frames``: (scan path, rows (N, 4+) float64 x y z intensity, labels) as
+    intensity/objects.kitti_frames yields them. Per frame with labels: "frame" (the scan's
+    file name without suffix), "labels", "hits" (hit_outcomes, plus "object": an id unique over frames) and
     "real" (its points inside the boxes: "value" intensity 0..1, "range" m, "label",
     "object")."""
     replayed = []
-    for name, rows, labels in frames:
+    for scan, rows, labels in frames:
         if not labels:
             continue
-        hits, real_label = hit_outcomes(rows, labels, sensor, meshes)
+        hits, real_label = hit_outcomes(rows, labels, sensor, meshes, scan)
         first_object = sum(len(frame["labels"]) for frame in replayed)
         hits["object"] = first_object + hits["label"]
         inside = real_label >= 0
-        replayed.append({"frame": name, "labels": labels, "hits": hits,
+        replayed.append({"frame": Path(scan).stem, "labels": labels, "hits": hits,
                          "real": {"value": rows[inside, 3] / sensor.intensity_max, "label": real_label[inside],
                                   "range": np.linalg.norm(rows[inside, :3], axis=1),
                                   "object": first_object + real_label[inside]}})

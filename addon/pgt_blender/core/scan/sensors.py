@@ -206,10 +206,13 @@ class Sensor:
 
 MAX_CELLS = 2**24  # beams x columns: the ray table (24 bytes a cell) stays within 400 MB
 MAX_ORIGIN_OFFSET_M = 1.0  # a laser farther than this from the sensor origin is a unit error
+RATE_HZ_RANGE = (0.1, 1000.0)  # rotating LiDARs spin at 5-20 Hz; beyond this, float32 time lags overflow
 
 
 def validate(sensor: Sensor) -> None:
     """Raise ValueError naming the fields that do not make a usable sensor."""
+    if not isinstance(sensor.name, str) or not sensor.name or "\0" in sensor.name:
+        raise ValueError(f"the sensor's name must be a non-empty text, got {sensor.name!r}")
     scalars = ("rate_hz", "min_range", "max_range", "mounting_height", "range_noise_sigma", "start_azimuth_deg")
     wrong = [name for name in scalars if isinstance(getattr(sensor, name), bool)
              or not isinstance(getattr(sensor, name), (int, float, np.integer, np.floating))
@@ -245,9 +248,10 @@ def validate(sensor: Sensor) -> None:
     elif sensor.columns * max(len(elevations), 1) > MAX_CELLS:
         problems.append(f"columns x beams = {sensor.columns * len(elevations):,} exceeds {MAX_CELLS:,} rays per "
                         f"revolution")
-    for name in ("rate_hz", "max_range"):
-        if not getattr(sensor, name) > 0:
-            problems.append(f"{name} must be positive, got {getattr(sensor, name)!r}")
+    if not sensor.max_range > 0:
+        problems.append(f"max_range must be positive, got {sensor.max_range!r}")
+    if not RATE_HZ_RANGE[0] <= sensor.rate_hz <= RATE_HZ_RANGE[1]:
+        problems.append(f"rate_hz must lie between {RATE_HZ_RANGE[0]:g} and {RATE_HZ_RANGE[1]:g}, got {sensor.rate_hz!r}")
     if not 0 <= sensor.min_range < sensor.max_range:
         problems.append("min_range must be >= 0 and below max_range")
     if not sensor.mounting_height >= 0 or not sensor.range_noise_sigma >= 0:
@@ -258,7 +262,7 @@ def validate(sensor: Sensor) -> None:
             problems.append(f"{name} must be empty or {meaning}, got {list(values)}")
     if len(sensor.intensity_law) == 3 and not (sensor.intensity_law[0] > 0 and min(sensor.intensity_law[1:]) >= 0):
         problems.append("intensity_law needs scale > 0, range_exponent >= 0 and spread >= 0")
-    if sensor.direction not in (-1, 1):
+    if isinstance(sensor.direction, bool) or sensor.direction not in (-1, 1):
         problems.append("direction must be -1 (clockwise) or 1 (counter-clockwise)")
     if sensor.dataset not in DATASETS:
         problems.append(f"dataset must be one of {', '.join(DATASETS)}, got {sensor.dataset!r}")
