@@ -129,7 +129,7 @@ def test_prepare_heads_a_sample_trailer_by_its_running_gear(tmp_path, seed):
     paths = write_sample(tmp_path, "trailer", seed=seed, points=8000)
     truth = np.array(json.loads(paths["truth.json"].read_text())["source_from_object"])
     authored = prepare(load_reconstruction(paths["reconstruction.ply"]), "trailer", size="keep")
-    assert authored.steps[1].details["decided_by"] == "running gear"
+    assert authored.steps[1].details["decided_by"] == "running gear" and authored.steps[1].details["class"] == "trailer"
     forward = authored.object_from_source[:3, :3] @ truth[:3, 0]  # the true front, in the found object frame
     assert forward[0] / np.linalg.norm(forward) > 0.99
 

@@ -408,12 +408,11 @@ class OBJECT_OT_pgt_auto_heading(_AuthoringStep, bpy.types.Operator):
         return detect_front(context, obj, settings)
 
     def outcome(self, step, settings) -> str:
-        """The deciding rule, the class it headed the object as (a trailer's running gear;
-        the class field is the scene's, possibly left from another object), its score
-        and whether the object turned."""
+        """The deciding rule, the class it headed the object as (a trailer's running gear),
+        its score and whether the object turned."""
         details = step.details
         measure = "front probability" if details["decided_by"] == "classifier" else "score"
-        as_class = f" as {settings.class_name}" if settings.class_name else ""
+        as_class = f" as {details['class']}" if details["class"] else ""
         turned = "turned 180" if details["turns"] == 2 else "front kept"
         return f" by {prepare.heading_label(details)}{as_class} ({measure} {details['score']:.3g}; {turned})"
 

@@ -84,7 +84,7 @@ def main(argv: list) -> int:
             continue
         align, *rest = authored.steps
         heading = next((s.details for s in rest if s.name == "heading"), {"by": "none"})
-        score = f" {heading['score']:.2f}" if "score" in heading else ""
+        score = f" {heading['score']:.3g}" if "score" in heading else ""  # as Detect Front reports it
         dims = ", ".join(f"{d:.2f}" for d in authored.dims)
         print(f"{recon.name:32} {len(recon.positions):8d} {align.details['up_from']:>6} "
               f"{align.details['tilt_deg']:6.2f} "

@@ -102,10 +102,10 @@ def heading_label(details: dict) -> str:
 def automatic_heading_step(positions, dims, method: str, checkpoint=None, source="points",
                            class_name: str = "") -> Step:
     """Baseline or classifier front/back decision for an object of ``class_name`` (see
-    :func:`.heading.automatic_front`)."""
+    :func:`.heading.automatic_front`); the step records the class ("" for none)."""
     turns, score, decided_by = heading.automatic_front(positions, dims, method, checkpoint, source, class_name)
     step = turn_step(turns, dims)
-    step.details.update(by=method, decided_by=decided_by, score=float(score))
+    step.details.update({"by": method, "decided_by": decided_by, "score": float(score), "class": class_name})
     return step
 
 
