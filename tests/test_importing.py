@@ -360,6 +360,14 @@ MALFORMED = {
     "splat rgb as ushort": (_splat(lambda c: [c.pop(f"f_dc_{i}") for i in range(3)] and c.update(
         red=np.full(10, 60000, np.uint16), green=np.zeros(10, np.uint16), blue=np.zeros(10, np.uint16))),
         "10 of 10 points have colors outside uchar 0..255 in 'red'"),
+    "point PLY extra property beyond int32": (
+        _file("cloud.ply", b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+                           b"property float z\nproperty uint label\nend_header\n0 0 0 7\n1 0 0 4000000000\n"),
+        "vertex property 'label' holds 4000000000 in row 2: beyond a Blender int32 attribute"),
+    "point PLY extra double beyond float32": (
+        _file("cloud.ply", b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+                           b"property float z\nproperty double weight\nend_header\n0 0 0 1e300\n1 0 0 1\n"),
+        "vertex property 'weight' holds 1e+300 in row 1: beyond a Blender float32 attribute"),
     "OBJ vertex with a vertical tab": (_file("v.obj", b"v 0 0 0\nv 0 \x0b 1\nf 1 1 2\n"),
                                        "vertices are not 3-D coordinates"),
     "cameras.json nested 100,000 deep": (_cameras_json("[" * 100_000), "RecursionError"),

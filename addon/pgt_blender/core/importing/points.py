@@ -146,13 +146,26 @@ def _stack(data: dict, names) -> np.ndarray:
 
 
 def _leftover_attributes(path, data: dict, consumed, produced) -> dict:
-    """Every property not in ``consumed`` as a per-point attribute (ints stay ints);
-    InputError for one named like an attribute the importer makes (``produced``)."""
+    """Every property not in ``consumed`` as a per-point attribute: int32 or float32, as
+    Blender stores them (NaN or Inf in the file are carried as they are). InputError for
+    one named like an attribute the importer makes (``produced``), or holding values
+    those types cannot (an integer beyond int32 would wrap, a float beyond float32
+    become Inf)."""
     taken = [name for name in produced if name in data and name not in consumed]
     if taken:
         raise InputError(path, f"vertex property '{taken[0]}' has the name of the attribute the importer makes from "
                                f"other properties; rename it")
-    return {
-        name: values.astype(np.int32 if values.dtype.kind in "iu" else np.float32, copy=False)
-        for name, values in data.items() if name not in consumed
-    }
+    attributes = {}
+    for name, values in data.items():
+        if name in consumed:
+            continue
+        stored = np.int32 if values.dtype.kind in "iu" else np.float32
+        if not np.can_cast(values.dtype, stored):  # a wider type (uint32, double): check its values
+            limits = np.iinfo(stored) if stored is np.int32 else np.finfo(stored)
+            beyond = np.isfinite(values) & ((values < limits.min) | (values > limits.max))
+            if beyond.any():
+                raise InputError(path, f"vertex property '{name}' holds {values[beyond][0]} in row "
+                                       f"{int(np.flatnonzero(beyond)[0]) + 1}: beyond a Blender "
+                                       f"{np.dtype(stored).name} attribute")
+        attributes[name] = values.astype(stored, copy=False)
+    return attributes
