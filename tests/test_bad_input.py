@@ -175,12 +175,17 @@ def sidecar_scan(content: bytes, problem):
     return build
 
 
-def under_a_file(script, args):
-    """--out inside a file: the error names the file in the way (or the path through it)."""
+def under_a_file(script, args, out="out", made_first=False):
+    """--out inside a file: the error names that --out (not a temporary beside it), or
+    the file in the way where the script makes --out's folder first (``made_first``).
+    ``args``: inputs' keys, callables of the inputs, or literal arguments."""
     def build(folder, inputs):
         (folder / "a_file").write_text("x")
-        command = [script, *[inputs.get(arg, arg) for arg in args], "--out", folder / "a_file" / "out"]
-        return command, folder / "a_file", ""
+        command = [script, *[arg(inputs) if callable(arg) else inputs.get(arg, arg) for arg in args],
+                   "--out", folder / "a_file" / out]
+        if made_first:
+            return command, folder / "a_file", "a_file: File exists"
+        return command, folder / "a_file" / out, f"{out}: Not a directory"
     return build
 
 
@@ -223,6 +228,14 @@ def bank(table: dict, problem, named="bank.toml", sidecar=None):
                    "--workers", 1]
         return command, {"bank.toml": config, "sidecar": objects / "truck_reconstruction.json",
                          "out": folder / "bank"}[named], problem
+    return build
+
+
+def bank_with(extra, problem, named):
+    """export_bank.py as ``bank`` makes it (SMALL_GRID), plus ``extra(folder)`` arguments."""
+    def build(folder, inputs):
+        command, _, _ = bank(SMALL_GRID, problem)(folder, inputs)
+        return command + extra(folder), named(folder), problem
     return build
 
 
@@ -346,7 +359,12 @@ CASES = {
     # outputs that cannot be written
     "prepare_objects --out under a file": under_a_file(
         "prepare_objects.py", ["--in", "prepared", "--class", "truck", "--heading", "baseline"]),
-    "mix_bank --out under a file": under_a_file("mix_bank.py", ["--real", "infos", "--bank", "infos"]),
+    "mix_bank --out under a file": under_a_file("mix_bank.py", ["--real", "infos", "--bank", "infos"],
+                                                made_first=True),
+    "fit_sensor --out under a file": under_a_file("fit_sensor.py", [lambda inputs: inputs["kitti"] / "velodyne"],
+                                                  "fitted.toml"),
+    "scan_object --out under a file": under_a_file("scan_object.py", ["--object", "mesh", "--x", "10", "--y", "0"],
+                                                   "scan.bin"),
     "train_intensity --out under a file": under_a_file(
         "train_intensity.py", ["--real", "kitti", "--real", "infos", "--gt-convention", "mmdet3d", "--steps", "1"]),
     # pickles that would run code, garbage inside databases
@@ -368,6 +386,12 @@ CASES = {
         lambda record: json.dumps({**record, "class": "semi"}).encode()),
     "export_bank --real crafted": crafted_pickle("export_bank.py", "--real",
                                                  ("--objects", "prepared", "--workers", "1")),
+    "export_bank with a dataset root that is no folder": bank_with(
+        lambda folder: ["--data-root", folder / "no-root"], "the dataset root is not a folder",
+        lambda folder: folder / "no-root"),  # named before any chunk is exported
+    "export_bank on a Ray address nobody answers": bank_with(
+        lambda folder: ["--executor", "ray", "--address", "127.0.0.1:1"], "no Ray cluster answers there",
+        lambda folder: "127.0.0.1:1"),  # ray.init retried it without end
     # placement into real scenes
     "place_objects on a scan without ground": place(scan_of_one_object, "no ground found",
                                                     lambda folder, kitti, inputs: kitti / "velodyne" / "000001.bin"),
@@ -386,6 +410,11 @@ CASES = {
     "fit_sensor on a folder without scans": lambda folder, inputs: (["fit_sensor.py", folder], folder,
                                                                     "holds no *.bin scans"),
     "fit_returns on a scan not stored laser by laser": shuffled_velodyne,
+    "fit_returns with a meshes folder that is not there": lambda folder, inputs: (
+        ["fit_returns.py", inputs["kitti"], "--meshes", folder / "meshes"], folder / "meshes", "no such folder"),
+    "scan_object writing onto a folder": lambda folder, inputs: (
+        (folder / "scan.bin").mkdir() or ["scan_object.py", "--object", inputs["mesh"], "--x", 10, "--y", 0,
+                                          "--out", folder / "scan.bin"], folder / "scan.bin", "Is a directory"),
     "fit_returns on a folder without scans": lambda folder, inputs: (["fit_returns.py", folder, "--meshes", "samples"], folder,
                                                                      "no velodyne/*.bin scans"),
 }
@@ -413,6 +442,37 @@ def test_a_non_finite_pose_is_a_usage_error(inputs, tmp_path, flag, value):
     result = run_script("scan_object.py", "--object", inputs["mesh"], *[f"{key}={item}" for key, item in args.items()],
                         "--out", tmp_path / "scan.bin")
     assert result.returncode == 2 and f"argument {flag}: expected a finite number, got '{value}'" in result.stderr
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("command, problem", [
+    ("mix_bank.py --seed=-1", "argument --seed: expected a whole number 0 .. 2,147,483,647, got '-1'"),
+    ("demo.py --seed 99999999999", "argument --seed: expected a whole number 0 .. 2,147,483,647"),
+    ("train_heading.py --points 1000000000", "argument --points: expected a whole number 1 .. 65,536"),
+    ("train_heading.py --threads 0", "argument --threads: expected a whole number 1 .. 256"),
+    ("train_intensity.py --steps " + "9" * 400, "argument --steps: expected a whole number 1 .. 10,000,000"),
+    ("reconstruct_frames.py frames --every 1000000000", "argument --every: expected a whole number 1 .. 10,000"),
+    ("reconstruct_frames.py frames --max-features 9223372036854775808", "argument --max-features"),
+    ("scan_object.py --sweeps 1000000000", "argument --sweeps: expected a whole number 1 .. 100"),
+    ("scan_object.py --speed 1e308", "argument --speed: expected a number -100 .. 100, got '1e308'"),
+    ("fit_sensor.py scans --values-per-point 0", "argument --values-per-point: expected a whole number 3 .. 64"),
+    ("fit_returns.py scans --values-per-point 3", "argument --values-per-point: expected a whole number 4 .. 64"),
+    ("place_objects.py --max-distance 1e308", "argument --max-distance: expected a number 0 .. 1000"),
+    ("place_objects.py --max-distance=inf", "argument --max-distance: expected a finite number, got 'inf'"),
+    ("place_objects.py --seed=-1", "argument --seed: expected a whole number 0 .. 2,147,483,647"),
+    ("place_objects.py --objects=Pedestrian=100000000", "argument --objects: expected CLASS=N (a class and a count "
+                                                        "up to 1000)"),
+    ("fit_ground.py kitti --mounting-height nan", "argument --mounting-height: expected a finite number"),
+    ("prepare_objects.py --size 1e308,1e308,1e308", "argument --size: expected class, keep or three sizes"),
+    ("mix_bank.py --ratio 1e-320:1", "ratio '1e-320:1': at most 1000 PGT entries per GT entry"),
+    ("export_bank.py --workers 0", "argument --workers: expected a whole number 1 .. 1,024"),
+    ("score_bank.py --limit 0", "argument --limit: expected a whole number 1 .. 10,000,000"),
+])
+def test_out_of_range_arguments_are_usage_errors(tmp_path, command, problem):
+    """Every count and quantity a command takes is bounded (cli.whole, cli.within): a
+    typo is exit 2 and one line, not a MemoryError, an endless run or a traceback."""
+    result = run_script(*command.split(), cwd=tmp_path)
+    assert result.returncode == 2 and problem in result.stderr.splitlines()[-1], result.stderr
     assert not any(tmp_path.iterdir())
 
 
@@ -473,15 +533,3 @@ def test_a_pipe_or_device_named_as_a_file_is_refused_unread(tmp_path, reader, sp
         signal.alarm(0)
         signal.signal(signal.SIGALRM, previous)
     assert error.value.path == path and "not a regular file (a pipe, socket or device)" in error.value.problem
-
-
-@pytest.mark.parametrize("flag, value, problem", [
-    ("--max-distance", "inf", "expected a finite number, got 'inf'"),
-    ("--seed", "-1", "expected a whole number >= 0, got '-1'"),
-    ("--objects", "Pedestrian=100000000", "expected CLASS=N (a class and a count up to 1000)"),
-])
-def test_place_objects_out_of_range_arguments_are_usage_errors(tmp_path, flag, value, problem):
-    result = run_script("place_objects.py", "--scan", tmp_path / "a.bin", "--info", tmp_path / "a.txt", "--bank",
-                        tmp_path, "--out", tmp_path / "placed", f"{flag}={value}")
-    assert result.returncode == 2 and f"argument {flag}: {problem}" in result.stderr
-    assert not (tmp_path / "placed").exists()

@@ -211,7 +211,8 @@ def missing_difficulty(path):
 
 
 @pytest.mark.parametrize("which, spoil, problem", [
-    ("real", Path.unlink, "no such file"),
+    ("real", Path.unlink, r"cannot read the file \(No such file or directory\)"),
+    ("real", lambda path: path.unlink() or path.mkdir(), "is a folder; expected a file"),
     ("real", garbage, "not a readable pickle"),
     ("bank", not_a_dict, "not an info database"),
     ("bank", nuscenes_boxes, r"9 values \(nuScenes layout\) .* 7 values \(KITTI layout\)"),

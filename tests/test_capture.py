@@ -320,6 +320,40 @@ def write_masks(folder, cameras, masks, half_size=()):
     return folder
 
 
+def npy_claiming(shape: tuple, descr="|u1") -> bytes:
+    """An .npy header declaring ``shape`` of ``descr`` and no data."""
+    header = repr({"descr": descr, "fortran_order": False, "shape": shape}).encode()
+    header += b" " * (63 - len(header) % 64) + b"\n"
+    return b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header
+
+
+@pytest.mark.parametrize("name, content, problem", [
+    ("huge.npy", npy_claiming((300_000, 400_000)), "is 400000x300000 pixels but its image view.png is 320x240"),
+    ("empty.npy", b"", "not a readable .npy header"),
+    ("flat.npy", npy_claiming((0, 0)), "is 0x0 pixels"),
+    ("table.npy", npy_claiming((240, 320), [("a", "<f4")]), "a .npy mask must be a 2-D array of numbers"),
+    ("text.npy", npy_claiming((240, 320), "<U1"), "a .npy mask must be a 2-D array of numbers"),
+    ("dot.png", "1x1", "is 1x1 pixels but its image view.png is 320x240"),
+    ("cut.npy", npy_claiming((240, 320)), "not a readable mask (ValueError"),
+])
+def test_masks_that_are_not_the_image_s_are_named(tmp_path, name, content, problem):
+    """Before numpy or Pillow allocate what a header declares (112 GiB for the first)."""
+    from PIL import Image
+
+    from pgt_blender.core.capture.masks import read_mask
+    from pgt_blender.core.reconstruction import CameraView
+
+    path = tmp_path / name
+    if content == "1x1":
+        Image.fromarray(np.full((1, 1), 255, np.uint8)).save(path)
+    else:
+        path.write_bytes(content)
+    view = CameraView("view.png", 320, 240, 300.0, 300.0, 160.0, 120.0, np.eye(4))
+    with pytest.raises(InputError) as error:
+        read_mask(path, view)
+    assert error.value.path == path and problem in error.value.problem
+
+
 def precision_recall(recon, total_foreground):
     kept_truth = recon.attributes["foreground"].astype(bool)
     return kept_truth.mean(), kept_truth.sum() / total_foreground

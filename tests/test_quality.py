@@ -223,6 +223,13 @@ def test_encoder_training_is_deterministic_and_round_trips(real, encoder, tmp_pa
     assert loaded.classes == sorted(sets) and loaded.dataset == "kitti"
 
 
+def test_an_encoder_of_a_real_mmdet3d_database_saves(shared_data, tmp_path):
+    """Its class names come from the pickle as numpy strings (they once broke the save)."""
+    sets = database_sets(shared_data / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl", "mmdet3d", "kitti")
+    train_encoder(sets, "kitti", "test", seed=0, steps=2).save(tmp_path / "encoder.pt")
+    assert QualityEncoder.load(tmp_path / "encoder.pt").classes == ["Pedestrian"]
+
+
 def test_score_bank_command_writes_json_and_caches_its_encoder(banks, real, tmp_path):
     bank = Path(shutil.copytree(banks[MATCHED], tmp_path / "bank"))
     out = tmp_path / "scores.json"

@@ -2,6 +2,9 @@
 reconstruct_frames.py): frame choice, pairing, the similarity fit, and real
 reconstructions of statue photos compared with the shipped model's cameras."""
 
+import struct
+import zlib
+
 import numpy as np
 import pycolmap
 import pytest
@@ -147,4 +150,41 @@ def test_too_few_images_and_no_model(shared_data, tmp_path):
         pycolmap.Bitmap.from_array(np.full((64, 64), 100 + index, np.uint8)).write(str(flat / f"{index}.png"))
     with pytest.raises(InputError, match="no model"):
         reconstruct(flat, ["0.png", "1.png", "2.png"], tmp_path / "none", FAST)
-    assert not (tmp_path / "none" / "database.db").exists()
+    assert not (tmp_path / "none").exists()  # nothing left behind
+    earlier = tmp_path / "earlier"
+    (earlier / "sparse").mkdir(parents=True)
+    (earlier / "database.db").write_bytes(b"an earlier run's")
+    with pytest.raises(InputError, match="no model"):
+        reconstruct(flat, ["0.png", "1.png", "2.png"], earlier, FAST)
+    assert sorted(path.name for path in earlier.iterdir()) == ["database.db", "sparse"]
+    assert (earlier / "database.db").read_bytes() == b"an earlier run's"
+
+
+def png_claiming(width: int, height: int) -> bytes:
+    """A grey PNG whose header claims ``width`` x ``height`` px, with almost no pixel data."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b""))
+
+
+@pytest.mark.parametrize("name, content, problem", [
+    ("huge.png", png_claiming(100_000, 100_000), "not a readable image (DecompressionBombError"),  # COLMAP crashed
+    ("wide.png", png_claiming(70_000, 10), "image of 70000 x 10 px: each side must be 3 .. 65536 px"),
+    ("dot.png", None, "image of 1 x 1 px: each side must be 3 .. 65536 px"),
+    ("empty.jpg", b"", "not a readable image (UnidentifiedImageError"),
+    ("notes.jpg", b"not a picture", "not a readable image (UnidentifiedImageError"),
+], ids=["100000 px a side", "70000 px wide", "1 x 1", "empty", "text"])
+def test_unusable_images_are_named_before_colmap_reads_them(shared_data, tmp_path, name, content, problem):
+    images = tmp_path / "frames"
+    images.mkdir()
+    for photo in SUBSET[:2]:
+        (images / photo).symlink_to(shared_data / "colmap_statue" / "images" / photo)
+    if content is None:
+        pycolmap.Bitmap.from_array(np.zeros((1, 1), np.uint8)).write(str(images / name))
+    else:
+        (images / name).write_bytes(content)
+    result = run_script("reconstruct_frames.py", images, "--out", tmp_path / "out", "--quiet")
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 1 and len(lines) == 1 and lines[0].startswith(f"error: {images / name}: {problem}")
+    assert not (tmp_path / "out").exists()

@@ -304,4 +304,4 @@ def test_every_command_is_a_console_script_with_a_shim():
     console = Path(sys.executable).parent / "pgt-mix-bank"
     result = subprocess.run([str(console), "--real", "missing.pkl", "--bank", "b.pkl", "--out", "o.pkl"],
                             capture_output=True, text=True, timeout=120)
-    assert (result.returncode, result.stderr) == (1, "error: missing.pkl: no such file\n")
+    assert (result.returncode, result.stderr) == (1, "error: missing.pkl: cannot read the file (No such file or directory)\n")

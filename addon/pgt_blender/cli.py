@@ -76,8 +76,33 @@ def finite(text: str) -> float:
     return value
 
 
-def count(text: str) -> int:
-    """A whole number >= 0, as an argparse type."""
-    if not text.isdigit():
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got '{text}'")
-    return int(text)
+def within(low: float, high: float):
+    """An argparse type: a finite number in ``low`` .. ``high`` (a physical quantity;
+    1e308 m would overflow the arithmetic it enters)."""
+    def parse(text: str) -> float:
+        value = finite(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected a number {low:g} .. {high:g}, got '{text[:40]}'")
+        return value
+    return parse
+
+
+def whole(low: int, high: int):
+    """An argparse type: a whole number in ``low`` .. ``high``. Every count a command
+    takes is bounded, so that a typo (10**9 steps, a negative seed) is a usage error,
+    not a MemoryError, an endless run or a traceback deep inside a library."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:  # also beyond 4,300 digits
+            value = None
+        if value is None or not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected a whole number {low:,} .. {high:,}, got '{text[:40]}'")
+        return value
+    return parse
+
+
+SEED = whole(0, 2**31 - 1)  # numpy, torch and COLMAP (a C int) all take it
+THREADS = whole(1, 256)
+STEPS = whole(1, 10**7)  # optimiser steps
+CLOUD_POINTS = whole(1, 65536)  # points per cloud a network sees

@@ -35,6 +35,7 @@ from pathlib import Path
 from .. import cli
 from ..core.bank import export, folder
 from ..core.bank.config import BankConfig, load_config
+from ..core.bank.executors import check_ray_address
 from ..core.bank.inputs import checked_objects, prepared_objects
 from ..core.errors import InputError
 
@@ -92,6 +93,10 @@ def _blend_objects(path: Path, open_it: bool) -> tuple:
 
 
 def export_bank(args) -> int:
+    if args.data_root is not None:
+        export.check_data_root(args.data_root)
+    if args.executor == "ray":
+        check_ray_address(args.address)
     if args.assemble:
         reference = real_reference(args, folder.read_identity(args.out)["config"])
         for shard in args.shard_dirs:
@@ -167,7 +172,8 @@ def main(argv: list) -> int:
     parser.add_argument("--objects", type=Path, action="append", default=[],
                         help="folder of prepared objects (repeatable)")
     parser.add_argument("--skip-incomplete", action="store_true", help="leave out objects without class or size")
-    parser.add_argument("--workers", type=int, default=os.cpu_count(), help="processes (default: all cores)")
+    parser.add_argument("--workers", type=cli.whole(1, 1024), default=os.cpu_count(),
+                        help="processes (default: all cores)")
     parser.add_argument("--executor", choices=("local", "ray"), default="local")
     parser.add_argument("--address", help="Ray cluster address (default: start a local one)")
     parser.add_argument("--resume", action="store_true", help="continue the unfinished bank in --out")

@@ -45,7 +45,7 @@ def main(argv: list) -> int:
     parser.add_argument("--masks", type=Path, help="folder of per-image masks, named after the images")
     parser.add_argument("--mask-share", type=float, default=0.5,
                         help="share of the views seeing an element that must put it inside the mask (default 0.5)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the capture steps' random draws")
+    parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of the capture steps' random draws")
     args = parser.parse_args(argv)
     if args.foreground == "masks" and not args.masks:
         parser.error("--foreground masks needs --masks FOLDER")

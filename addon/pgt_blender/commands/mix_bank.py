@@ -34,7 +34,7 @@ def main(argv: list) -> int:
     parser.add_argument("--out", type=Path, required=True, help="the mixed info pickle to write")
     parser.add_argument("--ratio", type=ratio_argument, default=(1.0, 1.0),
                         help="GT:PGT, e.g. 1:1 (default), 2:1, 1:0.5; PGT 0 copies the real database")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the bank draw")
+    parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of the bank draw")
     parser.add_argument("--root", type=Path, help="dataset root the detector joins info paths to "
                                                   "(default: the folder of --real)")
     args = parser.parse_args(argv)

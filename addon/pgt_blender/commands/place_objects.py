@@ -69,9 +69,10 @@ def main(argv: list) -> int:
     parser.add_argument("--map-legend", type=Path, help="JSON {layer: label or [r, g, b]} of the map image")
     parser.add_argument("--class-layers", type=Path, help="JSON {class: [layer, ...]} over the default layers")
     parser.add_argument("--thompson", type=Path, help="Thompson cells state (JSON) to draw cells from")
-    parser.add_argument("--max-distance", type=cli.finite, default=54.0, help="farthest entry placed, m (default 54)")
+    parser.add_argument("--max-distance", type=cli.within(0, 1000), default=54.0,
+                        help="farthest entry placed, m (default 54)")
     parser.add_argument("--no-occlusion", action="store_true", help="skip the range-view ray tracing")
-    parser.add_argument("--seed", type=cli.count, default=0, help="seed of every draw (default 0)")
+    parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of every draw (default 0)")
     args = parser.parse_args(argv)
     if args.map is not None and (args.map_pose is None or args.map_legend is None):
         parser.error("--map needs --map-pose and --map-legend")

@@ -36,8 +36,9 @@ def size_argument(text: str):
         dims = [float(v) for v in text.split(",")]
     except ValueError:
         dims = []
-    if len(dims) != 3 or min(dims) <= 0:
-        raise argparse.ArgumentTypeError(f"expected class, keep or three positive sizes L,W,H; got '{text}'")
+    if len(dims) != 3 or not all(0.001 <= dim <= 1000 for dim in dims):  # NaN fails too
+        raise argparse.ArgumentTypeError(f"expected class, keep or three sizes L,W,H of 0.001 .. 1000 m; "
+                                         f"got '{text[:60]}'")
     return dims
 
 
@@ -54,7 +55,7 @@ def main(argv: list) -> int:
     parser.add_argument("--size", type=size_argument, default="class",
                         help="class (class mean with clipped 10%% noise), keep (already metric) or L,W,H metres")
     parser.add_argument("--uniform", action="store_true", help="scale all axes by one factor (keeps proportions)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the first object's size draw")
+    parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of the first object's size draw")
     parser.add_argument("--checkpoint", type=Path, help="heading classifier checkpoint (default: the shipped one)")
     parser.add_argument("--no-refine", dest="refine", action="store_false",
                         help="keep the up choice and PCA yaw as they are (no refinement to the surface planes)")

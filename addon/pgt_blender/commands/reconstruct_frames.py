@@ -23,7 +23,9 @@ from pathlib import Path
 
 from .. import cli
 from ..core.errors import InputError
+from ..core.files import folders_made
 from ..core.importing.frames import PICKS, VIDEO_SUFFIXES, choose_images, decode_video
+from ..core.importing.source import MAX_IMAGE_SIDE
 from ..core.importing.structure_from_motion import MATCHINGS, SfmOptions, reconstruct
 
 VIDEO_EVERY = 10  # a video's default: 1 frame kept in 10 (3 per second at 30 fps)
@@ -33,36 +35,34 @@ def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="reconstruct_frames.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("input", type=Path, help="folder of images, or a video file")
     parser.add_argument("--out", type=Path, required=True, help="output folder (database.db, sparse/0, images/)")
-    parser.add_argument("--every", type=int, help=f"keep 1 frame in K (default {VIDEO_EVERY} for a video, 1 for a "
-                                                  f"folder)")
+    parser.add_argument("--every", type=cli.whole(1, 10**4),
+                        help=f"keep 1 frame in K (default {VIDEO_EVERY} for a video, 1 for a folder)")
     parser.add_argument("--pick", choices=PICKS, default="sharpest", help="which frame of each run of K")
     parser.add_argument("--matching", choices=MATCHINGS, default="auto", help="image pairs to match")
-    parser.add_argument("--overlap", type=int, default=10, help="orbit matching: neighbours each frame meets")
+    parser.add_argument("--overlap", type=cli.whole(1, 1000), default=10,
+                        help="orbit matching: neighbours each frame meets")
     parser.add_argument("--camera", choices=("single", "per-image"), default="single",
                         help="one camera for all frames (a video), or one per image (photos from many cameras)")
-    parser.add_argument("--max-features", type=int, default=8192, help="SIFT features per image")
-    parser.add_argument("--max-image-size", type=int, default=1600, help="px: larger images are scaled down for SIFT")
-    parser.add_argument("--threads", type=int, default=0, help="CPU threads (0: all)")
-    parser.add_argument("--seed", type=int, default=0, help="RANSAC's and the mapper's random seed")
+    parser.add_argument("--max-features", type=cli.whole(1, 10**6), default=8192, help="SIFT features per image")
+    parser.add_argument("--max-image-size", type=cli.whole(1, MAX_IMAGE_SIDE), default=1600,
+                        help="px: larger images are scaled down for SIFT")
+    parser.add_argument("--threads", type=cli.whole(0, 256), default=0, help="CPU threads (0: all)")
+    parser.add_argument("--seed", type=cli.SEED, default=0, help="RANSAC's and the mapper's random seed")
     parser.add_argument("--quiet", action="store_true", help="no progress bars and no COLMAP log")
     args = parser.parse_args(argv)
-    if (args.every is not None and args.every < 1) or args.overlap < 1 or args.max_features < 1 \
-            or args.max_image_size < 1 or args.threads < 0:
-        parser.error("--every, --overlap, --max-features and --max-image-size must be >= 1, --threads >= 0")
     options = SfmOptions(args.matching, args.overlap, args.camera == "single", args.max_features,
                          args.max_image_size, args.threads, args.seed)
     _quiet_colmap(args.quiet)
     progress = not args.quiet
     if args.input.is_dir():
         folder, names = args.input, choose_images(args.input, args.every or 1, args.pick, progress)
+        result = reconstruct(folder, names, args.out, options, progress)
     elif args.input.is_file() and args.input.suffix.lower() in VIDEO_SUFFIXES:
-        folder = args.out / "images"
-        names = decode_video(args.input, folder, args.every or VIDEO_EVERY, args.pick, progress)
+        result = _reconstruct_video(args, options, progress)
     elif args.input.exists():
         raise InputError(args.input, f"not a folder of images nor a video ({', '.join(VIDEO_SUFFIXES)})")
     else:
         raise InputError(args.input, "no such file or folder")
-    result = reconstruct(folder, names, args.out, options, progress)
     total = sum(result.seconds.values())
     print(cli.markdown_table(
         ["images", "registered", "points", "reprojection px", "models", "features s", "matching s", "mapping s"],
@@ -74,11 +74,29 @@ def main(argv: list) -> int:
     return 0
 
 
+def _reconstruct_video(args, options: SfmOptions, progress: bool):
+    """Decode the video's frames into OUT/images and reconstruct them. A failure names
+    the video and removes the frames this run added (and the folders it made)."""
+    folder = args.out / "images"
+    before = {path.name for path in folder.iterdir()} if folder.is_dir() else set()
+    with folders_made(folder):
+        names = decode_video(args.input, folder, args.every or VIDEO_EVERY, args.pick, progress)
+        try:
+            return reconstruct(folder, names, args.out, options, progress)
+        except BaseException as error:
+            for name in set(names) - before:
+                (folder / name).unlink(missing_ok=True)
+            if isinstance(error, InputError) and error.path == folder:
+                raise InputError(args.input, error.problem) from None
+            raise
+
+
 def _quiet_colmap(quiet: bool) -> None:
-    """COLMAP logs every step at INFO to stderr: keep warnings only, or errors when quiet."""
+    """COLMAP logs every step at INFO to stderr: keep warnings only, or nothing when
+    quiet (a failure is the one error line this command prints)."""
     import pycolmap
 
-    pycolmap.logging.minloglevel = pycolmap.logging.ERROR if quiet else pycolmap.logging.WARNING
+    pycolmap.logging.minloglevel = pycolmap.logging.FATAL if quiet else pycolmap.logging.WARNING
 
 
 run = cli.command(main)

@@ -25,14 +25,13 @@ one-line error and exit code 1.
 """
 
 import argparse
-import sys
 from pathlib import Path
-
 
 import numpy as np
 
 from .. import cli
 from ..core.authoring.prepare import read_sidecar
+from ..core.bank.config import MAX_SWEEPS
 from ..core.errors import InputError
 from ..core.importing import load_reconstruction
 from ..core.intensity.estimator import scan_intensity
@@ -107,38 +106,37 @@ def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="scan_object.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--object", type=Path, required=True, help="mesh, point or splat file, object frame")
     parser.add_argument("--sensor", default="nuscenes", help=f"{', '.join(PRESETS)} or a .toml file")
-    parser.add_argument("--x", type=cli.finite, required=True, help="object position, sensor frame (m)")
-    parser.add_argument("--y", type=cli.finite, required=True, help="object position, sensor frame (m)")
+    parser.add_argument("--x", type=cli.within(-1e4, 1e4), required=True, help="object position, sensor frame (m)")
+    parser.add_argument("--y", type=cli.within(-1e4, 1e4), required=True, help="object position, sensor frame (m)")
     parser.add_argument("--heading", type=cli.finite, default=0.0, help="deg, counter-clockwise from +x")
-    parser.add_argument("--sweeps", type=int, default=1, help="merged sweeps of a moving object (nuScenes: 10)")
+    parser.add_argument("--sweeps", type=cli.whole(1, MAX_SWEEPS), default=1,
+                        help="merged sweeps of a moving object (nuScenes: 10)")
     parser.add_argument("--class", dest="class_name", help="class for the motion model (default: sidecar JSON)")
-    parser.add_argument("--speed", type=cli.finite, help="m/s along the heading, instead of the class's draw")
-    parser.add_argument("--acceleration", type=cli.finite, default=0.0, help="m/s^2, with --speed")
+    parser.add_argument("--speed", type=cli.within(-100, 100),
+                        help="m/s along the heading, instead of the class's draw")
+    parser.add_argument("--acceleration", type=cli.within(-50, 50), default=0.0, help="m/s^2, with --speed")
     parser.add_argument("--surface", choices=("auto", "mesh", "gaussians", "surfels", "range-view"), default="auto",
                         help="auto: mesh when the file has faces, Gaussians for a splat, else surfels")
-    parser.add_argument("--radius-scale", type=cli.finite, default=1.0, help="surfel radius / local point spacing")
+    parser.add_argument("--radius-scale", type=cli.within(0.01, 100), default=1.0,
+                        help="surfel radius / local point spacing")
     parser.add_argument("--intensity-checkpoint", type=Path,
                         help="intensity.pt of train_intensity.py: learned intensities instead of the physical law")
     parser.add_argument("--noise", action="store_true", help="add the sensor's range noise")
     parser.add_argument("--drop-rate", type=cli.finite, default=0.0, help="random ray drop probability")
     parser.add_argument("--ray-drop", action="store_true", help="drop returns with the sensor's fitted ray-drop "
                                                                  "model (kitti has one)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=cli.SEED, default=0)
     parser.add_argument("--out", type=Path, required=True, help=f"output file ({', '.join(OUTPUT_SUFFIXES)})")
     args = parser.parse_args(argv)
     if args.out.suffix not in OUTPUT_SUFFIXES:
         parser.error(f"--out must end in {', '.join(OUTPUT_SUFFIXES)}")
-    if args.sweeps < 1 or not 0 <= args.drop_rate < 1:
-        parser.error("--sweeps must be >= 1 and --drop-rate in [0, 1)")
-    try:
-        result, sensor, intensity_note = scan(args)
-        if not result.hits:
-            raise InputError(args.object, f"no returns at x = {args.x:g} m, y = {args.y:g} m: the object is out of "
-                                         f"the {sensor.name} sensor's range or view there; nothing written")
-        write_scan(result, args.out)
-    except (InputError, OSError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 1
+    if not 0 <= args.drop_rate < 1:
+        parser.error("--drop-rate must lie in [0, 1)")
+    result, sensor, intensity_note = scan(args)
+    if not result.hits:
+        raise InputError(args.object, f"no returns at x = {args.x:g} m, y = {args.y:g} m: the object is out of "
+                                     f"the {sensor.name} sensor's range or view there; nothing written")
+    write_scan(result, args.out)
     stats = result.stats()
     box = ", ".join(f"{v:.3f}" for v in result.box)
     print(f"{sensor.name}: {stats['points']} points from {stats['rays']} rays "

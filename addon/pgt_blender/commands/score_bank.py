@@ -25,17 +25,6 @@ from ..core.quality.score import quality_available, score_bank, table_rows
 from ..core.quality.sets import REFERENCES
 
 
-def positive_count(text: str) -> int:
-    """An integer >= 1, as an argparse type."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a count >= 1, got {text!r}")
-    return value
-
-
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="score_bank.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--bank", type=Path, required=True, help="the exported bank's folder")
@@ -50,8 +39,9 @@ def main(argv: list) -> int:
     parser.add_argument("--no-learned", action="store_true", help="feature-free distances only (no torch)")
     parser.add_argument("--reference", choices=REFERENCES, default="all",
                         help="real objects compared: all, or the paper's dense sampling (point-count groups)")
-    parser.add_argument("--limit", type=positive_count, help="real objects per class at most (default: all: 600 drawn, dense: 593)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of every draw and of the encoder's training")
+    parser.add_argument("--limit", type=cli.whole(1, 10**7),
+                        help="real objects per class at most (default: all: 600 drawn, dense: 593)")
+    parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of every draw and of the encoder's training")
     parser.add_argument("--json", type=Path, help="write the scores to this JSON file")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)

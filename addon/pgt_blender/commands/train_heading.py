@@ -65,9 +65,9 @@ def accuracy_both_ways(classifier, sets: list, points: int = 512) -> float:
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="train_heading.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True, help="checkpoint to write (.pt)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--steps", type=int, default=hc.STEPS, help="optimiser steps (batches of 32)")
-    parser.add_argument("--points", type=int, default=512, help="points per cloud the network sees")
+    parser.add_argument("--seed", type=cli.SEED, default=0)
+    parser.add_argument("--steps", type=cli.STEPS, default=hc.STEPS, help="optimiser steps (batches of 32)")
+    parser.add_argument("--points", type=cli.CLOUD_POINTS, default=512, help="points per cloud the network sees")
     parser.add_argument("--chrono", type=Path,
                         help="folder of .obj meshes, front at +x (the shipped checkpoint: ../shared/data/chrono_vehicles)")
     parser.add_argument("--gt-database", type=Path, help="mmdet3d / OpenPCDet *_dbinfos_*.pkl")
@@ -76,12 +76,11 @@ def main(argv: list) -> int:
     parser.add_argument("--no-samples", action="store_true", help="leave out the built-in sample vehicles")
     parser.add_argument("--scans", metavar="SENSOR",
                         help="also train on this sensor's scans of every mesh (a preset name or a .toml)")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (part of what makes bytes repeat)")
+    parser.add_argument("--threads", type=cli.THREADS, default=1,
+                        help="torch CPU threads (part of what makes bytes repeat)")
     args = parser.parse_args(argv)
     if args.gt_database is not None and args.gt_convention is None:
         parser.error("--gt-database needs --gt-convention mmdet3d or openpcdet")
-    if args.steps < 1 or args.points < 1:
-        parser.error("--steps and --points must be positive")
     hc.require_torch(args.out)
     sets = training_sets(args)
     print(f"training on {len(sets)} point sets: " + ", ".join(item.name for item in sets[:12])

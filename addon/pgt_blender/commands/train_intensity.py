@@ -68,12 +68,14 @@ def parse(argv: list):
                         help="a .pkl's points are about the box centre (openpcdet) or bottom centre (mmdet3d)")
     parser.add_argument("--dataset", default="kitti", choices=("kitti", "nuscenes", "lyft"),
                         help="whose LiDAR and intensity scale the real objects have")
-    parser.add_argument("--min-points", type=int, default=64, help="drop objects with fewer points (paper: 256)")
-    parser.add_argument("--points", type=int, default=defaults.points, help="points per object the networks see")
-    parser.add_argument("--steps", type=int, default=defaults.steps)
-    parser.add_argument("--checkpoint-every", type=int, default=defaults.checkpoint_every)
-    parser.add_argument("--seed", type=int, default=defaults.seed)
-    parser.add_argument("--threads", type=int, default=defaults.threads,
+    parser.add_argument("--min-points", type=cli.whole(0, 10**7), default=64,
+                        help="drop objects with fewer points (paper: 256)")
+    parser.add_argument("--points", type=cli.CLOUD_POINTS, default=defaults.points,
+                        help="points per object the networks see")
+    parser.add_argument("--steps", type=cli.STEPS, default=defaults.steps)
+    parser.add_argument("--checkpoint-every", type=cli.STEPS, default=defaults.checkpoint_every)
+    parser.add_argument("--seed", type=cli.SEED, default=defaults.seed)
+    parser.add_argument("--threads", type=cli.THREADS, default=defaults.threads,
                         help="torch CPU threads (part of what makes the bytes repeat)")
     parser.add_argument("--resume", action="store_true", help="go on from DIR/checkpoint.pt")
     args = parser.parse_args(argv)

@@ -21,13 +21,55 @@ def atomic_output(path, writer: str = ""):
             yield stream
         os.replace(temporary, path)
     except OSError as error:
-        temporary.unlink(missing_ok=True)
-        if error.filename not in (None, str(temporary)):
+        _discard(temporary)
+        if error.filename is not None and os.fspath(error.filename) != os.fspath(temporary):
             raise
         raise OSError(error.errno, error.strerror, str(path)) from error
     except BaseException:
-        temporary.unlink(missing_ok=True)
+        _discard(temporary)
         raise
+
+
+def _discard(path: Path) -> None:
+    """Remove ``path`` if it is there; a folder that cannot hold it (a file in the
+    way: NotADirectoryError) has nothing to remove either."""
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass
+
+
+@contextmanager
+def folders_made(folder):
+    """Make ``folder`` and its missing parents; when the block fails, remove those it
+    made that are empty again (a failed step leaves no empty output folder)."""
+    folder = Path(folder)
+    made = [path for path in (folder, *folder.parents) if not path.exists()]
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        yield folder
+    except BaseException:
+        for path in made:
+            if path.is_dir() and not any(path.iterdir()):
+                path.rmdir()
+        raise
+
+
+def npy_header(stream, path, where: str = "") -> tuple:
+    """(shape, dtype) of the .npy array at ``stream``'s position, read without the
+    array (numpy allocates what a header declares before reading); InputError naming
+    ``path`` (and ``where`` in it) for a header numpy cannot read."""
+    import numpy as np
+
+    readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+    try:
+        version = np.lib.format.read_magic(stream)
+        if version not in readers:
+            raise ValueError(f".npy format version {version} is not read")
+        shape, _, dtype = readers[version](stream)
+    except (ValueError, EOFError) as error:
+        raise InputError(path, f"{where}not a readable .npy header ({error})") from None
+    return shape, dtype
 
 
 def read_float32_rows(path, columns: int = 1, what: str = "values"):

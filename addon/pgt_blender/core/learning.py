@@ -62,9 +62,10 @@ def _canonical(value):
     """A copy of nested dicts, lists and tuples with every string interned. Pickle
     writes an object seen before as a reference to it, by identity: a resumed run's
     strings come from a loaded file while a fresh run's are shared literals, so
-    without this the same values would pickle to different bytes."""
+    without this the same values would pickle to different bytes. numpy strings (class
+    names read from info pickles) become plain ones."""
     if isinstance(value, str):
-        return sys.intern(value)
+        return sys.intern(str(value))
     if isinstance(value, dict):
         return {_canonical(key): _canonical(item) for key, item in value.items()}
     if isinstance(value, (list, tuple)):

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
 from .entries import TargetCache
 
 # One job per worker process, set by the pool's initializer (or before a fork).
@@ -75,6 +76,23 @@ def run_local(job, chunks: list, pending: list, workers: int, write):
             done, running = wait(running, return_when=FIRST_COMPLETED)
             for future in done:
                 yield future.result()
+
+
+def check_ray_address(address: str | None, timeout: float = 5.0) -> None:
+    """InputError unless a Ray head answers at ``address`` ("HOST:PORT" or
+    "ray://HOST:PORT"; None and "auto" are left to Ray): ray.init retries an
+    unreachable address without end. Checked before the export writes anything."""
+    import socket
+
+    if address in (None, "auto", "local"):
+        return
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise InputError(address, "not a Ray cluster address (HOST:PORT or ray://HOST:PORT)")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as error:
+        raise InputError(address, f"no Ray cluster answers there ({error.strerror or error})") from None
 
 
 def run_ray(job, chunks: list, pending: list, address: str | None, write):

@@ -324,13 +324,19 @@ def _discard_bank(out: Path, keep_folder: bool) -> None:
         out.rmdir()
 
 
+def check_data_root(data_root) -> None:
+    """InputError unless ``data_root`` (see ``assemble``) is a folder: checked before an
+    export starts too, so that a typo does not surface after the last chunk."""
+    if not Path(data_root).is_dir():
+        raise InputError(data_root, "the dataset root is not a folder")
+
+
 def _path_prefix(format_folder: Path, data_root) -> str:
     """What goes before an info path relative to its format folder: "" without a
     data root, else the format folder relative to the data root plus "/"."""
     if data_root is None:
         return ""
-    if not Path(data_root).is_dir():
-        raise InputError(data_root, "the dataset root is not a folder")
+    check_data_root(data_root)
     return Path(os.path.relpath(format_folder.absolute(), Path(data_root).absolute())).as_posix() + "/"
 
 

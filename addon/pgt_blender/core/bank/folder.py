@@ -159,6 +159,8 @@ def copy_shard(source: Path, out: Path) -> int:
     """Copy a shard folder's whole chunk records and their database files into ``out``
     (same identity required); returns the records copied. Damaged records are left:
     their chunks stay to do."""
+    if Path(source).resolve() == Path(out).resolve():
+        raise InputError(source, "is the bank being assembled (--out); --from takes the shards' folders")
     if read_identity(source) != read_identity(out):
         raise InputError(source, "is not a shard of this bank (its .work/identity.json differs)")
     copied = 0

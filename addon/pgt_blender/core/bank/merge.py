@@ -32,6 +32,7 @@ from ..gt_database import load_infos
 from .folder import info_path_root
 
 BOX_LAYOUTS = {7: "KITTI layout", 9: "nuScenes layout"}
+MAX_PGT_PER_GT = 1000.0  # a bank entry per real one is the paper's 1:1; beyond this, a typo
 
 
 def parse_ratio(text: str) -> tuple:
@@ -49,6 +50,8 @@ def _checked_ratio(ratio, text) -> tuple:
         raise ValueError(f"ratio '{text}': expected GT:PGT such as 1:1, 2:1 or 1:0.5") from None
     if not (np.isfinite(gt) and np.isfinite(pgt) and gt > 0 and pgt >= 0):
         raise ValueError(f"ratio '{text}': GT must be a positive number and PGT a number >= 0")
+    if not pgt / gt <= MAX_PGT_PER_GT:
+        raise ValueError(f"ratio '{text}': at most {MAX_PGT_PER_GT:g} PGT entries per GT entry")
     return gt, pgt
 
 

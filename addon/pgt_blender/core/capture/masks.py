@@ -4,8 +4,8 @@ falls inside the mask in at least ``share`` of the views that see them.
 A mask belongs to the image of the same name: ``IMG_1.png`` or ``IMG_1.jpg.png`` for
 ``IMG_1.jpg`` (3DGS camera names carry no extension; the stem matches). Mask files are
 PNG, JPEG, BMP, TIFF (Pillow: alpha > 127 where the image has an alpha channel, else
-luminance > 127) or ``.npy`` (non-zero). A mask has its image's size or a uniform scale
-of it (a segmenter run on smaller frames).
+luminance > 127) or ``.npy`` (2-D numbers, non-zero). A mask has its image's size or a
+uniform scale of it, 1/16 to 16 times (a segmenter run on smaller or larger frames).
 
 "The views that see an element" are the views whose rays hit it (``visibility.py``): a
 background element hidden behind the object in a view is not judged by that view's mask.
@@ -18,9 +18,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..files import regular_file
+from ..files import npy_header, regular_file
 
 MASK_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".npy")
+# A mask's size over its image's: a segmenter run on frames scaled down, or on the full
+# photos a 3DGS run scaled down (to 1.6k px); beyond these, not this image's mask.
+MASK_SCALES = (1 / 16, 16)
 
 
 def match_masks(folder, cameras: list) -> list:
@@ -53,26 +56,39 @@ def match_masks(folder, cameras: list) -> list:
 def read_mask(path: Path, view) -> np.ndarray:
     """(h, w) bool foreground of the mask file ``path`` for ``view``; InputError naming
     the file when it cannot be read or its size does not fit the image's."""
+    from PIL import Image
+
     path = regular_file(path)
     try:
         if path.suffix.lower() == ".npy":
-            mask = np.load(path, allow_pickle=False)
-            mask = mask != 0 if mask.ndim == 2 else None
+            with open(path, "rb") as stream:
+                shape, dtype = npy_header(stream, path)
+            if len(shape) != 2 or dtype.kind not in "biuf":
+                raise InputError(path, f"a .npy mask must be a 2-D array of numbers, not {dtype} {shape}")
+            _check_mask_size(path, shape, view)  # before numpy allocates what the header declares
+            mask = np.load(path, allow_pickle=False) != 0
         else:
-            from PIL import Image
-
-            with Image.open(path) as image:
+            with Image.open(path) as image:  # refuses a header claiming more pixels than memory holds
+                _check_mask_size(path, image.size[::-1], view)
                 mask = (np.asarray(image.getchannel("A")) if "A" in image.getbands()
                         else np.asarray(image.convert("L"))) > 127
-    except (OSError, ValueError) as error:
+    except (OSError, ValueError, EOFError, Image.DecompressionBombError) as error:
+        if isinstance(error, InputError):
+            raise
         raise InputError(path, f"not a readable mask ({type(error).__name__}: {error})") from None
-    if mask is None:
-        raise InputError(path, "a .npy mask must be a 2-D array")
-    height, width = mask.shape
-    if abs(width / view.width - height / view.height) > 1.5 / min(view.width, view.height):
-        raise InputError(path, f"is {width}x{height} pixels but its image {view.name} is "
-                               f"{view.width}x{view.height} (a mask has the image's size or aspect ratio)")
     return mask
+
+
+def _check_mask_size(path: Path, shape: tuple, view) -> None:
+    """InputError unless a mask of ``shape`` (height, width) px fits ``view``'s image:
+    its size or a uniform scale of it (a pixel of rounding either way) by
+    MASK_SCALES."""
+    height, width = shape
+    scale = width / view.width
+    if not (MASK_SCALES[0] <= scale <= MASK_SCALES[1] and abs(width - height * view.width / view.height) <= 1.5):
+        raise InputError(path, f"is {width}x{height} pixels but its image {view.name} is "
+                               f"{view.width}x{view.height} (a mask has the image's size or its aspect ratio, "
+                               f"at 1/{1 / MASK_SCALES[0]:g} to {MASK_SCALES[1]:g} times its size)")
 
 
 class MaskVotes:

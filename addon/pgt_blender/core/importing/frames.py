@@ -13,13 +13,16 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..files import folders_made
 from ..progress import progress_bar
+from .source import MAX_IMAGE_SIDE
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
 PICKS = ("every", "sharpest")
 FRAME_NAME = "frame_{:06d}.jpg"  # a decoded video frame, by its index in the video
 FRAME_JPEG_QUALITY = 95
+MIN_IMAGE_SIDE = 3  # px: the sharpness Laplacian's support; SIFT finds nothing in less
 
 
 def sharpness(grey: np.ndarray) -> float:
@@ -53,13 +56,34 @@ def chosen_indices(count: int, every: int, pick: str, scores=None) -> np.ndarray
 
 def folder_images(folder) -> list:
     """The image names (IMAGE_SUFFIXES, any case) directly in ``folder``, sorted; their
-    order is the order frames are matched in. InputError when there are none."""
+    order is the order frames are matched in. InputError when there are none, or for
+    the first whose header is not a usable image (checked_image_size)."""
     folder = Path(folder)
     names = sorted(entry.name for entry in folder.iterdir()
                    if entry.is_file() and entry.suffix.lower() in IMAGE_SUFFIXES and not entry.name.startswith("."))
     if not names:
         raise InputError(folder, f"no images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
+    for name in names:
+        checked_image_size(folder / name)
     return names
+
+
+def checked_image_size(path) -> tuple:
+    """(width, height) px from the image's header (Pillow reads no pixels); InputError
+    for a file that is not an image, or a size outside MIN_IMAGE_SIDE .. MAX_IMAGE_SIDE
+    (a header claiming 100,000 px a side would have COLMAP's reader allocate tens of
+    GB, or crash)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as error:
+        raise InputError(path, f"not a readable image ({type(error).__name__}: {error})") from None
+    if not (MIN_IMAGE_SIDE <= min(width, height) and max(width, height) <= MAX_IMAGE_SIDE):
+        raise InputError(path, f"image of {width} x {height} px: each side must be {MIN_IMAGE_SIDE} .. "
+                               f"{MAX_IMAGE_SIDE} px")
+    return width, height
 
 
 def read_grey(path) -> np.ndarray:
@@ -104,11 +128,9 @@ def decode_video(path, out_folder, every: int = 10, pick: str = "sharpest", prog
     if every < 1 or pick not in PICKS:
         raise ValueError(f"every must be >= 1 and pick one of {', '.join(PICKS)}")
     out_folder = Path(out_folder)
-    made = [folder for folder in (out_folder, *out_folder.parents) if not folder.exists()]
     written = []
 
     def write(kept_index: int, rgb: np.ndarray) -> None:
-        out_folder.mkdir(parents=True, exist_ok=True)
         bitmap = pycolmap.Bitmap.from_array(np.ascontiguousarray(rgb))
         bitmap.set_jpeg_quality(FRAME_JPEG_QUALITY)
         name = FRAME_NAME.format(kept_index)
@@ -116,17 +138,15 @@ def decode_video(path, out_folder, every: int = 10, pick: str = "sharpest", prog
             raise OSError(0, "could not write the frame", str(out_folder / name))
         written.append(name)
 
-    try:
-        index = _decode(av, path, every, pick, progress, write)
-    except BaseException:  # nothing left behind: the frames written and the folders made
-        for name in written:
-            (out_folder / name).unlink(missing_ok=True)
-        for folder in made:
-            if folder.exists() and not any(folder.iterdir()):
-                folder.rmdir()
-        raise
-    if index < 0:
-        raise InputError(path, "the video has no frames")
+    with folders_made(out_folder):  # nothing left behind: the frames written and the folders made
+        try:
+            index = _decode(av, path, every, pick, progress, write)
+            if index < 0:
+                raise InputError(path, "the video has no frames")
+        except BaseException:
+            for name in written:
+                (out_folder / name).unlink(missing_ok=True)
+            raise
     return written
 
 
@@ -142,6 +162,9 @@ def _decode(av, path, every: int, pick: str, progress: bool, write) -> int:
             stream.thread_type = "AUTO"
             bar = progress_bar(progress, stream.frames or None, "frame")
             for index, frame in enumerate(container.decode(stream)):
+                if min(frame.width, frame.height) < MIN_IMAGE_SIDE:
+                    raise InputError(path, f"frames of {frame.width} x {frame.height} px: each side must be at "
+                                           f"least {MIN_IMAGE_SIDE} px")
                 if bar is not None:
                     bar.update()
                 if pick == "every" or every == 1:

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..files import npy_header
 from ..reconstruction import Reconstruction
 from .sh import COEFFICIENT_COUNTS, coefficient_attributes, dc_colors
 from .source import checked_positions, sha256_of_files
@@ -131,11 +132,7 @@ def _check_member_size(path: Path, archive: zipfile.ZipFile, member: zipfile.Zip
     if not member.filename.endswith(".npy"):
         return
     with archive.open(member) as stream:
-        version = np.lib.format.read_magic(stream)
-        read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
-        if version not in read_header:
-            raise InputError(path, f"member {member.filename}: .npy format version {version} is not read")
-        shape, _, dtype = read_header[version](stream)
+        shape, dtype = npy_header(stream, path, f"member {member.filename}: ")
     declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
     if declared > member.file_size:
         raise InputError(path, f"member {member.filename} declares {shape} {dtype} ({declared:,} bytes) but holds "

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..files import folders_made
 from ..progress import progress_bar
 
 MATCHINGS = ("auto", "orbit", "exhaustive")
@@ -99,15 +100,29 @@ def reconstruct(image_folder, names: list, out_folder, options: SfmOptions = Sfm
                 progress: bool = False) -> SfmResult:
     """A COLMAP model of the images ``names`` (in match order) of ``image_folder``,
     written under ``out_folder`` (its database.db and sparse/0). InputError when fewer
-    than two images are given or no model comes out."""
-    import pycolmap
-
+    than two images are given, COLMAP's reader skips one, or no model comes out; a
+    failed run leaves ``out_folder`` as it was (the database is built beside the
+    earlier one and renamed onto it with the model)."""
     image_folder, out_folder = Path(image_folder), Path(out_folder)
     if len(names) < 2:
         raise InputError(image_folder, f"{len(names)} image(s): structure from motion needs at least 2")
-    out_folder.mkdir(parents=True, exist_ok=True)
-    database = out_folder / DATABASE
-    database.unlink(missing_ok=True)
+    with folders_made(out_folder):
+        database = out_folder / f".{DATABASE}.partial"
+        database.unlink(missing_ok=True)
+        try:
+            result = _reconstruct(image_folder, names, out_folder, database, options, progress)
+        except BaseException:
+            database.unlink(missing_ok=True)
+            raise
+        os.replace(database, out_folder / DATABASE)
+    return result
+
+
+def _reconstruct(image_folder: Path, names: list, out_folder: Path, database: Path, options: SfmOptions,
+                 progress: bool) -> SfmResult:
+    """reconstruct's steps, building ``database``."""
+    import pycolmap
+
     threads = options.threads or -1
     seconds = {}
 
@@ -126,6 +141,7 @@ def reconstruct(image_folder, names: list, out_folder, options: SfmOptions = Sfm
             bar.update(len(names[block:block + 8]))
     if bar is not None:
         bar.close()
+    _require_all_read(database, image_folder, names)
     _drop_focal_priors(database)
     seconds["features"] = time.perf_counter() - start
 
@@ -166,7 +182,6 @@ def reconstruct(image_folder, names: list, out_folder, options: SfmOptions = Sfm
             bar.close()
     seconds["mapping"] = time.perf_counter() - start
     if not models:
-        database.unlink(missing_ok=True)
         raise InputError(image_folder, f"no model: the mapper found no initial pair among {len(names)} images "
                                        f"(too little overlap or texture)")
     model = max(models.values(), key=lambda m: m.num_reg_images())
@@ -175,6 +190,22 @@ def reconstruct(image_folder, names: list, out_folder, options: SfmOptions = Sfm
                for camera in model.cameras.values()]
     return SfmResult(path, len(names), model.num_reg_images(), model.num_points3D(),
                      float(model.compute_mean_reprojection_error()), len(models), cameras, seconds)
+
+
+def _require_all_read(database: Path, image_folder: Path, names: list) -> None:
+    """InputError naming the first of ``names`` COLMAP's reader skipped (it logs an
+    unreadable image and goes on; a damaged JPEG passes the header check)."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(database))
+    try:
+        read = {image.name for image in db.read_all_images()}
+    finally:
+        db.close()
+    skipped = [name for name in names if name not in read]
+    if skipped:
+        raise InputError(image_folder / skipped[0], f"not a readable image (COLMAP's reader skipped it; "
+                                                    f"{len(skipped)} of {len(names)} skipped)")
 
 
 def _drop_focal_priors(database: Path) -> None:

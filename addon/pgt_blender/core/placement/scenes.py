@@ -28,7 +28,7 @@ import numpy as np
 
 from ..boxes import kitti_camera_to_lidar
 from ..errors import InputError
-from ..files import read_float32_rows
+from ..files import read_float32_rows, regular_file
 from ..safe_pickle import load_pickle
 from ..scan.sensors import BIN_COLUMNS
 
@@ -53,11 +53,7 @@ def read_scene(scan, info, dataset: str | None = None) -> Scene:
     """The Scene of the ``scan`` file described by ``info`` (a KITTI label file or an info
     pickle; module docstring). ``dataset`` overrides the one the info implies (Lyft
     infos look like nuScenes'). InputError naming the file at fault."""
-    scan, info = Path(scan), Path(info)
-    if not scan.is_file():
-        raise InputError(scan, "no such scan file")
-    if not info.is_file():
-        raise InputError(info, "no such file")
+    scan, info = regular_file(scan), regular_file(info)
     if info.suffix == ".txt":
         boxes, names, pose, implied = _kitti_label(info)
     else:

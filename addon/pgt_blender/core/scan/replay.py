@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..boxes import inside_box
+from ..errors import InputError
 from ..samples import sample_vehicle
 from . import sensor_fit
 from .physical_intensity import fit_intensity_law
@@ -38,17 +39,23 @@ def class_meshes(choice: str) -> dict:
     bool) in the mesh's own frame. ``choice``: "samples" (SAMPLE_MESHES), the Chrono
     vehicle folder (holding every CHRONO_MESHES path) or a folder of ``<class>.obj|.ply``.
     Colors are not kept: replayed objects have the default reflectivity, the reference
-    the fitted sensor models are relative to (ray_drop.py, physical_intensity.py)."""
+    the fitted sensor models are relative to (ray_drop.py, physical_intensity.py).
+    InputError naming ``choice`` when it is no such folder or holds no mesh."""
     from ..importing.mesh import read_material_mesh
 
     if choice == "samples":
         return {kind: (vehicle.vertices, vehicle.faces, f"sample {name}", np.zeros(len(vehicle.faces), bool))
                 for kind, name in SAMPLE_MESHES.items() for vehicle in [sample_vehicle(name)]}
+    if not Path(choice).is_dir():
+        raise InputError(choice, "no such folder (meshes: 'samples', the Chrono vehicle folder or a folder of "
+                                 "<class>.obj|.ply)")
     if all((Path(choice) / path).is_file() for path in CHRONO_MESHES.values()):
         paths = {kind: Path(choice) / path for kind, path in CHRONO_MESHES.items()}
     else:
         paths = {path.stem.lower(): path for path in sorted(Path(choice).glob("*"))
                  if path.suffix.lower() in (".obj", ".ply")}
+        if not paths:
+            raise InputError(choice, "holds no <class>.obj or <class>.ply mesh")
     return {kind: (mesh.vertices, mesh.faces, path.name, mesh.see_through)
             for kind, path in paths.items() for mesh in [read_material_mesh(path)]}
 
