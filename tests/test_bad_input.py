@@ -448,8 +448,8 @@ def test_a_non_finite_pose_is_a_usage_error(inputs, tmp_path, flag, value):
 @pytest.mark.parametrize("command, problem", [
     ("mix_bank.py --seed=-1", "argument --seed: expected a whole number 0 .. 2,147,483,647, got '-1'"),
     ("demo.py --seed 99999999999", "argument --seed: expected a whole number 0 .. 2,147,483,647"),
-    ("train_heading.py --points 1000000000", "argument --points: expected a whole number 1 .. 65,536"),
-    ("train_heading.py --threads 0", "argument --threads: expected a whole number 1 .. 256"),
+    ("train_heading.py --points 1000000000", "argument --points: expected a whole number 1 .. 16,384"),
+    ("train_heading.py --threads 0", "argument --threads: expected a whole number 1 .. 64"),
     ("train_intensity.py --steps " + "9" * 400, "argument --steps: expected a whole number 1 .. 10,000,000"),
     ("reconstruct_frames.py frames --every 1000000000", "argument --every: expected a whole number 1 .. 10,000"),
     ("reconstruct_frames.py frames --max-features 9223372036854775808", "argument --max-features"),

@@ -160,6 +160,38 @@ def test_too_few_images_and_no_model(shared_data, tmp_path):
     assert (earlier / "database.db").read_bytes() == b"an earlier run's"
 
 
+def test_one_camera_needs_one_image_size(tmp_path):
+    """COLMAP's reader would skip the odd image; it is named before anything is read."""
+    for name, shape in (("a.png", (48, 64)), ("b.png", (64, 48))):
+        pycolmap.Bitmap.from_array(np.full(shape, 90, np.uint8)).write(str(tmp_path / name))
+    with pytest.raises(InputError, match=r"b.png: is 48 x 64 px but a.png is 64 x 48: one camera takes one image "
+                                         r"size \(--camera per-image"):
+        reconstruct(tmp_path, ["a.png", "b.png"], tmp_path / "out", FAST)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_failed_video_run_leaves_the_output_as_it_was(tmp_path):
+    """A textureless video: no model. The error names the video; frames already in
+    OUT/images stay as they were and no decoded frame is left."""
+    av = pytest.importorskip("av")
+
+    video = tmp_path / "flat.mp4"
+    with av.open(str(video), "w") as container:
+        stream = container.add_stream("libx264", rate=10)
+        stream.width, stream.height, stream.pix_fmt = 64, 64, "yuv420p"
+        for level in range(4):
+            frame = np.full((64, 64, 3), 60 + 40 * level, np.uint8)
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")))
+        container.mux(stream.encode())
+    out = tmp_path / "out"
+    (out / "images").mkdir(parents=True)
+    (out / "images" / FRAME_NAME.format(0)).write_bytes(b"an earlier frame")
+    result = run_script("reconstruct_frames.py", video, "--out", out, "--every", 1, "--quiet")
+    assert result.returncode == 1 and result.stderr.startswith(f"error: {video}: no model"), result.stderr
+    assert [path.name for path in out.iterdir()] == ["images"]
+    assert [path.read_bytes() for path in (out / "images").iterdir()] == [b"an earlier frame"]
+
+
 def png_claiming(width: int, height: int) -> bytes:
     """A grey PNG whose header claims ``width`` x ``height`` px, with almost no pixel data."""
     def chunk(kind: bytes, data: bytes) -> bytes:

@@ -103,6 +103,6 @@ def whole(low: int, high: int):
 
 
 SEED = whole(0, 2**31 - 1)  # numpy, torch and COLMAP (a C int) all take it
-THREADS = whole(1, 256)
+THREADS = whole(1, 64)
 STEPS = whole(1, 10**7)  # optimiser steps
-CLOUD_POINTS = whole(1, 65536)  # points per cloud a network sees
+CLOUD_POINTS = whole(1, 16384)  # points per cloud a network sees: beyond, GBs per batch

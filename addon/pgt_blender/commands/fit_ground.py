@@ -28,7 +28,7 @@ def _number(value, digits: int = 2) -> str:
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="fit_ground.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("folder", type=Path, help="KITTI frames: velodyne/, label_2/, calib/")
-    parser.add_argument("--mounting-height", type=cli.within(0, 10), default=1.73,
+    parser.add_argument("--mounting-height", type=cli.within(0.1, 10), default=1.73,
                         help="sensor height above the ground, m")
     parser.add_argument("--json", action="store_true", help="print the fit as one JSON object")
     args = parser.parse_args(argv)

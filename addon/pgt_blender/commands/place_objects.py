@@ -20,6 +20,7 @@ bad input; nothing is written then.
 
 import argparse
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -132,9 +133,11 @@ def _scene_map(args, lidar_to_world: np.ndarray):
 
     regular_file(args.map)
     try:
-        with Image.open(args.map):  # refuses a header claiming more pixels than memory holds
-            pass
-        image = imread(args.map)
+        with warnings.catch_warnings():  # a large map is fine; Pillow refuses one past twice its limit
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(args.map):  # refuses a header claiming more pixels than memory holds
+                pass
+            image = imread(args.map)
     except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as error:
         raise InputError(args.map, f"not a readable image ({type(error).__name__}: {error})") from None
     if image.dtype.kind == "f":  # matplotlib reads PNGs as floats in [0, 1]

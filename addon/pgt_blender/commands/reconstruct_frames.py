@@ -19,6 +19,8 @@ Progress bars on stderr; bad input: a one-line error and exit code 1.
 """
 
 import argparse
+import os
+import shutil
 from pathlib import Path
 
 from .. import cli
@@ -46,7 +48,7 @@ def main(argv: list) -> int:
     parser.add_argument("--max-features", type=cli.whole(1, 10**6), default=8192, help="SIFT features per image")
     parser.add_argument("--max-image-size", type=cli.whole(1, MAX_IMAGE_SIDE), default=1600,
                         help="px: larger images are scaled down for SIFT")
-    parser.add_argument("--threads", type=cli.whole(0, 256), default=0, help="CPU threads (0: all)")
+    parser.add_argument("--threads", type=cli.whole(0, 64), default=0, help="CPU threads (0: all)")
     parser.add_argument("--seed", type=cli.SEED, default=0, help="RANSAC's and the mapper's random seed")
     parser.add_argument("--quiet", action="store_true", help="no progress bars and no COLMAP log")
     args = parser.parse_args(argv)
@@ -75,20 +77,25 @@ def main(argv: list) -> int:
 
 
 def _reconstruct_video(args, options: SfmOptions, progress: bool):
-    """Decode the video's frames into OUT/images and reconstruct them. A failure names
-    the video and removes the frames this run added (and the folders it made)."""
-    folder = args.out / "images"
-    before = {path.name for path in folder.iterdir()} if folder.is_dir() else set()
-    with folders_made(folder):
-        names = decode_video(args.input, folder, args.every or VIDEO_EVERY, args.pick, progress)
+    """Decode the video's frames into a folder beside OUT/images, reconstruct them, then
+    move them into OUT/images. A failure names the video and leaves OUT as it was."""
+    partial = args.out / ".images.partial"
+    with folders_made(args.out):
+        shutil.rmtree(partial, ignore_errors=True)
         try:
-            return reconstruct(folder, names, args.out, options, progress)
+            names = decode_video(args.input, partial, args.every or VIDEO_EVERY, args.pick, progress)
+            result = reconstruct(partial, names, args.out, options, progress)
         except BaseException as error:
-            for name in set(names) - before:
-                (folder / name).unlink(missing_ok=True)
-            if isinstance(error, InputError) and error.path == folder:
+            shutil.rmtree(partial, ignore_errors=True)
+            if isinstance(error, InputError) and error.path == partial:
                 raise InputError(args.input, error.problem) from None
             raise
+    folder = args.out / "images"
+    folder.mkdir(exist_ok=True)
+    for name in names:  # the model names its images; their folder is found beside it
+        os.replace(partial / name, folder / name)
+    partial.rmdir()
+    return result
 
 
 def _quiet_colmap(quiet: bool) -> None:

@@ -13,6 +13,7 @@ An element no view hits (inside the object, or always hidden) is judged by every
 that frames it instead, the visual-hull rule; an element no view frames is dropped.
 """
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +69,10 @@ def read_mask(path: Path, view) -> np.ndarray:
             _check_mask_size(path, shape, view)  # before numpy allocates what the header declares
             mask = np.load(path, allow_pickle=False) != 0
         else:
-            with Image.open(path) as image:  # refuses a header claiming more pixels than memory holds
+            with warnings.catch_warnings():  # the size is checked before any pixel is read
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                image = Image.open(path)  # refuses a header claiming more pixels than memory holds
+            with image:
                 _check_mask_size(path, image.size[::-1], view)
                 mask = (np.asarray(image.getchannel("A")) if "A" in image.getbands()
                         else np.asarray(image.convert("L"))) > 127

@@ -8,6 +8,7 @@ own reader (what feature extraction reads); videos are decoded with PyAV (FFmpeg
 libraries, the optional ``video`` extra), frame by frame, holding one run at a time.
 """
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -69,15 +70,18 @@ def folder_images(folder) -> list:
 
 
 def checked_image_size(path) -> tuple:
-    """(width, height) px from the image's header (Pillow reads no pixels); InputError
-    for a file that is not an image, or a size outside MIN_IMAGE_SIDE .. MAX_IMAGE_SIDE
-    (a header claiming 100,000 px a side would have COLMAP's reader allocate tens of
-    GB, or crash)."""
+    """(width, height) px from the image's header (Pillow decodes no pixels; a PNG's
+    chunks are walked, so a cut one is caught); InputError for a file that is not an
+    image, or a size outside MIN_IMAGE_SIDE .. MAX_IMAGE_SIDE (a header claiming
+    100,000 px a side had COLMAP's reader allocate tens of GB, or crash)."""
     from PIL import Image
 
     try:
-        with Image.open(path) as image:
-            width, height = image.size
+        with warnings.catch_warnings():  # the size is checked below
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as image:
+                width, height = image.size
+                image.verify()
     except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as error:
         raise InputError(path, f"not a readable image ({type(error).__name__}: {error})") from None
     if not (MIN_IMAGE_SIDE <= min(width, height) and max(width, height) <= MAX_IMAGE_SIDE):

@@ -33,6 +33,7 @@ import numpy as np
 from ..errors import InputError
 from ..files import folders_made
 from ..progress import progress_bar
+from .frames import checked_image_size
 
 MATCHINGS = ("auto", "orbit", "exhaustive")
 EXHAUSTIVE_UP_TO = 60  # images: "auto" matches every pair up to this many
@@ -106,6 +107,8 @@ def reconstruct(image_folder, names: list, out_folder, options: SfmOptions = Sfm
     image_folder, out_folder = Path(image_folder), Path(out_folder)
     if len(names) < 2:
         raise InputError(image_folder, f"{len(names)} image(s): structure from motion needs at least 2")
+    if options.single_camera:
+        _require_one_size(image_folder, names)
     with folders_made(out_folder):
         database = out_folder / f".{DATABASE}.partial"
         database.unlink(missing_ok=True)
@@ -190,6 +193,18 @@ def _reconstruct(image_folder: Path, names: list, out_folder: Path, database: Pa
                for camera in model.cameras.values()]
     return SfmResult(path, len(names), model.num_reg_images(), model.num_points3D(),
                      float(model.compute_mean_reprojection_error()), len(models), cameras, seconds)
+
+
+def _require_one_size(image_folder: Path, names: list) -> None:
+    """InputError naming the first image whose size differs from the first's: one
+    camera has one image size (COLMAP's reader would skip the others)."""
+    first = checked_image_size(image_folder / names[0])
+    for name in names[1:]:
+        size = checked_image_size(image_folder / name)
+        if size != first:
+            raise InputError(image_folder / name, f"is {size[0]} x {size[1]} px but {names[0]} is {first[0]} x "
+                                                  f"{first[1]}: one camera takes one image size (--camera "
+                                                  f"per-image for photos from several cameras)")
 
 
 def _require_all_read(database: Path, image_folder: Path, names: list) -> None:
