@@ -332,7 +332,7 @@ def test_prepare_objects_bad_inputs(sample_folder, tmp_path):
     assert result.returncode == 2 and "kitti has no class 'bus'" in result.stderr
     result = run_script("prepare_objects.py", "--in", sample_folder, "--class", "truck", "--out", out,
                         "--size", "4,2")
-    assert result.returncode == 2 and "three positive sizes" in result.stderr
+    assert result.returncode == 2 and "three sizes L,W,H of 0.001 .. 1000 m; got '4,2'" in result.stderr
 
 
 def test_minority_classes_have_nuscenes_presets():
