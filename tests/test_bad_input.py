@@ -361,6 +361,7 @@ CASES = {
         "prepare_objects.py", ["--in", "prepared", "--class", "truck", "--heading", "baseline"]),
     "mix_bank --out under a file": under_a_file("mix_bank.py", ["--real", "infos", "--bank", "infos"],
                                                 made_first=True),
+    "export_bank --out under a file": under_a_file("export_bank.py", ["--objects", "prepared", "--workers", "1"]),
     "fit_sensor --out under a file": under_a_file("fit_sensor.py", [lambda inputs: inputs["kitti"] / "velodyne"],
                                                   "fitted.toml"),
     "scan_object --out under a file": under_a_file("scan_object.py", ["--object", "mesh", "--x", "10", "--y", "0"],

@@ -40,6 +40,9 @@ def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared
     marker = out / WORK / "identity.json"
     if out.exists() and not out.is_dir():
         raise InputError(out, "is a file, not an output folder")
+    in_the_way = next(path for path in out.absolute().parents if path.exists())
+    if not in_the_way.is_dir():
+        raise InputError(out, f"Not a directory (it lies under the file {in_the_way})")
     if shared and not marker.is_file() and _unstarted(out):
         _start_shared(out, ident)
         return
