@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .files import read_float32_rows, regular_file
+from .files import read_float32_rows
 from .safe_pickle import load_pickle
 
 REQUIRED_KEYS = ("name", "path", "image_idx", "gt_idx", "box3d_lidar", "num_points_in_gt")
@@ -44,8 +44,8 @@ class DatabaseObject:
 def load_infos(path, required: tuple = REQUIRED_KEYS) -> dict:
     """The info pickle at ``path``: a dict of class name -> list of info dicts, each with
     the ``required`` keys, a finite box3d_lidar of 7 or more values and a count >= 0."""
-    path = regular_file(path)
-    infos = load_pickle(path)
+    path = Path(path)
+    infos = load_pickle(path)  # names a missing file, a folder or a pipe (files.regular_file)
     if not (isinstance(infos, dict) and all(isinstance(name, str) and isinstance(entries, list)
                                             for name, entries in infos.items())):
         raise InputError(path, "not an info database: expected a dict of class name -> list of infos")
