@@ -133,11 +133,6 @@ def colmap_nan_principal_point(folder, inputs):
     return ["import_reconstruction.py", model, "--out", folder / "scene.blend"], model, "principal point nan"
 
 
-def import_out_is_a_folder(folder, inputs):
-    (folder / "scene").mkdir()
-    return ["import_reconstruction.py", inputs["statue"], "--out", folder / "scene"], folder / "scene", "is a folder"
-
-
 def reconstruct_file(name: str, content: bytes, problem):
     def build(folder, _):
         (folder / name).write_bytes(content)
@@ -172,20 +167,6 @@ def sidecar_scan(content: bytes, problem):
         (folder / "truck.json").write_bytes(content)
         return (["scan_object.py", "--object", mesh, "--x", 10, "--y", 0, "--sweeps", 2, "--out", folder / "scan.bin"],
                 folder / "truck.json", problem)
-    return build
-
-
-def under_a_file(script, args, out="out", made_first=False):
-    """--out inside a file: the error names that --out (not a temporary beside it), or
-    the file in the way where the script makes --out's folder first (``made_first``).
-    ``args``: inputs' keys, callables of the inputs, or literal arguments."""
-    def build(folder, inputs):
-        (folder / "a_file").write_text("x")
-        command = [script, *[arg(inputs) if callable(arg) else inputs.get(arg, arg) for arg in args],
-                   "--out", folder / "a_file" / out]
-        if made_first:
-            return command, folder / "a_file", "a_file: File exists"
-        return command, folder / "a_file" / out, f"{out}: Not a directory"
     return build
 
 
@@ -330,7 +311,6 @@ CASES = {
                                               "links out of range: 1 cells point outside the 64 data rows"),
     "Plenoxels learned basis": plenoxels(lambda a: a.__setitem__("basis_type", np.array(4)),
                                          "basis_type 4 (a learned 3D-texture basis)"),
-    "import --out is a folder": import_out_is_a_folder,
     # structure from motion
     "reconstruct_frames of a folder without images": lambda folder, inputs: (
         ["reconstruct_frames.py", folder, "--out", folder / "model"], folder, "no images (.jpg, .jpeg, .png)"),
@@ -356,18 +336,6 @@ CASES = {
                                        in_folder("sensor.toml")),
     "sidecar not UTF-8": sidecar_scan(b"\xe9{}", "UnicodeDecodeError"),
     "sidecar class without a motion model": sidecar_scan(b'{"class": "semi"}', "class 'semi' has no motion model"),
-    # outputs that cannot be written
-    "prepare_objects --out under a file": under_a_file(
-        "prepare_objects.py", ["--in", "prepared", "--class", "truck", "--heading", "baseline"]),
-    "mix_bank --out under a file": under_a_file("mix_bank.py", ["--real", "infos", "--bank", "infos"],
-                                                made_first=True),
-    "export_bank --out under a file": under_a_file("export_bank.py", ["--objects", "prepared", "--workers", "1"]),
-    "fit_sensor --out under a file": under_a_file("fit_sensor.py", [lambda inputs: inputs["kitti"] / "velodyne"],
-                                                  "fitted.toml"),
-    "scan_object --out under a file": under_a_file("scan_object.py", ["--object", "mesh", "--x", "10", "--y", "0"],
-                                                   "scan.bin"),
-    "train_intensity --out under a file": under_a_file(
-        "train_intensity.py", ["--real", "kitti", "--real", "infos", "--gt-convention", "mmdet3d", "--steps", "1"]),
     # pickles that would run code, garbage inside databases
     "mix_bank --real crafted": crafted_pickle("mix_bank.py", "--real", ("--bank", "infos")),
     "mix_bank --bank crafted": crafted_pickle("mix_bank.py", "--bank", ("--real", "infos")),
@@ -413,9 +381,6 @@ CASES = {
     "fit_returns on a scan not stored laser by laser": shuffled_velodyne,
     "fit_returns with a meshes folder that is not there": lambda folder, inputs: (
         ["fit_returns.py", inputs["kitti"], "--meshes", folder / "meshes"], folder / "meshes", "no such folder"),
-    "scan_object writing onto a folder": lambda folder, inputs: (
-        (folder / "scan.bin").mkdir() or ["scan_object.py", "--object", inputs["mesh"], "--x", 10, "--y", 0,
-                                          "--out", folder / "scan.bin"], folder / "scan.bin", "Is a directory"),
     "fit_returns on a folder without scans": lambda folder, inputs: (["fit_returns.py", folder, "--meshes", "samples"], folder,
                                                                      "no velodyne/*.bin scans"),
 }
@@ -475,6 +440,50 @@ def test_out_of_range_arguments_are_usage_errors(tmp_path, command, problem):
     result = run_script(*command.split(), cwd=tmp_path)
     assert result.returncode == 2 and problem in result.stderr.splitlines()[-1], result.stderr
     assert not any(tmp_path.iterdir())
+
+
+OUTPUTS = [("demo.py", "--out", True), ("export_bank.py", "--out", True), ("place_objects.py", "--out", True),
+           ("prepare_objects.py", "--out", True), ("reconstruct_frames.py", "--out", True),
+           ("train_intensity.py", "--out", True), ("fit_returns.py", "--out", False), ("fit_sensor.py", "--out", False),
+           ("import_reconstruction.py", "--out", False), ("mix_bank.py", "--out", False),
+           ("scan_object.py", "--out", False), ("train_heading.py", "--out", False), ("score_bank.py", "--json", False)]
+
+
+@pytest.mark.parametrize("script, flag, folder", OUTPUTS)
+def test_an_output_that_cannot_be_made_is_a_usage_error(tmp_path, script, flag, folder):
+    """An output under a file, a file where the output folder goes or a folder where the
+    output file goes: exit 2 and one line naming the path and what is in the way, found
+    while the arguments are read (cli.OUTPUT_FILE, cli.OUTPUT_FOLDER), before any input
+    is read or any training run; nothing written."""
+    (tmp_path / "a_file").write_text("x")
+    (tmp_path / "a_folder").mkdir()
+    cases = {tmp_path / "a_file" / "out": f"cannot be made: it lies under the file {tmp_path / 'a_file'}",
+             tmp_path / "a_file": "is a file, not an output folder"} if folder else {
+             tmp_path / "a_file" / "out.bin": f"cannot be made: it lies under the file {tmp_path / 'a_file'}",
+             tmp_path / "a_folder": "is a folder; expected a file name"}
+    before = contents(tmp_path)
+    for out, problem in cases.items():
+        result = run_script(script, flag, out, cwd=tmp_path)
+        assert result.returncode == 2, result.stderr
+        assert result.stderr.splitlines()[-1].endswith(f"argument {flag}: {out}: {problem}"), result.stderr
+    assert contents(tmp_path) == before
+
+
+@pytest.mark.parametrize("allocate, problem", [
+    (lambda: np.empty(10**14), "out of memory: Unable to allocate 728. TiB"),
+    (lambda: __import__("torch").empty(10**14), "out of memory: can't allocate memory: you tried to allocate "
+                                                "400000000000000 bytes"),
+])
+def test_memory_running_out_is_one_line_exit_1(capsys, allocate, problem):
+    """numpy's MemoryError and torch's allocator failure (a RuntimeError), both real,
+    raised inside a command: one line, exit 1; any other RuntimeError stays a traceback."""
+    from pgt_blender.cli import run_main
+
+    assert run_main(lambda argv: allocate(), []) == 1
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {problem}"), lines
+    with pytest.raises(RuntimeError, match="a bug"):
+        run_main(lambda argv: (_ for _ in ()).throw(RuntimeError("a bug")), [])
 
 
 def _intensity_label(path):

@@ -522,6 +522,16 @@ def test_an_empty_bank_is_an_error_not_an_empty_database(prepared, tmp_path, tab
     assert not out.exists()
 
 
+def test_a_bank_folder_with_a_file_in_the_way_is_refused_by_the_library_call(objects, tmp_path):
+    """The Bank panel's call: a file at --out or among its parents is named, nothing made."""
+    (tmp_path / "a_file").write_text("x")
+    for out, problem in ((tmp_path / "a_file", "is a file, not an output folder"),
+                         (tmp_path / "a_file" / "bank", f"lies under the file {tmp_path / 'a_file'}")):
+        with pytest.raises(InputError, match=problem):
+            export.export_bank(objects, BankConfig(x=(0, 0, 1), y=(10, 10, 1)), out)
+    assert [path.name for path in tmp_path.iterdir()] == ["a_file"] and (tmp_path / "a_file").read_text() == "x"
+
+
 @pytest.mark.parametrize("flags", [(), ("--resume",), ("--overwrite",)])
 def test_a_start_cut_short_before_its_identity_does_not_block_the_folder(reference, prepared, tmp_path, flags):
     """A full disk right at the start leaves only .work/chunks: any run continues there."""

@@ -34,7 +34,8 @@ def exit(code: int) -> None:
 def run_main(main, argv: list) -> int:
     """``main(argv)``'s exit code, with a bad input (InputError) or a failed read or write
     (OSError: a folder where a file should be, a full disk, no permission) printed as the
-    one line ``error: <file>: <problem>`` and exit code 1 instead of a traceback."""
+    one line ``error: <file>: <problem>`` and exit code 1 instead of a traceback; memory
+    running out, as ``error: out of memory: <what>``."""
     from .core.errors import InputError
 
     try:
@@ -43,7 +44,24 @@ def run_main(main, argv: list) -> int:
         print(f"error: {error}", file=sys.stderr)
     except OSError as error:
         print(f"error: {error.filename or '-'}: {error.strerror or error}", file=sys.stderr)
+    except (MemoryError, RuntimeError) as error:
+        problem = _memory_problem(error)
+        if problem is None:
+            raise
+        print(f"error: out of memory: {problem}", file=sys.stderr)
     return 1
+
+
+def _memory_problem(error: BaseException):
+    """What ran out, for numpy's MemoryError and torch's allocator failures (a
+    RuntimeError: "DefaultCPUAllocator: can't allocate memory: ...", "CUDA out of
+    memory"); None for any other error, which stays a traceback."""
+    text = " ".join(str(error).split())
+    if isinstance(error, MemoryError):
+        return text or "MemoryError"
+    if "can't allocate memory" in text or "out of memory" in text:
+        return text.split("DefaultCPUAllocator: ")[-1]
+    return None
 
 
 def markdown_table(header: list, rows: list, align: str = "") -> str:
@@ -106,3 +124,21 @@ SEED = whole(0, 2**31 - 1)  # numpy, torch and COLMAP (a C int) all take it
 THREADS = whole(1, 64)
 STEPS = whole(1, 10**7)  # optimiser steps
 CLOUD_POINTS = whole(1, 16384)  # points per cloud a network sees: beyond, GBs per batch
+
+
+def output(folder: bool):
+    """An argparse type: a path where the command can write its output file (``folder``:
+    its output folder), checked before any work (files.output_path)."""
+    def parse(text: str):
+        from .core.errors import InputError
+        from .core.files import output_path
+
+        try:
+            return output_path(text, folder)
+        except InputError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+    return parse
+
+
+OUTPUT_FILE = output(folder=False)
+OUTPUT_FOLDER = output(folder=True)

@@ -66,7 +66,7 @@ def scan(obj, distance: float = 15.0) -> dict:
 
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="demo.py", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, default=Path("demo_output"), help="output folder")
+    parser.add_argument("--out", type=cli.OUTPUT_FOLDER, default="demo_output", help="output folder")
     parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of the synthetic samples")
     args = parser.parse_args(argv)
     out = args.out.resolve()

@@ -167,7 +167,7 @@ def finish(args, manifest: dict, reference, seconds: float, poses: int = 0) -> i
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="export_bank.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", type=Path, help="bank TOML (default: the paper's nuScenes settings)")
-    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True, help="output folder")
     parser.add_argument("--blend", type=Path, help=".blend with authored objects (python route)")
     parser.add_argument("--objects", type=Path, action="append", default=[],
                         help="folder of prepared objects (repeatable)")

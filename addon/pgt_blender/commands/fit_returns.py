@@ -107,7 +107,7 @@ def main(argv: list) -> int:
                         help="the sensor --intensity-points come from")
     parser.add_argument("--values-per-point", type=cli.whole(4, 64), default=5,
                         help="float32 values per --intensity-points row")
-    parser.add_argument("--out", type=Path, help="write the fitted models as a sensor TOML here")
+    parser.add_argument("--out", type=cli.OUTPUT_FILE, help="write the fitted models as a sensor TOML here")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     args = parser.parse_args(argv)
     sensor = sensor_from_name(args.sensor)

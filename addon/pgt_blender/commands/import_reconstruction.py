@@ -32,7 +32,7 @@ from ..core.importing import load_reconstruction
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="import_reconstruction.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("input", type=Path, help="COLMAP model folder or reconstruction file")
-    parser.add_argument("--out", type=Path, help="save the scene to this .blend")
+    parser.add_argument("--out", type=cli.OUTPUT_FILE, help="save the scene to this .blend")
     parser.add_argument("--json", action="store_true", help="print what arrived as one JSON object")
     parser.add_argument("--no-cameras", action="store_true", help="leave the cameras out of the scene")
     parser.add_argument("--cameras", type=Path,
@@ -57,8 +57,6 @@ def main(argv: list) -> int:
     headless.start_scene()
     recon = load_reconstruction(args.input, with_cameras=not args.no_cameras, cameras=args.cameras,
                                 capture=capture if capture.needs_cameras else None)
-    if args.out and args.out.is_dir():
-        raise InputError(args.out, "is a folder; --out is the .blend file to write")
     obj = objects.add_reconstruction(bpy.context.scene, recon, not args.no_cameras)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

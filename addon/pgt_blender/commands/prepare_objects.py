@@ -47,7 +47,7 @@ def main(argv: list) -> int:
     parser.add_argument("--in", dest="inputs", type=Path, required=True, help="folder of reconstructions")
     parser.add_argument("--class", dest="class_name", required=True,
                         help="class name in --dataset (a nuScenes trailer is headed by its running gear)")
-    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True, help="output folder")
     parser.add_argument("--dataset", choices=sorted(CLASS_SIZES), default="nuscenes")
     parser.add_argument("--up", choices=UP_CHOICES, default="auto",
                         help="up direction: cameras' mean up (auto, when there are cameras), PCA minor axis, or a source axis")

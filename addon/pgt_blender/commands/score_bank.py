@@ -42,7 +42,7 @@ def main(argv: list) -> int:
     parser.add_argument("--limit", type=cli.whole(1, 10**7),
                         help="real objects per class at most (default: all: 600 drawn, dense: 593)")
     parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of every draw and of the encoder's training")
-    parser.add_argument("--json", type=Path, help="write the scores to this JSON file")
+    parser.add_argument("--json", type=cli.OUTPUT_FILE, help="write the scores to this JSON file")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     learned = not args.no_learned and (args.encoder is not None or quality_available())

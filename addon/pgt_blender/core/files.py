@@ -55,6 +55,20 @@ def folders_made(folder):
         raise
 
 
+def output_path(path, folder: bool = False) -> Path:
+    """``path`` when an output file (``folder``: an output folder) can be made there;
+    InputError naming it when something is in the way: a folder where the file goes, a
+    file where the folder goes, or a file among its parents. Checked before the work, so
+    that a long run does not fail at its end."""
+    path = Path(path)
+    if path.exists() and path.is_dir() != folder:
+        raise InputError(path, "is a file, not an output folder" if folder else "is a folder; expected a file name")
+    in_the_way = next((parent for parent in path.absolute().parents if parent.exists()), None)
+    if in_the_way is not None and not in_the_way.is_dir():
+        raise InputError(path, f"cannot be made: it lies under the file {in_the_way}")
+    return path
+
+
 def npy_header(stream, path, where: str = "") -> tuple:
     """(shape, dtype) of the .npy array at ``stream``'s position, read without the
     array (numpy allocates what a header declares before reading); InputError naming

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..files import atomic_output
+from ..files import atomic_output, output_path
 from .records import read_record
 
 WORK = ".work"
@@ -38,11 +38,7 @@ def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared
     removed; with ``resume`` (or ``shared``, for shards) an unfinished bank of the same
     identity is continued. Anything else is refused with InputError."""
     marker = out / WORK / "identity.json"
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "is a file, not an output folder")
-    in_the_way = next(path for path in out.absolute().parents if path.exists())
-    if not in_the_way.is_dir():
-        raise InputError(out, f"Not a directory (it lies under the file {in_the_way})")
+    output_path(out, folder=True)
     if shared and not marker.is_file() and _unstarted(out):
         _start_shared(out, ident)
         return

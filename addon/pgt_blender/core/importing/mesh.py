@@ -1,5 +1,6 @@
 """Mesh files (OBJ, PLY with faces, GLB/GLTF, STL) -> Reconstruction, through trimesh."""
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,13 +18,8 @@ def load_mesh(path: Path) -> Reconstruction:
     """Triangles in the file's frame and units. A multi-part scene (GLB, OBJ groups) is
     flattened with its node transforms applied; per-vertex colors are kept when the
     file has them. Vertices are not merged or reordered (``process=False``)."""
-    import trimesh
-
     path = Path(path)
-    try:
-        mesh = trimesh.load(str(path), force="mesh", process=False)
-    except Exception as error:  # trimesh raises many types for corrupt files
-        raise InputError(path, f"could not be read as a mesh: {error}") from None
+    mesh = _trimesh_load(path, "mesh")
     faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64).reshape(-1, 3)
     if len(faces) == 0:
         raise InputError(path, "mesh has no faces")
@@ -39,6 +35,36 @@ def load_mesh(path: Path) -> Reconstruction:
         positions=positions, faces=faces.astype(np.int32), kind="mesh",
         source=path, sha256=sha256_of_files([path]), colors=colors,
     )
+
+
+def _trimesh_load(path: Path, force: str):
+    """trimesh.load of ``path`` as a "mesh" or a "scene" (``force``), unprocessed;
+    InputError naming the file when it cannot be read."""
+    import trimesh
+
+    if path.suffix.lower() == ".obj":
+        _require_one_based_faces(path)
+    try:
+        return trimesh.load(str(path), force=force, process=False)
+    except Exception as error:  # trimesh raises many types for corrupt files
+        raise InputError(path, f"could not be read as a mesh: {error}") from None
+
+
+# a face line's index (vertex, texture or normal) that is zero: OBJ counts from 1 (or back from -1)
+_ZERO_INDEX = re.compile(rb"^[ \t]*f[ \t][^\n#]*?(?<=[ \t/])[+-]?0+(?=[ \t/\r\n#]|$)", re.M)
+
+
+def _require_one_based_faces(path: Path) -> None:
+    """InputError naming the OBJ ``path`` and the line of a face with an index 0, which
+    trimesh reads as the last vertex (a silently wrong triangle); about 15 ms per MB."""
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise InputError(path, f"cannot read the file ({error.strerror or error})") from None
+    zero = _ZERO_INDEX.search(data)
+    if zero:
+        line = data.count(b"\n", 0, zero.start()) + 1
+        raise InputError(path, f"line {line}: a face index is 0; OBJ indices count from 1 (or back from -1)")
 
 
 def _require_declared_counts(path: Path, vertices: int, triangles: int) -> None:
@@ -71,15 +97,10 @@ class MaterialMesh:
 def read_material_mesh(path) -> MaterialMesh:
     """``path`` (OBJ + MTL, GLB/GLTF, PLY, STL) with its parts' transforms applied,
     through trimesh; InputError naming the file when it has no faces or cannot be read."""
-    import trimesh
-
     from ..scan.targets import see_through_materials
 
     path = Path(path)
-    try:
-        scene = trimesh.load(str(path), process=False, force="scene")
-    except Exception as error:  # trimesh raises many types for corrupt files
-        raise InputError(path, f"could not be read as a mesh: {error}") from None
+    scene = _trimesh_load(path, "scene")
     parts = [geometry for geometry in scene.dump() if len(getattr(geometry, "faces", ()))]
     if not parts:
         raise InputError(path, "mesh has no faces")
