@@ -289,3 +289,52 @@ def test_up_from_the_cursor_and_from_selected_faces(scene, tilted_truck):
     obj.data.polygons.foreach_set("select", np.zeros(len(obj.data.polygons), bool))
     with pytest.raises(RuntimeError, match="no selected faces"):
         bpy.ops.object.pgt_align()
+
+
+def test_align_from_faces_picked_in_edit_mode(scene, tilted_truck):
+    """Pick the roof in Edit Mode and press Align there: the step runs (out of Edit Mode
+    and back), the object stays in Edit Mode, and Scan there sees the same mesh."""
+    path, rotation = tilted_truck
+    import bmesh
+
+    obj = imported(scene, path)
+    obj.select_set(True)
+    bpy.ops.object.mode_set(mode="EDIT")
+    edited = bmesh.from_edit_mesh(obj.data)
+    for face in edited.faces:  # the roof and floor tops, picked as a user picks them
+        face.select_set(face.normal.dot(rotation[:, 2]) > 0.999)
+    bmesh.update_edit_mesh(obj.data)
+    scene.pgt_authoring.up, scene.pgt_authoring.refine = "face", True
+    assert bpy.ops.object.pgt_align() == {"FINISHED"} and obj.mode == "EDIT"
+    assert np.array(obj.pgt.object_from_source)[2, :3] @ rotation[:, 2] > np.cos(np.radians(0.5))
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"} and obj.mode == "EDIT"
+    in_edit_mode = len(bpy.data.objects[f"{obj.name} Scan"].data.vertices)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    assert len(bpy.data.objects[f"{obj.name} Scan"].data.vertices) == in_edit_mode > 0
+
+
+def test_a_linked_duplicate_is_refused(scene, truck_file):
+    """Alt+D shares the mesh: authoring one would reshape the other behind its record."""
+    obj = imported(scene, truck_file)
+    twin = obj.copy()
+    scene.collection.objects.link(twin)
+    before, counts = vertices(obj).copy(), datablock_counts(bpy)
+    with pytest.raises(RuntimeError, match=f"{obj.name}: shares its mesh '{obj.data.name}' with 1 other user"):
+        bpy.ops.object.pgt_align()
+    np.testing.assert_array_equal(vertices(obj), before)
+    assert datablock_counts(bpy) == counts and not authoring.status(obj)["aligned"]
+    twin.data = twin.data.copy()  # Make Single User: now it aligns
+    assert bpy.ops.object.pgt_align() == {"FINISHED"}
+
+
+def test_a_zero_scale_is_named_not_a_traceback(scene, truck_file):
+    obj = imported(scene, truck_file)
+    bpy.ops.object.pgt_align()
+    obj.scale = (1.0, 0.0, 1.0)
+    bpy.context.view_layer.update()
+    before = vertices(obj).copy()
+    with pytest.raises(RuntimeError, match=f"{obj.name}: has a zero scale on an axis") as error:
+        bpy.ops.object.pgt_front_from_cursor()
+    assert "Traceback" not in str(error.value)
+    np.testing.assert_array_equal(vertices(obj), before)

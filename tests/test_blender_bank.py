@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from pgt_blender.core.authoring.prepare import prepare, write_prepared
+from pgt_blender.core.bank.config import MAX_SWEEPS
 from pgt_blender.core.bank.inputs import prepared_objects
+from pgt_blender.core.errors import InputError
 from pgt_blender.core.importing import load_reconstruction
 from pgt_blender.core.quality.reference import kitti_scan_database
 from pgt_blender.core.samples import write_sample
@@ -19,7 +21,8 @@ from .test_bank import CHRONO_TRUCK, SMALL, bank_bytes, run_export, write_config
 bpy = pytest.importorskip("bpy")
 
 from pgt_blender.blender import objects as blender_objects  # noqa: E402  (needs bpy)
-from pgt_blender.blender.bank import scene_bank_objects  # noqa: E402
+from pgt_blender.blender.authoring import status as authoring_status  # noqa: E402
+from pgt_blender.blender.bank import bank_config, scene_bank_objects  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -126,3 +129,28 @@ def test_the_bank_report_scores_the_bank_against_the_real_database(scene, source
     settings.real_database = ""
     assert bpy.ops.scene.pgt_open_bank_report() == {"FINISHED"}
     assert bpy.data.texts["report.md"].as_string() == opened  # opened as it is
+
+
+def test_an_emptied_object_refuses_the_export_before_the_folder_is_made(scene, sources, tmp_path):
+    """An authored object whose mesh was emptied afterwards: named, CANCELLED, and no
+    output folder made (a retry would otherwise find it "not empty")."""
+    author_in_blender(scene, sources)
+    emptied = next(obj for obj in scene.objects if authoring_status(obj)["size"] and obj.type == "MESH")
+    emptied.data.clear_geometry()
+    settings = scene.pgt_bank
+    settings.output, settings.grid_step = str(tmp_path / "bank"), 50.0
+    with pytest.raises(RuntimeError, match=f"{emptied.name}: its geometry has no points"):
+        bpy.ops.scene.pgt_export_bank()
+    assert not (tmp_path / "bank").exists()
+
+
+def test_the_bank_fields_hold_the_config_file_bounds(scene, tmp_path):
+    """Sweeps beyond a config file's 100 are clamped by the field, and what the fields
+    make is checked as a file is (bank.bank_config through config_from_table)."""
+    settings = scene.pgt_bank
+    settings.sweeps = 100_000
+    assert settings.sweeps == MAX_SWEEPS
+    assert bank_config(settings).sweeps == MAX_SWEEPS
+    settings.openpcdet = settings.mmdet3d = False
+    with pytest.raises(InputError, match="Bank: no format chosen"):
+        bank_config(settings)

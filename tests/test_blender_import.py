@@ -218,7 +218,12 @@ def broken_inputs(tmp_path, statue, donut):
     np.savez(no_links, density_data=np.zeros((1, 1)), sh_data=np.zeros((1, 3)))
     bad_cameras = tmp_path / "cameras.json"
     bad_cameras.write_text('[{"img_name": "a", "width": 10}]')
+    half_good = tmp_path / "half_good"  # a.ply is built, then Blender refuses b.ply: a goes too
+    half_good.mkdir()
+    write_ply(half_good / "a.ply", {axis: np.arange(3, dtype=np.float32) for axis in ("x", "y", "z")})
+    shutil.copy(clashes["sharp_face"], half_good / "b.ply")
     return [
+        ("pgt_folder", {"directory": str(half_good)}, half_good / "b.ply", "property 'sharp_face' has the name"),
         ("pgt_gaussian_splat", {"filepath": str(splats), "foreground": "masks", "masks_directory": str(masks)},
          masks, "no mask for 1 of 8 images (view_003)"),
         ("pgt_gaussian_splat", {"filepath": str(splats), "foreground": "masks"}, splats,

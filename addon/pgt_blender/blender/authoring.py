@@ -8,12 +8,14 @@ cameras follow the rigid part of each step. A child empty, "PGT Box", shows the 
 """
 
 import json
+from contextlib import contextmanager
 
 import bpy
 import numpy as np
 from mathutils import Matrix
 
 from ..core.authoring.prepare import Step, apply_to_splats, apply_transform, heading_label
+from ..core.errors import InputError
 from .objects import _BLENDER_FROM_OPENCV, POINTS_GROUP
 from .scanning import splat_attributes
 
@@ -23,6 +25,39 @@ BOX_TAG = "pgt_box"
 def is_reconstruction(obj) -> bool:
     """Whether ``obj`` is a mesh that pgt_blender imported (the authoring steps' input)."""
     return obj is not None and obj.type == "MESH" and obj.pgt.source_kind != "none"
+
+
+@contextmanager
+def object_mode(obj: bpy.types.Object):
+    """Run the block with the active ``obj`` out of Edit Mode, where its mesh lives in an
+    edit mesh (no attributes to read or write), and back in it after, with what the
+    block wrote: a user can press Align right after picking the up faces."""
+    if obj.mode != "EDIT":
+        yield
+        return
+    bpy.ops.object.mode_set(mode="OBJECT")
+    try:
+        yield
+    finally:
+        bpy.ops.object.mode_set(mode="EDIT")
+
+
+def require_own_mesh(obj: bpy.types.Object) -> None:
+    """InputError when ``obj`` shares its mesh with other objects (a linked duplicate):
+    authoring rewrites the mesh, which would reshape the others behind their records."""
+    if obj.data.users > 1:
+        raise InputError(obj.name, f"shares its mesh '{obj.data.name}' with {obj.data.users - 1} other user(s); "
+                                   "authoring rewrites the mesh: make it single user first (Object > Relations > "
+                                   "Make Single User > Object & Data)")
+
+
+def object_from_world(obj: bpy.types.Object) -> Matrix:
+    """The inverse of ``obj``'s world matrix; InputError when it has none (a zero scale
+    on an axis)."""
+    inverse = obj.matrix_world.inverted(None)
+    if inverse is None:
+        raise InputError(obj.name, "has a zero scale on an axis: its frame cannot be inverted (fix the scale)")
+    return inverse
 
 
 def positions(obj: bpy.types.Object) -> np.ndarray:

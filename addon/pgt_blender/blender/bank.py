@@ -17,8 +17,8 @@ import bpy
 import numpy as np
 
 from ..core.bank import export
-from ..core.bank.config import (DATASET_CONSTANT_INTENSITY, DATASET_GRIDS, FORMATS, BankConfig,
-                                load_config)
+from ..core.bank.config import (DATASET_CONSTANT_INTENSITY, DATASET_GRIDS, FORMATS, BankConfig, config_from_table,
+                                config_table, load_config)
 from ..core.bank.folder import read_manifest
 from ..core.bank.inputs import BankObject, checked_objects, incomplete_reason
 from ..core.bank.report import real_reference, write_report
@@ -66,11 +66,12 @@ def bank_config(settings, checkpoint: str = "") -> BankConfig:
         raise InputError("Bank", "no format chosen: tick OpenPCDet or mmdetection3d")
     (x_low, x_high, _), (y_low, y_high, _) = DATASET_GRIDS[settings.dataset]
     learned = checkpoint and settings.dataset not in DATASET_CONSTANT_INTENSITY
-    return BankConfig(dataset=settings.dataset, sensor="" if settings.sensor == "DATASET" else settings.sensor,
-                      formats=formats, seed=settings.seed, sweeps=settings.sweeps, chunk_size=settings.chunk_size,
-                      headings_deg=(-180.0, 180.0, round(math.degrees(settings.heading_step), 6)),
-                      x=(x_low, x_high, settings.grid_step), y=(y_low, y_high, settings.grid_step),
-                      engine=settings.engine, intensity_checkpoint=checkpoint if learned else "")
+    fields = BankConfig(dataset=settings.dataset, sensor="" if settings.sensor == "DATASET" else settings.sensor,
+                        formats=formats, seed=settings.seed, sweeps=settings.sweeps, chunk_size=settings.chunk_size,
+                        headings_deg=(-180.0, 180.0, round(math.degrees(settings.heading_step), 6)),
+                        x=(x_low, x_high, settings.grid_step), y=(y_low, y_high, settings.grid_step),
+                        engine=settings.engine, intensity_checkpoint=checkpoint if learned else "")
+    return config_from_table(config_table(fields), "Bank")  # held to a config file's bounds
 
 
 def real_database(settings):

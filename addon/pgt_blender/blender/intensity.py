@@ -16,7 +16,7 @@ from ..core.scan.returns import RETURN_DTYPE, Scan
 from ..core.scan.sensors import INTENSITY_MAX
 from ..core.scan.targets import srgb_from_linear
 from . import scanning
-from .authoring import positions
+from .authoring import object_from_world, positions
 
 GREY = (0.5, 0.5, 0.5)
 
@@ -63,7 +63,7 @@ def preview_scan(preview: bpy.types.Object, source: bpy.types.Object) -> Scan:
     rows["x"], rows["y"], rows["z"] = positions(preview).astype(np.float64).T
     rows["face"] = scanning.read(mesh.attributes["face"].data, "value", count, np.int32)
     rows["intensity"] = scanning.read(mesh.attributes["intensity"].data, "value", count, np.float32)
-    object_from_sensor = np.array(source.matrix_world.inverted() @ preview.matrix_world)
+    object_from_sensor = np.array(object_from_world(source) @ preview.matrix_world)
     return Scan(rows, np.zeros(9), count, 0.0, preview[scanning.DATASET_TAG], [np.linalg.inv(object_from_sensor)])
 
 

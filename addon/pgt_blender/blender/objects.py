@@ -23,13 +23,14 @@ _ATTRIBUTE_TYPES = {  # (dtype kind, columns) -> (Blender type, foreach_set fiel
 
 
 def add_reconstruction(scene: bpy.types.Scene, recon: Reconstruction, with_cameras: bool = True,
-                       collection: bpy.types.Collection | None = None) -> bpy.types.Object:
+                       collection: bpy.types.Collection | None = None, made: list | None = None) -> bpy.types.Object:
     """Link a new object holding ``recon`` (and its cameras as children) into
     ``collection`` (default: the scene's master collection). With cameras, the scene's
     render resolution becomes the first camera's, so the camera views match the photos.
-    On any failure every datablock made so far is removed again."""
+    The datablocks made are added to ``made``; on any failure every one in it is removed
+    again (pass one list to several calls to take back them all)."""
     collection = collection or scene.collection
-    made = []
+    made = [] if made is None else made
     try:
         mesh = _mesh(recon, made)
         obj = bpy.data.objects.new(recon.name, mesh)

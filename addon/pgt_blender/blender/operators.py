@@ -79,7 +79,7 @@ class _ImportReconstruction:
             recon = load_reconstruction(self.input_path(), kind=self.source_kind, with_cameras=self.with_cameras,
                                         cameras=self.cameras_path(), capture=capture)
             obj = objects.add_reconstruction(context.scene, recon, self.with_cameras, context.collection)
-        except InputError as error:
+        except (InputError, OSError) as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         _select_only(context, obj)
@@ -228,18 +228,21 @@ class IMPORT_SCENE_OT_pgt_folder(_ChoosesFolder, bpy.types.Operator):
         if _nothing_chosen(self, self.directory, "folder"):
             return {"CANCELLED"}
         folder = Path(bpy.path.abspath(self.directory))
-        try:  # every file is read before any Blender data is made: a bad one leaves the scene as it was
+        built = []
+        try:  # every file is read before any Blender data is made, and one that Blender refuses (an
+            # attribute name it keeps for itself) takes back the others: the scene stays as it was
             found = find_reconstructions(folder)
             if not found:
                 raise InputError(folder, f"no reconstructions found (supported: {SUPPORTED})")
             with progress(context, len(found)) as advance:
                 recons = [advance(load_reconstruction(path)) for path in found]
-        except InputError as error:
+            made = [objects.add_reconstruction(context.scene, recon, collection=context.collection, made=built)
+                    for recon in recons]
+        except (InputError, OSError) as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         for other in context.selected_objects:
             other.select_set(False)
-        made = [objects.add_reconstruction(context.scene, recon, collection=context.collection) for recon in recons]
         for obj in made:
             obj.select_set(True)
         context.view_layer.objects.active = made[0]
@@ -262,7 +265,7 @@ class IMPORT_SCENE_OT_pgt_placed_scene(_ChoosesFolder, bpy.types.Operator):
             return {"CANCELLED"}
         try:
             shown = placement.load_placement(context.scene, bpy.path.abspath(self.directory))
-        except InputError as error:
+        except (InputError, OSError) as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         inserted = sum(1 for obj in shown if obj.type == "MESH") - 1
@@ -300,7 +303,7 @@ def align(context, obj, settings) -> prepare.Step:
     source = obj.pgt.source_path or obj.name
     points = authoring.positions(obj)
     if settings.up == "cursor":
-        up = np.array(obj.matrix_world.inverted() @ context.scene.cursor.location) - np.median(points, axis=0)
+        up = np.array(authoring.object_from_world(obj) @ context.scene.cursor.location) - np.median(points, axis=0)
     elif settings.up == "face":
         up = authoring.selected_face_normal(obj)
         if up is None:
@@ -348,12 +351,14 @@ class _AuthoringStep:
 
     def execute(self, context):
         obj = context.active_object
-        try:
-            step = self.step(context, obj, context.scene.pgt_authoring)
-        except InputError as error:
-            self.report({"ERROR"}, str(error))
-            return {"CANCELLED"}
-        authoring.apply_step(obj, step)
+        with authoring.object_mode(obj):
+            try:
+                authoring.require_own_mesh(obj)
+                step = self.step(context, obj, context.scene.pgt_authoring)
+            except (InputError, OSError) as error:
+                self.report({"ERROR"}, str(error))
+                return {"CANCELLED"}
+            authoring.apply_step(obj, step)
         self.report({"INFO"}, f"{obj.name}: {self.bl_label.lower()}{self.outcome(step, context.scene.pgt_authoring)}"
                               ", box " + " x ".join(f"{d:.3g}" for d in obj.pgt.dims))
         return {"FINISHED"}
@@ -394,7 +399,7 @@ class OBJECT_OT_pgt_front_from_cursor(_AuthoringStep, bpy.types.Operator):
     bl_label = "Front from Cursor"
 
     def step(self, context, obj, settings):
-        cursor = obj.matrix_world.inverted() @ context.scene.cursor.location
+        cursor = np.array(authoring.object_from_world(obj) @ context.scene.cursor.location)
         return prepare.front_step(tuple(cursor), authoring.current_dims(obj), obj.name)
 
 
@@ -444,13 +449,11 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
 
     def execute(self, context):
         obj, settings = context.active_object, context.scene.pgt_scan
-        if obj.mode == "EDIT":
-            obj.update_from_editmode()
         try:
-            with warnings.catch_warnings(record=True) as caught:
+            with warnings.catch_warnings(record=True) as caught, authoring.object_mode(obj):
                 warnings.simplefilter("always")
                 result, sensor, sensor_from_object = scanning.scan(obj, settings)
-        except InputError as error:
+        except (InputError, OSError) as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         for warning in caught:
@@ -474,7 +477,7 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
             return ""
         try:
             rate = intensity.apply_estimator(preview, checkpoint, source.pgt.class_name, settings)
-        except InputError as error:
+        except (InputError, OSError) as error:
             self.report({"WARNING"}, f"{error} (the scan keeps its physical intensities)")
             return ""
         return f" · learned intensity ({rate:,.0f} points/s)"
@@ -505,7 +508,7 @@ class OBJECT_OT_pgt_apply_intensity(bpy.types.Operator):
         source = intensity.source_of(preview)
         try:
             rate = intensity.apply_estimator(preview, checkpoint, source.pgt.class_name, context.scene.pgt_scan)
-        except InputError as error:  # no torch, bad checkpoint, other dataset or class
+        except (InputError, OSError) as error:  # no torch, bad checkpoint, other dataset or class
             self.report({"ERROR"}, f"{error} (the scan keeps its physical intensities)")
             return {"CANCELLED"}
         self.report({"INFO"}, f"{len(preview.data.vertices)} intensities from {checkpoint} ({rate:,.0f} points/s)")
@@ -527,7 +530,7 @@ class _BackgroundSteps:
         try:
             for _ in self.steps(context):
                 pass
-        except InputError as error:
+        except (InputError, OSError) as error:
             self.report({"ERROR"}, str(error))
             return self.failed(context)
         return self.finished(context)
@@ -536,7 +539,7 @@ class _BackgroundSteps:
         self._run = self.steps(context)
         try:
             next(self._run)
-        except InputError as error:
+        except (InputError, OSError) as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         manager = context.window_manager
@@ -590,6 +593,9 @@ class OBJECT_OT_pgt_author_selected(_BackgroundSteps, bpy.types.Operator):
         if not any(authoring.is_reconstruction(obj) for obj in context.selected_objects):
             cls.poll_message_set("Select imported reconstructions")
             return False
+        if context.mode != "OBJECT":
+            cls.poll_message_set("Author Selected works in Object Mode")
+            return False
         return True
 
     def steps(self, context):
@@ -600,6 +606,8 @@ class OBJECT_OT_pgt_author_selected(_BackgroundSteps, bpy.types.Operator):
         problem = properties.class_problem(settings) if settings.size_mode == "class" else ""
         if problem:  # checked once, before any object changes
             raise InputError("Author Selected", problem)
+        for obj in chosen:
+            authoring.require_own_mesh(obj)
         self.objects, self.applied = len(chosen), 0
         yield 0.0
         for index, obj in enumerate(chosen):  # each step applies whole: an error stops between steps
@@ -731,7 +739,7 @@ class SCENE_OT_pgt_open_bank_report(bpy.types.Operator):
         if real is not None:  # set after the export, or changed since: the report follows it
             try:
                 bank.write_bank_report(out, real)
-            except InputError as error:
+            except (InputError, OSError) as error:
                 self.report({"ERROR"}, str(error))
                 return {"CANCELLED"}
         old = bpy.data.texts.get(path.name)
@@ -759,7 +767,7 @@ class SCENE_OT_pgt_preview_bank(bpy.types.Operator):
             return {"CANCELLED"}
         try:
             shown = bank.preview_bank(context.scene, bpy.path.abspath(settings.output), settings.preview_count)
-        except InputError as error:
+        except (InputError, OSError) as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         settings.status = f"previewing {len(shown)} entries in the '{bank.PREVIEW_COLLECTION}' collection"

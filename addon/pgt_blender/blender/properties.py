@@ -9,7 +9,7 @@ from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorPro
                        PointerProperty, StringProperty)
 
 from ..core.authoring.prepare import UP_CHOICES
-from ..core.bank.config import BankConfig
+from ..core.bank.config import MAX_SWEEPS, BankConfig
 from ..core.classes import CLASS_SIZES
 from ..core.reconstruction import SOURCE_KINDS
 from ..core.scan.sensors import PRESETS
@@ -165,7 +165,7 @@ class PGT_PG_bank(bpy.types.PropertyGroup):
     sensor: EnumProperty(name="Sensor", default="DATASET", description="LiDAR the bank is scanned with", items=[
         ("DATASET", "Dataset's", "The chosen dataset's own LiDAR")]
         + [(name, _SENSOR_LABELS.get(name, name), sensor.note) for name, sensor in PRESETS.items()])
-    sweeps: IntProperty(name="Sweeps", default=0, min=0, soft_max=20,
+    sweeps: IntProperty(name="Sweeps", default=0, min=0, max=MAX_SWEEPS, soft_max=20,
                         description="Sweeps merged per entry; 0: the dataset's (nuScenes, Lyft 10; KITTI 1)")
     heading_step: FloatProperty(name="Heading step", default=math.radians(_BANK_DEFAULTS.headings_deg[2]),
                                 min=math.radians(1.0), max=math.radians(360.0), subtype="ANGLE",

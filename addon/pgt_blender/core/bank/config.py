@@ -233,17 +233,25 @@ def config_from_table(table: dict, path="bank config") -> BankConfig:
     return config
 
 
-def config_toml(config: BankConfig) -> str:
-    """``config`` as the TOML text load_config reads back to the same BankConfig: every
-    key written, so the file says all the bank depends on."""
+def config_table(config: BankConfig) -> dict:
+    """``config`` as the tables of its TOML file, every key set (config_from_table reads
+    them back to the same BankConfig, and checks them as it does a file's)."""
     values = asdict(config)
     sections = {}
     for name, (attribute, _, _) in _KEYS.items():
         section, key = name.split(".")
-        sections.setdefault(section, []).append(f"{key} = {_toml_value(values[attribute])}")
+        value = values[attribute]
+        sections.setdefault(section, {})[key] = list(value) if isinstance(value, tuple) else value
     if config.classes:
-        sections["classes"] = [f"{key} = {_toml_value(name)}" for key, name in config.classes.items()]
-    return "\n\n".join(f"[{section}]\n" + "\n".join(lines) for section, lines in sections.items()) + "\n"
+        sections["classes"] = dict(config.classes)
+    return sections
+
+
+def config_toml(config: BankConfig) -> str:
+    """``config`` as the TOML text load_config reads back to the same BankConfig: every
+    key written, so the file says all the bank depends on."""
+    return "\n\n".join(f"[{section}]\n" + "\n".join(f"{key} = {_toml_value(value)}" for key, value in table.items())
+                       for section, table in config_table(config).items()) + "\n"
 
 
 def _toml_value(value) -> str:

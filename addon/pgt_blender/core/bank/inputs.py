@@ -92,7 +92,8 @@ def prepared_objects(folder) -> tuple[list, list]:
 def checked_objects(objects: list, incomplete: list, skip_incomplete: bool, source) -> list:
     """``objects`` (from ``source``, a folder or .blend) sorted by name, when they can make
     a bank: InputError listing the incomplete ones (unless skipped), when there is none,
-    when two share a file name, or for a box that is not three positive lengths."""
+    when two share a file name, for a box that is not three positive lengths, or for
+    geometry without points or with NaN/Inf coordinates (an emptied Blender mesh)."""
     if incomplete and not skip_incomplete:
         listed = "; ".join(f"{Path(path).name}: {reason}" for path, reason in incomplete)
         raise InputError(source, f"{len(incomplete)} incomplete object(s), set class and size "
@@ -106,4 +107,7 @@ def checked_objects(objects: list, incomplete: list, skip_incomplete: bool, sour
     for obj in objects:
         if obj.dims.shape != (3,) or not np.all(obj.dims > 0):
             raise InputError(source, f"{obj.name}: box dims {obj.dims.tolist()} are not three positive lengths")
+        positions = obj.geometry.positions
+        if not len(positions) or not np.isfinite(positions).all():  # before the output folder is made
+            raise InputError(source, f"{obj.name}: its geometry has no points, or NaN/Inf coordinates")
     return sorted(objects, key=lambda obj: obj.name)
