@@ -183,8 +183,8 @@ def main(argv: list) -> int:
 
     sensor = PRESETS["kitti"]
     real = objects.kitti_scan_objects(args.kitti)
-    frames = replay.replay_frames(objects.kitti_frames(args.kitti),
-                                  sensor, replay.class_meshes(str(dev.CHRONO_VEHICLES)))
+    frames = replay.replay_frames(objects.kitti_frames(args.kitti), sensor,
+                                  replay.class_meshes(str(dev.CHRONO_VEHICLES)))
     scans = args.holdout or [frame["frame"] for frame in frames]
     merged = not args.per_class
     relabel = (lambda items: [replace(o, class_name="object") for o in items]) if merged else (lambda items: items)

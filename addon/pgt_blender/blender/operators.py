@@ -19,6 +19,10 @@ from ..core.files import atomic_output
 from ..core.importing import SUPPORTED, find_reconstructions, load_reconstruction
 from . import authoring, bank, intensity, objects, placement, properties, scanning
 
+# What an operator reports as one ERROR line and CANCELLED, never a traceback: bad input,
+# or a read or write that failed (a name too long, a full disk, no permission).
+REPORTED = (InputError, OSError)
+
 
 @contextmanager
 def progress(context, total: int):
@@ -79,7 +83,7 @@ class _ImportReconstruction:
             recon = load_reconstruction(self.input_path(), kind=self.source_kind, with_cameras=self.with_cameras,
                                         cameras=self.cameras_path(), capture=capture)
             obj = objects.add_reconstruction(context.scene, recon, self.with_cameras, context.collection)
-        except (InputError, OSError) as error:
+        except REPORTED as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         _select_only(context, obj)
@@ -238,7 +242,7 @@ class IMPORT_SCENE_OT_pgt_folder(_ChoosesFolder, bpy.types.Operator):
                 recons = [advance(load_reconstruction(path)) for path in found]
             made = [objects.add_reconstruction(context.scene, recon, collection=context.collection, made=built)
                     for recon in recons]
-        except (InputError, OSError) as error:
+        except REPORTED as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         for other in context.selected_objects:
@@ -265,7 +269,7 @@ class IMPORT_SCENE_OT_pgt_placed_scene(_ChoosesFolder, bpy.types.Operator):
             return {"CANCELLED"}
         try:
             shown = placement.load_placement(context.scene, bpy.path.abspath(self.directory))
-        except (InputError, OSError) as error:
+        except REPORTED as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         inserted = sum(1 for obj in shown if obj.type == "MESH") - 1
@@ -355,7 +359,7 @@ class _AuthoringStep:
             try:
                 authoring.require_own_mesh(obj)
                 step = self.step(context, obj, context.scene.pgt_authoring)
-            except (InputError, OSError) as error:
+            except REPORTED as error:
                 self.report({"ERROR"}, str(error))
                 return {"CANCELLED"}
             authoring.apply_step(obj, step)
@@ -453,7 +457,7 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
             with warnings.catch_warnings(record=True) as caught, authoring.object_mode(obj):
                 warnings.simplefilter("always")
                 result, sensor, sensor_from_object = scanning.scan(obj, settings)
-        except (InputError, OSError) as error:
+        except REPORTED as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         for warning in caught:
@@ -477,7 +481,7 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
             return ""
         try:
             rate = intensity.apply_estimator(preview, checkpoint, source.pgt.class_name, settings)
-        except (InputError, OSError) as error:
+        except REPORTED as error:
             self.report({"WARNING"}, f"{error} (the scan keeps its physical intensities)")
             return ""
         return f" · learned intensity ({rate:,.0f} points/s)"
@@ -508,7 +512,7 @@ class OBJECT_OT_pgt_apply_intensity(bpy.types.Operator):
         source = intensity.source_of(preview)
         try:
             rate = intensity.apply_estimator(preview, checkpoint, source.pgt.class_name, context.scene.pgt_scan)
-        except (InputError, OSError) as error:  # no torch, bad checkpoint, other dataset or class
+        except REPORTED as error:  # no torch, bad checkpoint, other dataset or class
             self.report({"ERROR"}, f"{error} (the scan keeps its physical intensities)")
             return {"CANCELLED"}
         self.report({"INFO"}, f"{len(preview.data.vertices)} intensities from {checkpoint} ({rate:,.0f} points/s)")
@@ -530,7 +534,7 @@ class _BackgroundSteps:
         try:
             for _ in self.steps(context):
                 pass
-        except (InputError, OSError) as error:
+        except REPORTED as error:
             self.report({"ERROR"}, str(error))
             return self.failed(context)
         return self.finished(context)
@@ -539,7 +543,7 @@ class _BackgroundSteps:
         self._run = self.steps(context)
         try:
             next(self._run)
-        except (InputError, OSError) as error:
+        except REPORTED as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         manager = context.window_manager
@@ -556,7 +560,7 @@ class _BackgroundSteps:
             return {"PASS_THROUGH"}
         try:
             share = next(self._run, None)
-        except (InputError, OSError) as error:  # a full disk, a folder gone: what is done stays done
+        except REPORTED as error:  # a full disk, a folder gone: what is done stays done
             self._end(context)
             self.report({"ERROR"}, str(error))
             return self.failed(context)
@@ -715,7 +719,7 @@ class SCENE_OT_pgt_save_bank_config(bpy.types.Operator, ExportHelper):
             config = bank.bank_config(context.scene.pgt_bank, _checkpoint(context))
             with atomic_output(Path(bpy.path.abspath(self.filepath))) as stream:
                 stream.write(config_toml(config).encode())
-        except (InputError, OSError) as error:
+        except REPORTED as error:
             self.report({"ERROR"}, f"{self.filepath}: {getattr(error, 'strerror', None) or error}")
             return {"CANCELLED"}
         self.report({"INFO"}, f"Wrote {self.filepath}")
@@ -739,7 +743,7 @@ class SCENE_OT_pgt_open_bank_report(bpy.types.Operator):
         if real is not None:  # set after the export, or changed since: the report follows it
             try:
                 bank.write_bank_report(out, real)
-            except (InputError, OSError) as error:
+            except REPORTED as error:
                 self.report({"ERROR"}, str(error))
                 return {"CANCELLED"}
         old = bpy.data.texts.get(path.name)
@@ -767,7 +771,7 @@ class SCENE_OT_pgt_preview_bank(bpy.types.Operator):
             return {"CANCELLED"}
         try:
             shown = bank.preview_bank(context.scene, bpy.path.abspath(settings.output), settings.preview_count)
-        except (InputError, OSError) as error:
+        except REPORTED as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         settings.status = f"previewing {len(shown)} entries in the '{bank.PREVIEW_COLLECTION}' collection"

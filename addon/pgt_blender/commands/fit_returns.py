@@ -111,8 +111,7 @@ def main(argv: list) -> int:
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     args = parser.parse_args(argv)
     sensor = sensor_from_name(args.sensor)
-    frames = replay.replay_frames(kitti_frames(args.folder),
-                                  sensor, replay.class_meshes(args.meshes))
+    frames = replay.replay_frames(kitti_frames(args.folder), sensor, replay.class_meshes(args.meshes))
     if not frames:
         raise InputError(args.folder, "has no labelled frames")
     law_sensor, real = sensor, None

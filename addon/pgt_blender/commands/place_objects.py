@@ -55,7 +55,8 @@ def main(argv: list) -> int:
     parser.add_argument("--info", type=Path, required=True,
                         help="KITTI label file, or OpenPCDet / mmdetection3d info pickle with the scan's sample")
     parser.add_argument("--bank", type=Path, required=True, help="bank folder or ground-truth info pickle")
-    parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True, help="folder to write scan.bin, boxes.json, birdseye.png")
+    parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True,
+                        help="folder to write scan.bin, boxes.json, birdseye.png")
     parser.add_argument("--dataset", choices=sorted(PRESETS), help="the scene's dataset (default: from --info)")
     parser.add_argument("--convention", choices=("openpcdet", "mmdet3d"),
                         help="the database's layout (default: openpcdet)")

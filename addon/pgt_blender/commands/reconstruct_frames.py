@@ -36,7 +36,8 @@ VIDEO_EVERY = 10  # a video's default: 1 frame kept in 10 (3 per second at 30 fp
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="reconstruct_frames.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("input", type=Path, help="folder of images, or a video file")
-    parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True, help="output folder (database.db, sparse/0, images/)")
+    parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True,
+                        help="output folder (database.db, sparse/0, images/)")
     parser.add_argument("--every", type=cli.whole(1, 10**4),
                         help=f"keep 1 frame in K (default {VIDEO_EVERY} for a video, 1 for a folder)")
     parser.add_argument("--pick", choices=PICKS, default="sharpest", help="which frame of each run of K")
@@ -57,8 +58,8 @@ def main(argv: list) -> int:
     _quiet_colmap(args.quiet)
     progress = not args.quiet
     if args.input.is_dir():
-        folder, names = args.input, choose_images(args.input, args.every or 1, args.pick, progress)
-        result = reconstruct(folder, names, args.out, options, progress)
+        names = choose_images(args.input, args.every or 1, args.pick, progress)
+        result = reconstruct(args.input, names, args.out, options, progress)
     elif args.input.is_file() and args.input.suffix.lower() in VIDEO_SUFFIXES:
         result = _reconstruct_video(args, options, progress)
     elif args.input.exists():

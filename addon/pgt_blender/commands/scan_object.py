@@ -126,7 +126,8 @@ def main(argv: list) -> int:
     parser.add_argument("--ray-drop", action="store_true", help="drop returns with the sensor's fitted ray-drop "
                                                                  "model (kitti has one)")
     parser.add_argument("--seed", type=cli.SEED, default=0)
-    parser.add_argument("--out", type=cli.OUTPUT_FILE, required=True, help=f"output file ({', '.join(OUTPUT_SUFFIXES)})")
+    parser.add_argument("--out", type=cli.OUTPUT_FILE, required=True,
+                        help=f"output file ({', '.join(OUTPUT_SUFFIXES)})")
     args = parser.parse_args(argv)
     if args.out.suffix not in OUTPUT_SUFFIXES:
         parser.error(f"--out must end in {', '.join(OUTPUT_SUFFIXES)}")

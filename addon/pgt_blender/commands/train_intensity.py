@@ -59,7 +59,8 @@ def inference_rate(path: Path, rgb) -> float:
 def parse(argv: list):
     parser = argparse.ArgumentParser(prog="train_intensity.py", description=__doc__.split("\n\n")[0])
     defaults = TrainConfig()
-    parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True, help="folder for the checkpoints, log and config")
+    parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True,
+                        help="folder for the checkpoints, log and config")
     parser.add_argument("--real", type=Path, action="append", required=True,
                         help="GT database .pkl or KITTI folder (e.g. ../shared/data/kitti_scans), repeatable")
     parser.add_argument("--rgb", action="append", default=[],

@@ -251,7 +251,8 @@ def validate(sensor: Sensor) -> None:
     if not sensor.max_range > 0:
         problems.append(f"max_range must be positive, got {sensor.max_range!r}")
     if not RATE_HZ_RANGE[0] <= sensor.rate_hz <= RATE_HZ_RANGE[1]:
-        problems.append(f"rate_hz must lie between {RATE_HZ_RANGE[0]:g} and {RATE_HZ_RANGE[1]:g}, got {sensor.rate_hz!r}")
+        problems.append(f"rate_hz must lie between {RATE_HZ_RANGE[0]:g} and {RATE_HZ_RANGE[1]:g}, "
+                        f"got {sensor.rate_hz!r}")
     if not 0 <= sensor.min_range < sensor.max_range:
         problems.append("min_range must be >= 0 and below max_range")
     if not sensor.mounting_height >= 0 or not sensor.range_noise_sigma >= 0:
