@@ -350,6 +350,8 @@ CASES = {
     "grid with no pose": bank({"grid": {"x": [0, 0, 1], "y": [0, 0, 1]}}, "the grid leaves no pose", "out"),
     "sidecar dims 'big'": bank(SMALL_GRID, "dims must be three positive lengths", "sidecar",
                                lambda record: json.dumps({**record, "dims": "big"}).encode()),
+    "sidecar step without its transform": bank(SMALL_GRID, "steps[0]: transform must be a 4 x 4 list", "sidecar",
+                                               lambda record: json.dumps({**record, "steps": [{"step": "size"}]}).encode()),
     "class mapped to a name without a motion model": bank(
         {**SMALL_GRID, "classes": {"semi": "Semi"}}, "no motion model for semi", "out",
         lambda record: json.dumps({**record, "class": "semi"}).encode()),

@@ -6,6 +6,7 @@ import json
 import mmap
 import os
 import pickle
+import re
 import resource
 import secrets
 import signal
@@ -363,6 +364,28 @@ def test_manifest_checksums_every_file(bank):
     assert manifest["entries"] == sum(manifest["counts"].values()) > 0
     assert {obj["name"] for obj in manifest["objects"]} == {"bicycle_reconstruction", "truck_chassis",
                                                            "truck_reconstruction"}
+
+
+@pytest.mark.parametrize("change, problem", [
+    (lambda m: m["config"].update(formats=[]), "bank.formats = []: expected a non-empty list"),
+    (lambda m: m["config"].update(dataset="waymo"), "bank.dataset = 'waymo': expected one of"),
+    (lambda m: m["config"].update(colour="red"), "config has unknown key 'colour'"),
+    (lambda m: m.update(config=[]), "config must be an object, got list"),
+    (lambda m: m["info_pickles"].pop("mmdet3d"), "info_pickles must name one pickle file per format"),
+    (lambda m: m.update(data_root=7), "data_root must be a folder path or null"),
+])
+def test_a_manifest_is_read_with_the_checks_of_a_config_file(bank, tmp_path, change, problem):
+    """What reads a finished bank (Preview Bank, place_objects, score_bank) indexes its
+    config: a hand-edited one is named, not a KeyError."""
+    from pgt_blender.core.bank.folder import read_manifest
+
+    out, manifest = bank
+    assert read_manifest(out) == manifest
+    damaged = json.loads(json.dumps(manifest))
+    change(damaged)
+    (tmp_path / "manifest.json").write_text(json.dumps(damaged))
+    with pytest.raises(InputError, match=re.escape(f"{tmp_path / 'manifest.json'}: {problem}")):
+        read_manifest(tmp_path)
 
 
 def test_openpcdet_and_mmdet3d_hold_the_same_points(bank):

@@ -1,6 +1,7 @@
 """The Align, Heading and Size operators in real headless Blender, against the core."""
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -177,7 +178,7 @@ def test_empty_reconstruction_is_refused(scene):
     obj.pgt.source_kind, obj.pgt.source_path = "point_ply", "/data/empty.ply"
     scene.collection.objects.link(obj)
     bpy.context.view_layer.objects.active = obj
-    with pytest.raises(RuntimeError, match="/data/empty.ply: has no points to align"):
+    with pytest.raises(RuntimeError, match="empty: has no points to author"):
         bpy.ops.object.pgt_align()
 
 
@@ -338,3 +339,72 @@ def test_a_zero_scale_is_named_not_a_traceback(scene, truck_file):
         bpy.ops.object.pgt_front_from_cursor()
     assert "Traceback" not in str(error.value)
     np.testing.assert_array_equal(vertices(obj), before)
+
+
+IDENTITY = np.eye(4).tolist()
+
+
+@pytest.mark.parametrize("record, problem", [
+    ("nope {", r"pgt.steps_json is not JSON \(Expecting value"),
+    ('{"step": "align"}', "pgt.steps_json must be a list of steps, got dict"),
+    ("[1, 2]", r"pgt.steps_json\[0\]: expected an object, got int"),
+    (json.dumps([{"step": "size", "transform": IDENTITY, "mode": "keep"}]),
+     r"pgt.steps_json\[0\]: dims must be three finite lengths >= 0, got None"),
+    (json.dumps([{"step": "heading", "transform": IDENTITY, "dims": [4, 2, 2], "by": 3}]),
+     r"pgt.steps_json\[0\]: by must be a string, got 3"),
+])
+def test_a_damaged_step_record_is_named_and_changes_nothing(scene, truck_file, record, problem):
+    """A hand-edited record: every authoring operator names it (poll or report), the
+    panels show it, nothing changes; cleared, the object authors again."""
+    from pgt_blender.blender.ui import status_icon, status_text
+
+    obj = imported(scene, truck_file)
+    obj.select_set(True)
+    obj.pgt.steps_json = record
+    scene.pgt_authoring.dataset, scene.pgt_authoring.class_name = "nuscenes", "truck"
+    before, counts = vertices(obj).copy(), datablock_counts(bpy)
+    for operator in (bpy.ops.object.pgt_align, bpy.ops.object.pgt_set_size, bpy.ops.object.pgt_author_selected):
+        with pytest.raises(RuntimeError, match=f"{obj.name}: {problem}.*the authoring record is damaged") as error:
+            operator()
+        assert "Traceback" not in str(error.value)
+    assert re.match(problem, status_text(obj)) and status_icon(obj, "INFO") == "ERROR"
+    np.testing.assert_array_equal(vertices(obj), before)
+    assert datablock_counts(bpy) == counts and obj.pgt.steps_json == record and tuple(obj.pgt.dims) == (0, 0, 0)
+    obj.pgt.steps_json = ""
+    assert bpy.ops.object.pgt_align() == {"FINISHED"}
+
+
+def test_points_made_nan_after_alignment_are_refused_by_every_step(scene, truck_file):
+    obj = imported(scene, truck_file)
+    bpy.ops.object.pgt_align()
+    broken = vertices(obj).copy()
+    broken[:3] = np.nan
+    obj.data.attributes["position"].data.foreach_set("vector", broken.ravel())
+    record = obj.pgt.steps_json
+    for operator in (bpy.ops.object.pgt_turn, bpy.ops.object.pgt_auto_heading, bpy.ops.object.pgt_set_size):
+        with pytest.raises(RuntimeError, match=f"{obj.name}: 3 of {len(broken)} points have NaN or Inf coordinates"):
+            operator()
+    assert obj.pgt.steps_json == record
+
+
+def test_up_from_a_cursor_at_the_median_is_named(scene, truck_file):
+    obj = imported(scene, truck_file)
+    scene.cursor.location = np.median(vertices(obj), axis=0)
+    scene.pgt_authoring.up = "cursor"
+    with pytest.raises(RuntimeError, match=f"{obj.name}: the 3D cursor is at the points' median: put it above"):
+        bpy.ops.object.pgt_align()
+
+
+def test_author_selected_checks_every_object_before_changing_any(scene, truck_file):
+    good = imported(scene, truck_file)
+    empty = bpy.data.objects.new("ZZZ empty", bpy.data.meshes.new("ZZZ empty"))
+    empty.pgt.source_kind = "point_ply"
+    scene.collection.objects.link(empty)
+    for obj in (good, empty):
+        obj.select_set(True)
+    scene.pgt_authoring.dataset, scene.pgt_authoring.class_name = "nuscenes", "truck"
+    before = vertices(good).copy()
+    with pytest.raises(RuntimeError, match="ZZZ empty: has no points to author"):
+        bpy.ops.object.pgt_author_selected()
+    np.testing.assert_array_equal(vertices(good), before)
+    assert good.pgt.steps_json == ""

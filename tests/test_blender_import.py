@@ -1,6 +1,8 @@
 """The Blender layer on real headless bpy: operators, menus, panel, bulk data, cameras."""
 
+import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -73,6 +75,19 @@ def test_point_clouds_are_drawn_as_points(scene, donut):
         assert len(evaluated.evaluated_geometry().pointcloud.points) == 45624
     bpy.ops.import_scene.pgt_gaussian_splat(filepath=str(donut))
     assert len(bpy.data.node_groups) == 1  # one shared group
+
+
+def test_a_file_name_that_is_not_utf8_imports_and_reports(scene, donut, tmp_path, capfd):
+    """Bytes 0xff 0xfe in a file name: Blender names and reports take only UTF-8, so both
+    show the bytes escaped."""
+    path = Path(os.fsdecode(bytes(tmp_path) + b"/bad\xff\xfe.ply"))
+    path.write_bytes(donut.read_bytes())
+    assert bpy.ops.import_scene.pgt_gaussian_splat(filepath=str(path)) == {"FINISHED"}
+    assert bpy.context.active_object.name == "bad\\udcff\\udcfe" and "Imported bad\\udcff" in capfd.readouterr().out
+    folder = Path(os.fsdecode(bytes(tmp_path) + b"/d\xff"))
+    folder.mkdir()
+    with pytest.raises(RuntimeError, match=r"d\\udcff: no COLMAP model files"):
+        bpy.ops.import_scene.pgt_colmap(directory=str(folder))
 
 
 def test_gaussian_splat_operator(scene, donut):
@@ -264,9 +279,9 @@ def test_failure_while_building_removes_partial_data(scene, statue):
     from pgt_blender.blender import objects
 
     recon = load_reconstruction(statue)
-    recon.cameras[5].name = 7  # not a string: bpy.data.cameras.new raises TypeError
+    recon.cameras[5].name = 7  # not a string: no camera can take it as a name
     before = datablock_counts(bpy)
-    with pytest.raises(TypeError):
+    with pytest.raises(AttributeError):
         objects.add_reconstruction(scene, recon)
     assert datablock_counts(bpy) == before
 

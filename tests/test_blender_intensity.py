@@ -16,7 +16,7 @@ from pgt_blender.blender import properties, scanning  # noqa: E402
 from pgt_blender.core.intensity.estimator import IntensityEstimator  # noqa: E402
 from pgt_blender.core.intensity.training import TrainConfig, train  # noqa: E402
 
-from .test_blender_scan import box_geometry, core_scan, mesh_object  # noqa: E402
+from .test_blender_scan import box_geometry, color_values, core_scan, mesh_object  # noqa: E402
 
 
 def tiny_sets(dataset: str):
@@ -132,4 +132,56 @@ def test_another_dataset_or_class_is_refused(scene, preferences, checkpoint):
     obj.pgt.class_name = "bus"
     bpy.context.view_layer.objects.active = bpy.data.objects["Box Scan"]
     with pytest.raises(RuntimeError, match="has no class 'bus'"):
+        bpy.ops.object.pgt_apply_intensity()
+
+
+def _delete_faces(obj, preview):
+    import bmesh
+
+    edited = bmesh.new()
+    edited.from_mesh(obj.data)
+    bmesh.ops.delete(edited, geom=edited.faces[:6], context="FACES_ONLY")
+    edited.to_mesh(obj.data)
+    edited.free()
+
+
+@pytest.mark.parametrize("edit, problem", [
+    (_delete_faces, r"Box: has 6 faces but the scan hit number \d+: it changed since the scan; scan it again"),
+    (lambda obj, preview: preview.data.attributes.remove(preview.data.attributes["face"]),
+     "Box Scan: has no per-point int attribute 'face': scan Box again"),
+    (lambda obj, preview: preview.data.color_attributes.remove(preview.data.color_attributes["color"]),
+     "Box Scan: has no per-point color attribute 'color': scan Box again"),
+    (lambda obj, preview: setattr(obj, "scale", (1.0, 1.0, 0.0)), "Box: has a zero scale on an axis"),
+    (lambda obj, preview: preview.__setitem__(scanning.DATASET_TAG, "waymo"),
+     "Box Scan: pgt_dataset = 'waymo' is not one of nuscenes, kitti, lyft"),
+])
+def test_an_object_or_preview_changed_since_the_scan_is_named(scene, preferences, checkpoint, edit, problem):
+    """The preview's face column addresses the source as it was scanned: an edit since is
+    named, and the preview keeps every value it had."""
+    obj, _ = colored_box(scene)
+    bpy.ops.object.pgt_scan()
+    preview = bpy.data.objects["Box Scan"]
+    edit(obj, preview)
+    bpy.context.view_layer.update()
+    colors = {attribute.name: color_values(attribute) for attribute in preview.data.color_attributes}
+    before = intensities(preview)
+    preferences.intensity_checkpoint = str(checkpoint)
+    bpy.context.view_layer.objects.active = preview
+    with pytest.raises(RuntimeError, match=problem) as error:
+        bpy.ops.object.pgt_apply_intensity()
+    assert "Traceback" not in str(error.value)
+    assert np.array_equal(intensities(preview), before)
+    after = {attribute.name: color_values(attribute) for attribute in preview.data.color_attributes}
+    assert after.keys() == colors.keys() and all(np.array_equal(after[name], colors[name]) for name in colors)
+
+
+def test_a_preview_whose_object_name_went_to_a_camera_is_not_a_preview(scene, preferences, checkpoint):
+    obj, _ = colored_box(scene)
+    bpy.ops.object.pgt_scan()
+    bpy.data.objects.remove(obj)
+    camera = bpy.data.objects.new("Box", bpy.data.cameras.new("Box"))
+    scene.collection.objects.link(camera)
+    preferences.intensity_checkpoint = str(checkpoint)
+    bpy.context.view_layer.objects.active = bpy.data.objects["Box Scan"]
+    with pytest.raises(RuntimeError, match="Select a scan preview .* whose object still exists"):
         bpy.ops.object.pgt_apply_intensity()

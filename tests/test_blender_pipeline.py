@@ -72,8 +72,12 @@ def test_folder_to_exported_and_previewed_bank(scene, folder, tmp_path):
     run_export("--blend", blend, "--config", tmp_path / "bank.toml", "--out", tmp_path / "cli")
     assert bank_bytes(tmp_path / "bank") == bank_bytes(tmp_path / "cli")
 
-    assert bpy.ops.scene.pgt_open_bank_report() == {"FINISHED"}
-    assert bpy.data.texts["report.md"].as_string().startswith("#")
+    mine = bpy.data.texts.new("report.md")  # the user's own text of that name stays
+    mine.write("my notes")
+    for _ in range(2):  # opened again: the report replaces itself
+        assert bpy.ops.scene.pgt_open_bank_report() == {"FINISHED"}
+    assert sorted(bpy.data.texts.keys()) == ["report.md", "report.md.001"]
+    assert mine.as_string() == "my notes" and bpy.data.texts["report.md.001"].as_string().startswith("#")
 
     settings.preview_count = 5
     assert bpy.ops.scene.pgt_preview_bank() == {"FINISHED"}
@@ -96,7 +100,16 @@ def test_folder_to_exported_and_previewed_bank(scene, folder, tmp_path):
         assert (np.abs(local) <= box[3:6] / 2 + 0.2).all()  # the entry's points lie in its box
         assert "intensity" in obj.data.attributes and len(obj.data.vertices) == infos[obj.name]["num_points_in_gt"]
     assert bpy.ops.scene.pgt_preview_bank() == {"FINISHED"}  # a second preview replaces the first
-    assert len(bpy.data.collections[bank.PREVIEW_COLLECTION].objects) == 10
+    shown = list(bpy.data.collections[bank.PREVIEW_COLLECTION].objects)
+    assert len(shown) == 10
+
+    # a damaged manifest is named and the preview shown stays
+    manifest = tmp_path / "bank" / "manifest.json"
+    record = json.loads(manifest.read_text())
+    record["config"]["formats"] = ["coco"]
+    manifest.write_text(json.dumps(record))
+    refused(bpy.ops.scene.pgt_preview_bank, f"{manifest}: bank.formats = \\['coco'\\]: expected a non-empty list")
+    assert list(bpy.data.collections[bank.PREVIEW_COLLECTION].objects) == shown
 
 
 def test_a_stopped_export_resumes_to_the_same_bank(scene, folder, tmp_path):
@@ -147,6 +160,7 @@ def test_bad_inputs_leave_scene_and_disk_as_they_were(scene, folder, tmp_path):
     refused(bpy.ops.scene.pgt_preview_bank, "is not a finished bank")
     refused(bpy.ops.scene.pgt_open_bank_report, "no report yet")
     bank_settings.config_file = str(tmp_path / "missing.toml")
-    refused(bpy.ops.scene.pgt_save_bank_config, "missing.toml: cannot read the file",
-            filepath=str(tmp_path / "saved.toml"))
+    refused(bpy.ops.scene.pgt_save_bank_config, f"^Error: {tmp_path / 'missing.toml'}: cannot read the file",
+            filepath=str(tmp_path / "saved.toml"))  # the config file named, once
+    refused(bpy.ops.scene.pgt_save_bank_config, "Save Config: no file chosen", filepath="")
     assert not (tmp_path / "saved.toml").exists()

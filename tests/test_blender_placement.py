@@ -60,14 +60,39 @@ def test_the_placed_scene_loads_as_its_points_and_boxes(scene, placed):
     assert len(bpy.data.collections["PGT Placed Scene"].objects) == count == len(bpy.data.objects)
 
 
+def record_changed(change):
+    """A damage: ``change(record)`` applied to boxes.json."""
+    def damage(folder):
+        record = json.loads((folder / "boxes.json").read_text())
+        change(record)
+        (folder / "boxes.json").write_text(json.dumps(record))
+    return damage
+
+
+def box_changed(change):
+    """A damage: ``change(box)`` applied to the first inserted box of boxes.json."""
+    return record_changed(lambda record: change(next(box for box in record["boxes"] if box.get("rows"))))
+
+
 @pytest.mark.parametrize("damage, problem", [
     (lambda folder: (folder / "boxes.json").write_text("{"), "boxes.json: not a placement record"),
     (lambda folder: (folder / "scan.bin").write_bytes((folder / "scan.bin").read_bytes()[:-4]),
      "scan.bin: .* bytes are not whole rows of 4"),
     (lambda folder: (folder / "boxes.json").write_text(json.dumps(
         {**json.loads((folder / "boxes.json").read_text()),
-         "boxes": [{"class": "Car", "box": [0, 0, 0, 1, 1, 1, 0], "rows": [0, 10 ** 9]}]})),
+         "boxes": [{"class": "Car", "box": [0, 0, 0, 1, 1, 1, 0], "rows": [0, 10 ** 9], "entry": "car.bin"}]})),
      "boxes.json: box 0: rows .* are not within the scan"),
+    (box_changed(lambda box: box.pop("class")), r"boxes.json: not a placement record: box \d+: class must be a string"),
+    (box_changed(lambda box: box.update(rows=[1.5, 3.5])),
+     r"box \d+: rows must be two integers \[start, stop\] >= 0, got \[1.5, 3.5\]"),
+    (box_changed(lambda box: box.update(object=None, entry=None)),
+     r"box \d+: an inserted box needs the entry or object it came from"),
+    (box_changed(lambda box: box["box"].__setitem__(2, float("nan"))),
+     r"box \d+: box must be 7 or more finite numbers with positive dims"),
+    (record_changed(lambda record: record.update(columns=["x", "x", "x", "x"])),
+     "columns must be distinct names including x, y and z"),
+    (record_changed(lambda record: record.update(scan=5)), "scan must be a string, got 5"),
+    (record_changed(lambda record: record.update(dataset=["kitti"])), r"dataset must be a string, got \['kitti'\]"),
 ])
 def test_a_damaged_placement_folder_is_refused_and_nothing_is_made(scene, placed, tmp_path, damage, problem, capsys):
     folder = shutil.copytree(placed, tmp_path / "placed")
@@ -76,3 +101,22 @@ def test_a_damaged_placement_folder_is_refused_and_nothing_is_made(scene, placed
     with pytest.raises(RuntimeError, match=problem):
         bpy.ops.import_scene.pgt_placed_scene(directory=str(folder))
     assert (datablock_counts(bpy), len(bpy.data.collections)) == before
+
+
+def test_a_users_collection_of_the_same_name_stays(scene, placed):
+    mine = bpy.data.collections.new("PGT Placed Scene")
+    scene.collection.children.link(mine)
+    note = bpy.data.objects.new("My note", None)
+    mine.objects.link(note)
+    for _ in range(2):  # the second load replaces the first, never the user's
+        assert bpy.ops.import_scene.pgt_placed_scene(directory=str(placed)) == {"FINISHED"}
+    assert sorted(c.name for c in bpy.data.collections) == ["PGT Placed Scene", "PGT Placed Scene.001"]
+    assert list(bpy.data.collections["PGT Placed Scene"].objects) == [note]
+
+
+def test_an_inserted_object_with_no_points_loads_empty(scene, placed, tmp_path):
+    folder = shutil.copytree(placed, tmp_path / "placed")
+    box_changed(lambda box: box.update(rows=[box["rows"][0], box["rows"][0]]))(folder)
+    assert bpy.ops.import_scene.pgt_placed_scene(directory=str(folder)) == {"FINISHED"}
+    assert sorted(len(obj.data.vertices) for obj in bpy.data.collections["PGT Placed Scene"].objects
+                  if obj.type == "MESH")[0] == 0

@@ -214,6 +214,23 @@ def test_second_scan_replaces_the_first(scene):
     assert np.ptp(ground[:, 0]) == pytest.approx(2 * 25.0 + 20.0)
 
 
+def test_a_copy_of_a_result_is_the_users_and_stays(scene):
+    """Shift+D keeps the tags; the next scan replaces only what the last one made."""
+    mesh_object(scene, "Box", *box_geometry())
+    bpy.ops.object.pgt_scan()
+    kept = bpy.data.objects["Box Scan"].copy()
+    kept.data = kept.data.copy()
+    scene.collection.objects.link(kept)
+    renamed = bpy.data.objects["PGT Sensor"]
+    renamed.name = "My sensor"
+    bpy.context.view_layer.objects.active = bpy.data.objects["Box"]
+    scene.pgt_scan.distance = 25.0
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    assert sorted(result_objects("Box")) == ["Box Scan", "Box Scan.001", "My sensor", "PGT Ground", "PGT Sensor"]
+    assert bpy.data.objects["Box Scan.001"] == kept and bpy.data.objects["My sensor"] == renamed
+    assert len(bpy.data.objects["Box Scan"].data.vertices) < len(kept.data.vertices)  # the new scan, from 25 m
+
+
 def test_point_cloud_scans_as_surfels(scene):
     rng = np.random.default_rng(0)
     count = 4000
@@ -390,7 +407,23 @@ def _flat_faces(scene, tmp_path):
     return "Flat: every face has zero area"
 
 
-@pytest.mark.parametrize("setup", [_missing_toml, _bad_toml, _no_toml, _empty_mesh, _flat_faces])
+def _distance_not_a_number(scene, tmp_path):
+    scene.pgt_scan.distance = float("nan")  # a script or driver: the field's min does not hold NaN off
+    return "Scan: distance must be a finite number, got nan"
+
+
+def _points_at_float32_max(scene, tmp_path):
+    mesh_object(scene, "Far", np.random.default_rng(0).random((60, 3)) * 3e38)
+    return "Far: 60 points are NaN or infinite or lie over 1e+08 m from the origin"
+
+
+def _stale_sensor(scene, tmp_path):
+    scene.pgt_scan["sensor"] = 99  # a .blend of a version with more sensors: reads as ""
+    return "Scan: no sensor chosen"
+
+
+@pytest.mark.parametrize("setup", [_missing_toml, _bad_toml, _no_toml, _empty_mesh, _flat_faces, _distance_not_a_number,
+                                   _points_at_float32_max, _stale_sensor])
 def test_bad_input_is_reported_and_changes_nothing(scene, tmp_path, setup):
     from pgt_blender.blender.operators import OBJECT_OT_pgt_scan
 

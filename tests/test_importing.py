@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pgt_blender.core.errors import InputError
-from pgt_blender.core.importing import detect_kind, load_reconstruction
+from pgt_blender.core.importing import SUPPORTED, detect_kind, load_reconstruction
 from pgt_blender.core.importing.ply import read_vertices, write_ply
 from pgt_blender.core.importing.points import SH_C0
 from pgt_blender.core.samples import sample_vehicle
@@ -199,9 +199,20 @@ def test_ascii_colors_out_of_their_type_are_refused(tmp_path):
         load_reconstruction(path)  # it wrapped to 44 before
 
 
-def test_kind_mismatch(donut):
+def test_kind_mismatch(donut, tmp_path):
     with pytest.raises(InputError, match="expected a gaussian splat input but this is a point ply"):
         load_reconstruction(donut.with_name("color.ply"), kind="gaussian_splat")
+    with pytest.raises(InputError, match="expected a point ply input but this is a folder$"):
+        load_reconstruction(tmp_path, kind="point_ply")  # not "a colmap": any folder would be one
+
+
+def test_an_undecodable_file_name_is_printable_in_the_error(tmp_path):
+    """A name that is not UTF-8 (bytes 0xff 0xfe) reaches Blender's reports escaped."""
+    path = Path(os.fsdecode(bytes(tmp_path) + b"/bad\xff\xfe.xyz"))
+    path.write_text("")
+    error = pytest.raises(InputError, load_reconstruction, path).value
+    assert str(error).encode("utf-8").endswith(b"bad\\udcff\\udcfe.xyz: unsupported format '.xyz' (supported: "
+                                               + SUPPORTED.encode() + b")")
 
 
 @pytest.mark.parametrize("missing", ["points3D.bin", "cameras.bin"])

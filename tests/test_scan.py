@@ -111,6 +111,14 @@ def test_bad_sensor_files_name_the_file_and_the_problem(tmp_path, body, problem)
     assert "\n" not in str(caught.value)
 
 
+@pytest.mark.parametrize("base", ['base = { name = "nuscenes" }', "base = 3", 'base = "waymo"'])
+def test_a_base_that_is_no_preset_name_is_named(tmp_path, base):
+    path = tmp_path / "bad.toml"
+    path.write_text(base + "\ncolumns = 1080\n")
+    with pytest.raises(InputError, match=f"^{path}: base .* is not a preset"):
+        load_sensor_toml(path)
+
+
 def test_firing_times_follow_the_column_and_the_beam_order():
     rings, columns = np.array([0, 16, 0]), np.array([0, 0, 1])
     times = NUSCENES.cell_times(rings, columns)

@@ -14,7 +14,8 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..core.authoring.prepare import Step, apply_to_splats, apply_transform, heading_label
+from ..core.authoring.alignment import checked_points
+from ..core.authoring.prepare import Step, apply_to_splats, apply_transform, checked_steps, heading_label
 from ..core.errors import InputError
 from .objects import _BLENDER_FROM_OPENCV, POINTS_GROUP
 from .scanning import splat_attributes
@@ -42,13 +43,18 @@ def object_mode(obj: bpy.types.Object):
         bpy.ops.object.mode_set(mode="EDIT")
 
 
-def require_own_mesh(obj: bpy.types.Object) -> None:
-    """InputError when ``obj`` shares its mesh with other objects (a linked duplicate):
-    authoring rewrites the mesh, which would reshape the others behind their records."""
+def require_authorable(obj: bpy.types.Object) -> None:
+    """InputError when an authoring step cannot apply to ``obj``: it shares its mesh with
+    other objects (a linked duplicate: rewriting the mesh would reshape them behind their
+    records), its step record is damaged (``steps``), or it has no points or NaN/Inf ones."""
     if obj.data.users > 1:
         raise InputError(obj.name, f"shares its mesh '{obj.data.name}' with {obj.data.users - 1} other user(s); "
                                    "authoring rewrites the mesh: make it single user first (Object > Relations > "
                                    "Make Single User > Object & Data)")
+    steps(obj)
+    if not len(obj.data.vertices):
+        raise InputError(obj.name, "has no points to author")
+    checked_points(positions(obj), source=obj.name)
 
 
 def object_from_world(obj: bpy.types.Object) -> Matrix:
@@ -119,7 +125,8 @@ def _local_matrix(child) -> Matrix:
 
 
 def apply_step(obj: bpy.types.Object, step: Step) -> None:
-    """Apply ``step`` to the mesh data, the child cameras and the record on ``obj.pgt``."""
+    """Apply ``step`` to the mesh data, the child cameras and the record on ``obj.pgt``;
+    ``require_authorable(obj)`` first, as the record is read after the mesh is written."""
     mesh = obj.data
     mesh.attributes["position"].data.foreach_set("vector", apply_transform(positions(obj), step.transform).ravel())
     splats = splat_attributes(mesh)
@@ -179,8 +186,23 @@ def current_dims(obj: bpy.types.Object) -> np.ndarray:
 
 
 def steps(obj: bpy.types.Object) -> list:
-    """The authoring steps applied to ``obj``, oldest first (``pgt.steps_json``)."""
-    return json.loads(obj.pgt.steps_json or "[]")
+    """The authoring steps applied to ``obj``, oldest first (``pgt.steps_json``);
+    InputError when a hand edit left something else there (prepare.checked_steps)."""
+    try:
+        return checked_steps(json.loads(obj.pgt.steps_json or "[]"), obj.name, "pgt.steps_json")
+    except (ValueError, RecursionError) as error:  # bad JSON, or an InputError of checked_steps
+        problem = error.problem if isinstance(error, InputError) else f"pgt.steps_json is not JSON ({error})"
+        raise InputError(obj.name, f"{problem}; the authoring record is damaged: clear it "
+                                   "(pgt.steps_json = '') and author the object again") from None
+
+
+def record_problem(obj: bpy.types.Object) -> str:
+    """What is wrong with ``obj``'s step record (``steps``), or "" when it reads."""
+    try:
+        steps(obj)
+    except InputError as error:
+        return error.problem
+    return ""
 
 
 def status(obj: bpy.types.Object) -> dict:

@@ -29,7 +29,7 @@ from ..core.reconstruction import Reconstruction
 from ..core.scan.sensors import BIN_COLUMNS, INTENSITY_MAX
 from ..core.scan.targets import has_gaussians
 from .authoring import current_dims, is_reconstruction, status
-from .objects import box_empty, remove_collection
+from .objects import box_empty, remove_datablocks, replace_collection
 from .scanning import mesh_triangles, mesh_vertices, point_colors, points_object, ramp, splat_attributes
 
 
@@ -142,11 +142,12 @@ class BankRun:
 PREVIEW_COLLECTION = "PGT Bank Preview"
 
 
-def preview_bank(scene: bpy.types.Scene, folder, count: int) -> list:
+def preview_bank(scene: bpy.types.Scene, folder, count: int) -> tuple:
     """Load ``count`` entries of the bank in ``folder``, spread evenly over it, as point
     objects (the points at their place in the sensor frame, intensity as an attribute and
     as color) each with its box (a cube empty: centre, dims, heading), into the "PGT Bank
-    Preview" collection, replacing an earlier preview. Returns the point objects."""
+    Preview" collection, replacing an earlier preview once the new one is built
+    (objects.replace_collection). Returns the collection and the point objects."""
     folder = Path(folder)
     manifest = read_manifest(folder)
     fmt = manifest["config"]["formats"][0]
@@ -156,20 +157,20 @@ def preview_bank(scene: bpy.types.Scene, folder, count: int) -> list:
     chosen = [infos[i] for i in np.unique(np.linspace(0, len(infos) - 1, min(count, len(infos))).round().astype(int))]
     dataset = manifest["config"]["dataset"]
     entries = [(info, read_float32_rows(folder / fmt / info["path"], len(BIN_COLUMNS[dataset]))) for info in chosen]
-    remove_collection(PREVIEW_COLLECTION)
-    collection = bpy.data.collections.new(PREVIEW_COLLECTION)
-    scene.collection.children.link(collection)
     made = []
-    for info, rows in entries:
-        box = np.asarray(info["box3d_lidar"], np.float64)
-        origin = box[:3] - ([0.0, 0.0, box[5] / 2] if fmt == "mmdet3d" else 0.0)  # where the file's points start
-        returns = np.zeros(len(rows), [("x", "f8"), ("y", "f8"), ("z", "f8"), ("intensity", "f4")])
-        for axis, name in enumerate("xyz"):
-            returns[name] = rows[:, axis] + origin[axis]
-        returns["intensity"] = rows[:, 3]
-        name = Path(info["path"]).stem
-        points = points_object(name, returns, ramp(np.clip(rows[:, 3] / INTENSITY_MAX[dataset], 0.0, 1.0)), made)
-        cube = box_empty(f"{name} box", box, made)
-        for obj in (points, cube):
-            collection.objects.link(obj)
-    return [obj for obj in made if isinstance(obj, bpy.types.Object) and obj.type == "MESH"]
+    try:
+        for info, rows in entries:
+            box = np.asarray(info["box3d_lidar"], np.float64)
+            origin = box[:3] - ([0.0, 0.0, box[5] / 2] if fmt == "mmdet3d" else 0.0)  # where the file's points start
+            returns = np.zeros(len(rows), [("x", "f8"), ("y", "f8"), ("z", "f8"), ("intensity", "f4")])
+            for axis, name in enumerate("xyz"):
+                returns[name] = rows[:, axis] + origin[axis]
+            returns["intensity"] = rows[:, 3]
+            name = Path(info["path"]).stem
+            points_object(name, returns, ramp(np.clip(rows[:, 3] / INTENSITY_MAX[dataset], 0.0, 1.0)), made)
+            box_empty(f"{name} box", box, made)
+    except BaseException:
+        remove_datablocks(made)
+        raise
+    shown = [obj for obj in made if isinstance(obj, bpy.types.Object)]
+    return replace_collection(scene, PREVIEW_COLLECTION, shown), [obj for obj in shown if obj.type == "MESH"]

@@ -11,6 +11,7 @@ estimator wants each return in the source's *box frame* (box centre at the origi
 import bpy
 import numpy as np
 
+from ..core.errors import InputError
 from ..core.intensity.estimator import cached_estimator, scan_intensity
 from ..core.scan.returns import RETURN_DTYPE, Scan
 from ..core.scan.sensors import INTENSITY_MAX
@@ -22,9 +23,12 @@ GREY = (0.5, 0.5, 0.5)
 
 
 def source_of(preview: bpy.types.Object):
-    """The object a scan preview was made of, or None."""
+    """The mesh object a scan preview was made of, or None."""
     name = preview.get(scanning.SOURCE_TAG)
-    return bpy.data.objects.get(name) if name and preview.type == "MESH" and scanning.DATASET_TAG in preview else None
+    if not (name and preview.type == "MESH" and scanning.DATASET_TAG in preview):
+        return None
+    source = bpy.data.objects.get(name)
+    return source if source is not None and source.type == "MESH" else None
 
 
 def element_rgb(source: bpy.types.Object) -> np.ndarray:
@@ -56,31 +60,61 @@ def element_rgb(source: bpy.types.Object) -> np.ndarray:
 def preview_scan(preview: bpy.types.Object, source: bpy.types.Object) -> Scan:
     """The preview's returns as a one-sweep core Scan: points and intensities in the
     sensor frame, the ``face`` each hit, and the pose sensor_from_object the two objects'
-    matrices imply (see the module docstring)."""
+    matrices imply (see the module docstring). InputError when the preview lost its
+    ``face`` or ``intensity`` attribute or either object has a zero scale."""
     mesh = preview.data
     count = len(mesh.vertices)
     rows = np.zeros(count, RETURN_DTYPE)
     rows["x"], rows["y"], rows["z"] = positions(preview).astype(np.float64).T
-    rows["face"] = scanning.read(mesh.attributes["face"].data, "value", count, np.int32)
-    rows["intensity"] = scanning.read(mesh.attributes["intensity"].data, "value", count, np.float32)
-    object_from_sensor = np.array(object_from_world(source) @ preview.matrix_world)
-    return Scan(rows, np.zeros(9), count, 0.0, preview[scanning.DATASET_TAG], [np.linalg.inv(object_from_sensor)])
+    for column, kind in (("face", "INT"), ("intensity", "FLOAT")):
+        attribute = mesh.attributes.get(column)
+        if attribute is None or attribute.data_type != kind or attribute.domain != "POINT":
+            raise InputError(preview.name, f"has no per-point {kind.lower()} attribute '{column}': "
+                                           f"scan {source.name} again")
+        rows[column] = scanning.read(attribute.data, "value", count, rows.dtype[column])
+    dataset = preview[scanning.DATASET_TAG]
+    if dataset not in INTENSITY_MAX:
+        raise InputError(preview.name, f"{scanning.DATASET_TAG} = {dataset!r} is not one of "
+                                       f"{', '.join(INTENSITY_MAX)}: scan {source.name} again")
+    object_from_world(source)  # a zero scale on either object is named, not a singular pose
+    sensor_from_object = np.array(object_from_world(preview) @ source.matrix_world)
+    return Scan(rows, np.zeros(9), count, 0.0, dataset, [sensor_from_object])
 
 
-def apply_estimator(preview: bpy.types.Object, checkpoint, class_name: str, settings) -> float:
-    """Overwrite the preview's ``intensity`` attribute (and its colors when the scan
-    ``settings``, ``Scene.pgt_scan``, show intensity) with the estimator at
-    ``checkpoint`` (intensity/estimator.scan_intensity); ``class_name`` "" takes the
-    checkpoint's only class. Returns points per second; InputError as the core's."""
-    source = source_of(preview)
+def learned_intensity(scan: Scan, source: bpy.types.Object, checkpoint, settings) -> tuple[np.ndarray, float]:
+    """(values (N,) float32 in the dataset's scale, points per second): the estimator at
+    ``checkpoint`` (intensity/estimator.scan_intensity) on the N returns of ``scan``, a
+    scan of ``source`` whose ``face`` column names its polygons (meshes) or vertices
+    (point clouds); the class is ``source.pgt.class_name``, else the checkpoint's only
+    one. InputError as the core's, and when the scan hit a face or point ``source`` no
+    longer has (edited since the scan)."""
     estimator = cached_estimator(checkpoint)
-    class_name = class_name or (estimator.classes[0] if len(estimator.classes) == 1 else "")
-    scan = preview_scan(preview, source)
+    class_name = source.pgt.class_name or (estimator.classes[0] if len(estimator.classes) == 1 else "")
+    rgb = element_rgb(source)
+    hit = scan.returns["face"]
+    if len(hit) and (hit.min() < 0 or hit.max() >= len(rgb)):
+        elements = "faces" if len(source.data.polygons) else "points"
+        raise InputError(source.name, f"has {len(rgb)} {elements} but the scan hit number {hit.max()}: "
+                                      "it changed since the scan; scan it again")
     bounds = scanning.scan_target(source, settings.surfel_scale).bounds
-    values, _ = scan_intensity(scan, bounds, element_rgb(source), class_name, estimator, name=source.name)
+    values, _ = scan_intensity(scan, bounds, rgb, class_name, estimator, name=source.name)
+    return values, estimator.last_rate
+
+
+def apply_estimator(preview: bpy.types.Object, checkpoint, settings) -> float:
+    """Overwrite the preview's ``intensity`` attribute (and its colors when the scan
+    ``settings``, ``Scene.pgt_scan``, show intensity) with ``learned_intensity``. Returns
+    points per second; InputError (nothing written) as ``preview_scan`` and
+    ``learned_intensity``, and for a preview without its ``color`` attribute."""
+    source = source_of(preview)
     mesh = preview.data
+    colors = mesh.color_attributes.get("color") if settings.color_by == "INTENSITY" else None
+    if settings.color_by == "INTENSITY" and (colors is None or colors.domain != "POINT"):
+        raise InputError(preview.name, f"has no per-point color attribute 'color': scan {source.name} again")
+    scan = preview_scan(preview, source)
+    values, rate = learned_intensity(scan, source, checkpoint, settings)
     mesh.attributes["intensity"].data.foreach_set("value", values)
-    if settings.color_by == "INTENSITY":
-        mesh.color_attributes["color"].data.foreach_set("color", scanning.ramp(values / INTENSITY_MAX[scan.dataset]).ravel())
+    if colors is not None:
+        colors.data.foreach_set("color", scanning.ramp(values / INTENSITY_MAX[scan.dataset]).ravel())
     mesh.update()
-    return estimator.last_rate
+    return rate

@@ -10,7 +10,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..core.errors import InputError
+from ..core.errors import InputError, printable
 from ..core.reconstruction import CameraView, Reconstruction
 
 _BLENDER_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -33,7 +33,7 @@ def add_reconstruction(scene: bpy.types.Scene, recon: Reconstruction, with_camer
     made = [] if made is None else made
     try:
         mesh = _mesh(recon, made)
-        obj = bpy.data.objects.new(recon.name, mesh)
+        obj = bpy.data.objects.new(printable(recon.name), mesh)
         made.append(obj)
         settings = obj.pgt
         settings.source_path = str(recon.source)
@@ -58,21 +58,29 @@ def add_reconstruction(scene: bpy.types.Scene, recon: Reconstruction, with_camer
 
 def box_empty(name: str, box: np.ndarray, made: list) -> bpy.types.Object:
     """A cube empty drawing a (>= 7,) centre box x y z dx dy dz heading (sensor frame)."""
-    cube = bpy.data.objects.new(name, None)
+    cube = bpy.data.objects.new(printable(name), None)
     made.append(cube)
     cube.empty_display_type = "CUBE"
     cube.location, cube.rotation_euler, cube.scale = box[:3], (0.0, 0.0, box[6]), np.asarray(box[3:6]) / 2
     return cube
 
 
-def remove_collection(name: str) -> None:
-    """Remove the collection ``name`` (when there is one), its objects and their meshes."""
-    collection = bpy.data.collections.get(name)
-    if collection is None:
-        return
-    old = list(collection.objects)
-    remove_datablocks(old + [obj.data for obj in old if obj.type == "MESH" and obj.data.users == 1])
-    bpy.data.collections.remove(collection)
+def replace_collection(scene: bpy.types.Scene, role: str, objects: list) -> bpy.types.Collection:
+    """A new collection named ``role`` in ``scene`` holding ``objects``, in place of the
+    one made for ``role`` before (removed with its objects and their own meshes). A
+    collection of that name the add-on did not make is the user's and stays: the new one
+    then takes Blender's next free name."""
+    old = next((collection for collection in bpy.data.collections if collection.get(ROLE_TAG) == role), None)
+    if old is not None:
+        shown = list(old.objects)
+        remove_datablocks(shown + [obj.data for obj in shown if obj.type == "MESH" and obj.data.users == 1])
+        bpy.data.collections.remove(old)
+    collection = bpy.data.collections.new(role)
+    collection[ROLE_TAG] = role
+    scene.collection.children.link(collection)
+    for obj in objects:
+        collection.objects.link(obj)
+    return collection
 
 
 def remove_datablocks(datablocks) -> None:
@@ -84,6 +92,7 @@ def remove_datablocks(datablocks) -> None:
         collection.remove(block)
 
 
+ROLE_TAG = "pgt_role"  # on a collection the add-on made: what it shows (replace_collection)
 POINTS_GROUP = "PGT Points"
 
 
@@ -109,7 +118,7 @@ def show_as_points(obj: bpy.types.Object, radius: float, made: list) -> None:
 
 
 def _mesh(recon: Reconstruction, made: list) -> bpy.types.Mesh:
-    mesh = bpy.data.meshes.new(recon.name)
+    mesh = bpy.data.meshes.new(printable(recon.name))
     made.append(mesh)
     mesh.vertices.add(len(recon.positions))
     mesh.attributes["position"].data.foreach_set("vector", recon.positions.ravel())
@@ -165,12 +174,12 @@ def camera_intrinsics(view: CameraView) -> dict:
 
 
 def _camera(view: CameraView, extent: float, made: list) -> bpy.types.Object:
-    data = bpy.data.cameras.new(view.name)
+    data = bpy.data.cameras.new(printable(view.name))
     made.append(data)
     for key, value in camera_intrinsics(view).items():
         setattr(data, key, value)
     data.display_size = max(extent * 0.05, 1e-3)
-    camera = bpy.data.objects.new(view.name, data)
+    camera = bpy.data.objects.new(data.name, data)
     made.append(camera)
     camera.matrix_world = Matrix((view.world_from_camera @ _BLENDER_FROM_OPENCV).tolist())
     # What Blender cannot represent stays readable on the object.

@@ -14,7 +14,7 @@ from ..core.authoring import prepare
 from ..core.bank.config import config_toml
 from ..core.capture import CaptureOptions
 from ..core.classes import MINORITY_CLASSES
-from ..core.errors import InputError
+from ..core.errors import InputError, printable
 from ..core.files import atomic_output
 from ..core.importing import SUPPORTED, find_reconstructions, load_reconstruction
 from . import authoring, bank, intensity, objects, placement, properties, scanning
@@ -250,7 +250,7 @@ class IMPORT_SCENE_OT_pgt_folder(_ChoosesFolder, bpy.types.Operator):
         for obj in made:
             obj.select_set(True)
         context.view_layer.objects.active = made[0]
-        self.report({"INFO"}, f"Imported {len(made)} reconstructions from {folder}")
+        self.report({"INFO"}, printable(f"Imported {len(made)} reconstructions from {folder}"))
         return {"FINISHED"}
 
 
@@ -268,12 +268,12 @@ class IMPORT_SCENE_OT_pgt_placed_scene(_ChoosesFolder, bpy.types.Operator):
         if _nothing_chosen(self, self.directory, "placement folder"):
             return {"CANCELLED"}
         try:
-            shown = placement.load_placement(context.scene, bpy.path.abspath(self.directory))
+            collection, shown = placement.load_placement(context.scene, bpy.path.abspath(self.directory))
         except REPORTED as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         inserted = sum(1 for obj in shown if obj.type == "MESH") - 1
-        self.report({"INFO"}, f"Loaded {inserted} placed objects and the scene into '{placement.COLLECTION}'")
+        self.report({"INFO"}, f"Loaded {inserted} placed objects and the scene into '{collection.name}'")
         return {"FINISHED"}
 
 
@@ -302,12 +302,13 @@ class OBJECT_OT_pgt_add_sample(bpy.types.Operator):
 
 def align(context, obj, settings) -> prepare.Step:
     """The Align Axes step of ``obj`` with the scene's authoring ``settings``."""
-    if not len(obj.data.vertices):
-        raise InputError(obj.pgt.source_path or obj.name, "has no points to align")
     source = obj.pgt.source_path or obj.name
     points = authoring.positions(obj)
     if settings.up == "cursor":
         up = np.array(authoring.object_from_world(obj) @ context.scene.cursor.location) - np.median(points, axis=0)
+        if not np.linalg.norm(up):
+            raise InputError(obj.name, "the 3D cursor is at the points' median: put it above the object "
+                                       "(up points from the median to the cursor)")
     elif settings.up == "face":
         up = authoring.selected_face_normal(obj)
         if up is None:
@@ -348,6 +349,10 @@ class _AuthoringStep:
         if not authoring.is_reconstruction(obj):
             cls.poll_message_set("Select an imported reconstruction")
             return False
+        problem = authoring.record_problem(obj)
+        if problem:
+            cls.poll_message_set(f"{obj.name}: {problem}")
+            return False
         if cls.needs_alignment and not authoring.status(obj)["aligned"]:
             cls.poll_message_set("Align the axes first")
             return False
@@ -357,7 +362,7 @@ class _AuthoringStep:
         obj = context.active_object
         with authoring.object_mode(obj):
             try:
-                authoring.require_own_mesh(obj)
+                authoring.require_authorable(obj)
                 step = self.step(context, obj, context.scene.pgt_authoring)
             except REPORTED as error:
                 self.report({"ERROR"}, str(error))
@@ -460,18 +465,20 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
         except REPORTED as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
-        for warning in caught:
-            self.report({"WARNING"}, str(warning.message))
+        for warning in caught:  # the core's own (dropped faces); numpy's RuntimeWarnings are not the user's
+            if warning.category is UserWarning:
+                self.report({"WARNING"}, str(warning.message))
         if not result.hits:  # legal but empty: say why, and leave the scene as it was
             self.report({"WARNING"}, f"{obj.name}: no returns at this pose, out of the {sensor.name} sensor's "
                                      f"range or view; no scan preview made")
             return {"CANCELLED"}
-        preview = scanning.show_scan(context.scene, obj, result, sensor, sensor_from_object, settings)
+        learned = self.learned_intensity(context, obj, result, settings)
+        scanning.show_scan(context.scene, obj, result, sensor, sensor_from_object, settings)
         settings.stats = scanning.stats_text(result)
-        self.report({"INFO"}, f"{obj.name}: {settings.stats}{self.learned_intensity(context, obj, preview, settings)}")
+        self.report({"INFO"}, f"{obj.name}: {settings.stats}{learned}")
         return {"FINISHED"}
 
-    def learned_intensity(self, context, source, preview, settings) -> str:
+    def learned_intensity(self, context, source, result, settings) -> str:
         """With a checkpoint in the preferences the scan takes the learned intensities, as
         the bank and scan_object.py do; a checkpoint that cannot serve this scan (no torch,
         another dataset, no such class) is reported and the physical law kept."""
@@ -480,7 +487,7 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
         if not checkpoint:
             return ""
         try:
-            rate = intensity.apply_estimator(preview, checkpoint, source.pgt.class_name, settings)
+            result.returns["intensity"], rate = intensity.learned_intensity(result, source, checkpoint, settings)
         except REPORTED as error:
             self.report({"WARNING"}, f"{error} (the scan keeps its physical intensities)")
             return ""
@@ -509,13 +516,13 @@ class OBJECT_OT_pgt_apply_intensity(bpy.types.Operator):
                                    "(the scan keeps its physical intensities)")
             return {"CANCELLED"}
         preview = context.active_object
-        source = intensity.source_of(preview)
         try:
-            rate = intensity.apply_estimator(preview, checkpoint, source.pgt.class_name, context.scene.pgt_scan)
-        except REPORTED as error:  # no torch, bad checkpoint, other dataset or class
+            rate = intensity.apply_estimator(preview, checkpoint, context.scene.pgt_scan)
+        except REPORTED as error:  # no torch, bad checkpoint, other dataset or class, a changed source
             self.report({"ERROR"}, f"{error} (the scan keeps its physical intensities)")
             return {"CANCELLED"}
-        self.report({"INFO"}, f"{len(preview.data.vertices)} intensities from {checkpoint} ({rate:,.0f} points/s)")
+        self.report({"INFO"}, printable(f"{len(preview.data.vertices)} intensities from {checkpoint} "
+                                        f"({rate:,.0f} points/s)"))
         return {"FINISHED"}
 
 
@@ -611,7 +618,7 @@ class OBJECT_OT_pgt_author_selected(_BackgroundSteps, bpy.types.Operator):
         if problem:  # checked once, before any object changes
             raise InputError("Author Selected", problem)
         for obj in chosen:
-            authoring.require_own_mesh(obj)
+            authoring.require_authorable(obj)
         self.objects, self.applied = len(chosen), 0
         yield 0.0
         for index, obj in enumerate(chosen):  # each step applies whole: an error stops between steps
@@ -661,7 +668,7 @@ class SCENE_OT_pgt_export_bank(_BackgroundSteps, bpy.types.Operator):
         settings = context.scene.pgt_bank
         self.bank_run = run = bank.BankRun(context.scene, settings, _checkpoint(context))
         settings.running, settings.stop_requested, settings.progress = True, False, 0.0
-        settings.status = f"exporting {run.total:,} entries to {run.out}"
+        settings.status = printable(f"exporting {run.total:,} entries to {run.out}")
         try:
             yield 0.0
             while run.step():
@@ -678,7 +685,7 @@ class SCENE_OT_pgt_export_bank(_BackgroundSteps, bpy.types.Operator):
     def finished(self, context):
         settings, run = context.scene.pgt_bank, self.bank_run
         settings.progress = 1.0
-        settings.status = f"{run.done:,} entries written to {run.out}; report: {self.report_path}"
+        settings.status = printable(f"{run.done:,} entries written to {run.out}; report: {self.report_path}")
         self.report({"INFO"}, settings.status)
         return {"FINISHED"}
 
@@ -715,15 +722,25 @@ class SCENE_OT_pgt_save_bank_config(bpy.types.Operator, ExportHelper):
     filter_glob: StringProperty(default="*.toml", options={"HIDDEN"})
 
     def execute(self, context):
+        if _nothing_chosen(self, self.filepath, "file"):
+            return {"CANCELLED"}
         try:
             config = bank.bank_config(context.scene.pgt_bank, _checkpoint(context))
             with atomic_output(Path(bpy.path.abspath(self.filepath))) as stream:
                 stream.write(config_toml(config).encode())
-        except REPORTED as error:
-            self.report({"ERROR"}, f"{self.filepath}: {getattr(error, 'strerror', None) or error}")
+        except InputError as error:  # names the config file or field at fault
+            self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
-        self.report({"INFO"}, f"Wrote {self.filepath}")
+        except OSError as error:
+            self.report({"ERROR"}, printable(f"{self.filepath}: {error.strerror or error}"))
+            return {"CANCELLED"}
+        self.report({"INFO"}, printable(f"Wrote {self.filepath}"))
         return {"FINISHED"}
+
+
+def _same_file(blender_path: str, path: Path) -> bool:
+    """Whether ``blender_path`` (maybe "//"-relative to the .blend) is the file ``path``."""
+    return Path(bpy.path.abspath(blender_path)).resolve() == path.resolve()
 
 
 class SCENE_OT_pgt_open_bank_report(bpy.types.Operator):
@@ -737,7 +754,7 @@ class SCENE_OT_pgt_open_bank_report(bpy.types.Operator):
         out = Path(bpy.path.abspath(settings.output))
         path = out / "report.md"
         if not path.is_file():
-            self.report({"ERROR"}, f"{path}: no report yet: export the bank first")
+            self.report({"ERROR"}, printable(f"{path}: no report yet: export the bank first"))
             return {"CANCELLED"}
         real = bank.real_database(settings)
         if real is not None:  # set after the export, or changed since: the report follows it
@@ -746,14 +763,13 @@ class SCENE_OT_pgt_open_bank_report(bpy.types.Operator):
             except REPORTED as error:
                 self.report({"ERROR"}, str(error))
                 return {"CANCELLED"}
-        old = bpy.data.texts.get(path.name)
-        if old is not None:
-            bpy.data.texts.remove(old)
+        for old in [text for text in bpy.data.texts if text.filepath and _same_file(text.filepath, path)]:
+            bpy.data.texts.remove(old)  # this report, loaded before; a text of the same name is the user's
         text = bpy.data.texts.load(str(path))
         for area in context.screen.areas if context.screen else ():
             if area.type == "TEXT_EDITOR":
                 area.spaces.active.text = text
-        self.report({"INFO"}, f"Opened {path} as the text '{text.name}'")
+        self.report({"INFO"}, printable(f"Opened {path} as the text '{text.name}'"))
         return {"FINISHED"}
 
 
@@ -770,11 +786,12 @@ class SCENE_OT_pgt_preview_bank(bpy.types.Operator):
             self.report({"ERROR"}, "Preview Bank: no output folder chosen")
             return {"CANCELLED"}
         try:
-            shown = bank.preview_bank(context.scene, bpy.path.abspath(settings.output), settings.preview_count)
+            collection, shown = bank.preview_bank(context.scene, bpy.path.abspath(settings.output),
+                                                  settings.preview_count)
         except REPORTED as error:
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
-        settings.status = f"previewing {len(shown)} entries in the '{bank.PREVIEW_COLLECTION}' collection"
+        settings.status = f"previewing {len(shown)} entries in the '{collection.name}' collection"
         self.report({"INFO"}, settings.status)
         return {"FINISHED"}
 

@@ -9,22 +9,22 @@ import numpy as np
 
 from ..core.placement.folder import read_placement
 from ..core.scan.sensors import INTENSITY_MAX
-from .objects import box_empty, remove_collection, remove_datablocks
+from .objects import box_empty, remove_datablocks, replace_collection
 from .scanning import points_object, ramp
 
 COLLECTION = "PGT Placed Scene"
 
 
-def load_placement(scene: bpy.types.Scene, folder) -> list:
+def load_placement(scene: bpy.types.Scene, folder) -> tuple:
     """Build the objects of the placement in ``folder`` (InputError when it is not one;
-    nothing is left behind then); returns them: the scene's points first, then each
-    inserted object's points with its box, then the scene's boxes."""
+    nothing is left behind then) into the collection that replaces the earlier placement
+    (objects.replace_collection). Returns the collection and the objects: the scene's
+    points first, then each inserted object's points with its box, then the scene's boxes."""
     points, record = read_placement(folder)
     columns = record["columns"]
     intensity_max = INTENSITY_MAX.get(record.get("dataset"), 1.0)
     made = []
     try:
-        collection = bpy.data.collections.new(f"{COLLECTION} (loading)")  # the earlier one stays until done
         inserted = [box for box in record["boxes"] if box.get("rows")]
         first_scene_row = max([box["rows"][1] for box in inserted], default=0)
         shown = [_points(f"{Path(record['scan']).stem} scene", points[first_scene_row:], columns, intensity_max, made)]
@@ -37,15 +37,8 @@ def load_placement(scene: bpy.types.Scene, folder) -> list:
                   for box in record["boxes"] if not box.get("rows")]
     except BaseException:
         remove_datablocks(made)
-        if "collection" in locals():
-            bpy.data.collections.remove(collection)
         raise
-    remove_collection(COLLECTION)
-    collection.name = COLLECTION
-    scene.collection.children.link(collection)
-    for obj in shown:
-        collection.objects.link(obj)
-    return shown
+    return replace_collection(scene, COLLECTION, shown), shown
 
 
 def _points(name: str, rows: np.ndarray, columns: list, intensity_max: float, made: list) -> bpy.types.Object:

@@ -34,11 +34,13 @@ PATH_OPTIONS = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (4, 5, 0) 
 
 def _class_search(settings, context, text):
     """The chosen dataset's classes for the Class field's search list."""
-    return [name for name in CLASS_SIZES[settings.dataset] if text.lower() in name]
+    return [name for name in CLASS_SIZES.get(settings.dataset, ()) if text.lower() in name]
 
 
 def class_problem(settings) -> str:
     """Why ``settings.class_name`` cannot be used with ``settings.dataset``, or ""."""
+    if settings.dataset not in CLASS_SIZES:  # "": a stored index this version has no item for
+        return "no dataset chosen: choose one in the Size panel"
     label = _DATASET_LABELS[settings.dataset]
     if not settings.class_name:
         return f"no class chosen: choose a {label} class"

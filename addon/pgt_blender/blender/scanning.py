@@ -20,7 +20,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ..core.errors import InputError
+from ..core.errors import InputError, printable
 from ..core.scan.raycast import ScanOptions, cast_rays, placement
 from ..core.scan.returns import Scan
 from ..core.scan.sensors import PRESETS, Sensor, load_sensor_toml
@@ -32,6 +32,7 @@ from .objects import add_attribute, show_as_points, remove_datablocks
 CUSTOM = "CUSTOM"
 SCAN_COLLECTION = "PGT Scan"
 SOURCE_TAG = "pgt_scan_of"  # on every result object: the name of the object scanned
+RESULT_TAG = "pgt_result_name"  # on every result object: its name when made (a copy or a renamed one differs)
 DATASET_TAG = "pgt_dataset"  # on the points object: whose intensity scale its returns use
 POINT_RADIUS = 0.03  # m: a visible dot per return at street distances
 GROUND_MARGIN = 10.0  # m beyond the object's distance on each side
@@ -45,8 +46,10 @@ _cache: dict = {}  # object name -> (fingerprint, ScanTarget)
 def sensor_of(settings) -> Sensor:
     """The preset chosen in ``settings`` (``Scene.pgt_scan``), or the custom sensor read
     from its ``sensor_file`` (InputError when that is not a usable sensor TOML)."""
-    if settings.sensor != CUSTOM:
+    if settings.sensor in PRESETS:
         return PRESETS[settings.sensor]
+    if settings.sensor != CUSTOM:  # "": a stored index this version has no item for
+        raise InputError("Scan", "no sensor chosen: choose one in the Scan panel")
     if not settings.sensor_file:
         raise InputError("Custom sensor", "no .toml file chosen")
     return load_sensor_toml(bpy.path.abspath(settings.sensor_file))
@@ -57,6 +60,9 @@ def scan(obj: bpy.types.Object, settings) -> tuple[Scan, Sensor, np.ndarray]:
     ``settings.azimuth`` (rad, from +x counter-clockwise), turned to ``settings.heading``
     (rad). Returns the scan (sensor frame), the sensor and the (4, 4) float64
     sensor_from_object. Bad input raises InputError before any Blender data is made."""
+    not_finite = [name for name in ("distance", "azimuth", "heading") if not math.isfinite(getattr(settings, name))]
+    if not_finite:  # min/max do not hold NaN off a property that a script or driver set
+        raise InputError("Scan", f"{not_finite[0]} must be a finite number, got {getattr(settings, not_finite[0])}")
     sensor, options = sensor_of(settings), ScanOptions()
     target = scan_target(obj, settings.surfel_scale, options.engine)
     x, y = settings.distance * math.cos(settings.azimuth), settings.distance * math.sin(settings.azimuth)
@@ -279,13 +285,13 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
     """Replace ``source``'s previous results in the "PGT Scan" collection by the returns
     ("<name> Scan", a point per return with every column as an attribute), the sensor
     origin ("PGT Sensor") and the ground ("PGT Ground"), all placed where ``source``
-    stands. Returns the points object."""
-    remove_results(source.name)
+    stands. The previous results go only once the new ones are built. Returns the points
+    object."""
     world = source.matrix_world @ Matrix(np.linalg.inv(sensor_from_object).tolist())
     made = []
     try:
         points = points_object(f"{source.name} Scan", result.returns,
-                                return_colors(result.returns, sensor, settings.color_by), made)
+                               return_colors(result.returns, sensor, settings.color_by), made)
         origin = bpy.data.objects.new("PGT Sensor", None)
         made.append(origin)
         origin.empty_display_type = "PLAIN_AXES"
@@ -294,17 +300,20 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
     except BaseException:
         remove_datablocks(made)
         raise
+    remove_results(source.name)
     points[DATASET_TAG] = sensor.dataset
-    for obj in (points, origin, ground):
-        obj[SOURCE_TAG] = source.name
+    for obj, name in ((points, f"{source.name} Scan"), (origin, "PGT Sensor"), (ground, "PGT Ground")):
+        obj.name = name  # the earlier result's name, free now
+        obj[SOURCE_TAG], obj[RESULT_TAG] = source.name, obj.name
         obj.matrix_world = world
         collection.objects.link(obj)
     return points
 
 
 def remove_results(source_name: str) -> None:
-    """Remove the result objects of ``source_name``'s last scan and their own meshes."""
-    old = [obj for obj in bpy.data.objects if obj.get(SOURCE_TAG) == source_name]
+    """Remove the result objects of ``source_name``'s last scan and their own meshes; a
+    copy of one (Shift+D) or one renamed is the user's and stays."""
+    old = [obj for obj in bpy.data.objects if obj.get(SOURCE_TAG) == source_name and obj.get(RESULT_TAG) == obj.name]
     meshes = [obj.data for obj in old if obj.type == "MESH" and obj.data.users == 1]
     remove_datablocks(old + meshes)
 
@@ -320,11 +329,13 @@ def points_object(name: str, returns: np.ndarray, rgba: np.ndarray, made: list) 
     """A vertex-only mesh object: positions = the returns' x, y, z (sensor frame, stored
     float32), every other column a point attribute (float32 or int32), and the (N, 4)
     linear ``rgba`` as the active color attribute "color"."""
+    name = printable(name)
     mesh = bpy.data.meshes.new(name)
     made.append(mesh)
     mesh.vertices.add(len(returns))
-    xyz = np.column_stack([returns["x"], returns["y"], returns["z"]]).astype(np.float32)
-    mesh.attributes["position"].data.foreach_set("vector", xyz.ravel())
+    if len(returns):  # a mesh without vertices has no "position" attribute
+        xyz = np.column_stack([returns["x"], returns["y"], returns["z"]]).astype(np.float32)
+        mesh.attributes["position"].data.foreach_set("vector", xyz.ravel())
     for column in returns.dtype.names:
         if column not in ("x", "y", "z"):
             values = returns[column]

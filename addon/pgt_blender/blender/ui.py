@@ -54,12 +54,24 @@ def reconstruction(context):
 
 
 def status_text(obj) -> str:
-    """One line: what is done and what is left for ``obj``."""
+    """One line: what is done and what is left for ``obj``, or what is wrong with its
+    step record."""
+    problem = authoring.record_problem(obj)
+    if problem:
+        return problem
     done = authoring.status(obj)
     parts = ["aligned" if done["aligned"] else "not aligned",
              f"heading: {done['heading']}" if done["heading"] else "heading unset",
              f"size: {done['size']}" if done["size"] else "size unset"]
     return " | ".join(parts)
+
+
+def status_icon(obj, not_done: str) -> str:
+    """CHECKMARK when every step of ``obj`` is done, ERROR for a damaged step record,
+    else ``not_done``."""
+    if authoring.record_problem(obj):
+        return "ERROR"
+    return "CHECKMARK" if all(authoring.status(obj).values()) else not_done
 
 
 def refinement_text(obj) -> str:
@@ -83,11 +95,11 @@ class VIEW3D_PT_pgt_align(_AuthoringPanel, bpy.types.Panel):
     def draw(self, context):
         obj = reconstruction(context)
         layout = self.layout
-        layout.label(text=status_text(obj), icon="CHECKMARK" if all(authoring.status(obj).values()) else "INFO")
+        layout.label(text=status_text(obj), icon=status_icon(obj, "INFO"))
         layout.prop(context.scene.pgt_authoring, "up")
         layout.prop(context.scene.pgt_authoring, "refine")
         layout.operator("object.pgt_align", icon="ORIENTATION_GIMBAL")
-        if authoring.status(obj)["aligned"]:
+        if not authoring.record_problem(obj) and authoring.status(obj)["aligned"]:
             layout.label(text="Box " + " x ".join(f"{d:.3g}" for d in obj.pgt.dims))
             layout.label(text=refinement_text(obj))
 
@@ -174,7 +186,7 @@ class VIEW3D_PT_pgt_objects(_PGTPanel, bpy.types.Panel):
         for obj in context.scene.objects:
             if authoring.is_reconstruction(obj):
                 row = column.row()
-                row.label(text=obj.name, icon="CHECKMARK" if all(authoring.status(obj).values()) else "DOT")
+                row.label(text=obj.name, icon=status_icon(obj, "DOT"))
                 row.label(text=status_text(obj))
 
 

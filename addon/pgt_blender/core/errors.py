@@ -15,6 +15,13 @@ def finite_number(value) -> bool:
         return False
 
 
+def printable(text: str) -> str:
+    """``text`` with any lone surrogate (how Python holds the undecodable bytes of a file
+    name, or a JSON "\\udcff") written as its escape: UTF-8 can encode it, as Blender's
+    reports, names and strings need."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
 class InputError(ValueError):
     """Bad input: ``str(error)`` is one line, ``"<path>: <problem>"``.
 
@@ -25,4 +32,4 @@ class InputError(ValueError):
     def __init__(self, path, problem: str):
         self.path = Path(path)
         self.problem = " ".join(str(problem).split())  # keep it on one line
-        super().__init__(f"{self.path}: {self.problem}")
+        super().__init__(printable(f"{self.path}: {self.problem}"))

@@ -223,7 +223,7 @@ def align_axes(positions, weights=None, up=None, source="points", refine: bool =
     if up is not None:
         z = np.asarray(up, np.float64)
         if z.shape != (3,) or not np.isfinite(z).all() or np.linalg.norm(z) == 0:
-            raise InputError(source, f"up must be a non-zero 3-vector, got {up!r}")
+            raise InputError(source, f"up must be a non-zero 3-vector, got {z.tolist()}")
         z, up_from = z / np.linalg.norm(z), "prior"
     else:
         z, up_from = _minor_axis(kept, kept_weights)

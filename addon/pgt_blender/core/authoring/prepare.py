@@ -20,6 +20,7 @@ from .alignment import align_axes, camera_up
 
 UP_CHOICES = ("auto", "cameras", "pca", "+x", "-x", "+y", "-y", "+z", "-z")
 HEADING_METHODS = ("none", "baseline", "classifier")
+STEP_NAMES = ("align", "heading", "size")
 SIZE_MODES = ("class", "exact", "keep")
 FRAME = ("object frame: +x forward (heading), +y left, +z up, metres, origin at the centre "
          "of the axis-aligned box")
@@ -237,10 +238,47 @@ def read_sidecar(path) -> dict:
     if dims is not None and not (isinstance(dims, list) and len(dims) == 3 and all(
             finite_number(v) and v > 0 for v in dims)):
         raise InputError(path, f"dims must be three positive lengths [l, w, h] in metres, got {dims!r}")
-    steps = record.get("steps", [])
-    if not (isinstance(steps, list) and all(isinstance(step, dict) for step in steps)):
-        raise InputError(path, "steps must be a list of objects")
+    checked_steps(record.get("steps", []), path)
     return record
+
+
+def checked_steps(steps, source, field: str = "steps") -> list:
+    """``steps``, a step record (the sidecar's ``steps``, a Blender object's
+    ``pgt.steps_json``), when each entry is an object naming its ``step`` (align,
+    heading, size) with a (4, 4) finite ``transform``, three finite ``dims`` >= 0 and
+    what the step's readers take: align ``refined`` (then ``tilt_deg`` and ``noise``),
+    heading ``by``, size ``mode``. InputError naming ``source``,
+    ``field`` and the first bad entry otherwise."""
+    if not isinstance(steps, list):
+        raise InputError(source, f"{field} must be a list of steps, got {type(steps).__name__}")
+    for index, step in enumerate(steps):
+        problem = _step_problem(step)
+        if problem:
+            raise InputError(source, f"{field}[{index}]: {problem}")
+    return steps
+
+
+def _step_problem(step) -> str:
+    """What is wrong with one entry of a step record, or ""."""
+    if not isinstance(step, dict):
+        return f"expected an object, got {type(step).__name__}"
+    if step.get("step") not in STEP_NAMES:
+        return f"step must be one of {', '.join(STEP_NAMES)}, got {step.get('step')!r}"
+    transform = step.get("transform")
+    if not (isinstance(transform, list) and len(transform) == 4 and all(
+            isinstance(row, list) and len(row) == 4 and all(map(finite_number, row)) for row in transform)):
+        return "transform must be a 4 x 4 list of finite numbers"
+    dims = step.get("dims")
+    if not (isinstance(dims, list) and len(dims) == 3 and all(finite_number(v) and v >= 0 for v in dims)):
+        return f"dims must be three finite lengths >= 0, got {dims!r}"
+    named_by = {"heading": "by", "size": "mode"}.get(step["step"])
+    if named_by and not isinstance(step.get(named_by), str):
+        return f"{named_by} must be a string, got {step.get(named_by)!r}"
+    if step["step"] == "align" and not isinstance(step.get("refined", False), bool):
+        return f"refined must be true or false, got {step['refined']!r}"
+    if step.get("refined") and not all(finite_number(step.get(key)) for key in ("tilt_deg", "noise")):
+        return "a refined alignment needs finite tilt_deg and noise"
+    return ""
 
 
 def _point_columns(authored: AuthoredObject) -> dict:

@@ -233,6 +233,23 @@ def config_from_table(table: dict, path="bank config") -> BankConfig:
     return config
 
 
+def config_from_dict(values, path="bank config") -> BankConfig:
+    """The BankConfig of its ``to_dict`` record (a manifest's ``config``), checked as a
+    file's is; InputError naming ``path`` otherwise."""
+    if not isinstance(values, dict):
+        raise InputError(path, f"config must be an object, got {type(values).__name__}")
+    section_of = {attribute: name for name, (attribute, _, _) in _KEYS.items()}
+    unknown = sorted(set(values) - set(section_of) - {"classes"})
+    if unknown:
+        raise InputError(path, f"config has unknown key {unknown[0]!r}")
+    tables = {"classes": values["classes"]} if "classes" in values else {}
+    for attribute, value in values.items():
+        if attribute != "classes":
+            section, key = section_of[attribute].split(".")
+            tables.setdefault(section, {})[key] = value
+    return config_from_table(tables, path)
+
+
 def config_table(config: BankConfig) -> dict:
     """``config`` as the tables of its TOML file, every key set (config_from_table reads
     them back to the same BankConfig, and checks them as it does a file's)."""

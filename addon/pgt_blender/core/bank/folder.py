@@ -110,7 +110,11 @@ def read_identity(out: Path) -> dict:
 
 def read_manifest(out: Path) -> dict:
     """OUT/manifest.json of a finished bank; InputError naming the folder when there is
-    none (not a bank, or an export not assembled yet) or naming the file when damaged."""
+    none (not a bank, or an export not assembled yet) or naming the file when damaged:
+    not JSON, a key missing, a config that fails a config file's checks, or not one info
+    pickle per format."""
+    from .config import config_from_dict
+
     path = Path(out) / MANIFEST
     if not path.is_file():
         raise InputError(out, f"is not a finished bank: no {MANIFEST} (an export still running or stopped is "
@@ -121,6 +125,13 @@ def read_manifest(out: Path) -> dict:
         raise InputError(path, f"damaged ({type(error).__name__}: {error})") from None
     if not (isinstance(manifest, dict) and {"config", "info_pickles", "entries"} <= manifest.keys()):
         raise InputError(path, "not a bank manifest (config, info_pickles, entries)")
+    formats = config_from_dict(manifest["config"], path).formats
+    pickles = manifest["info_pickles"]
+    if not (isinstance(pickles, dict) and set(pickles) == set(formats)
+            and all(isinstance(name, str) and name for name in pickles.values())):
+        raise InputError(path, f"info_pickles must name one pickle file per format ({', '.join(formats)})")
+    if not isinstance(manifest.get("data_root") or "", str):
+        raise InputError(path, "data_root must be a folder path or null")
     return manifest
 
 

@@ -69,7 +69,8 @@ def load_reconstruction(path, kind: str = "auto", with_cameras: bool = True, cam
     path = Path(path)
     detected = detect_kind(path)
     if kind not in ("auto", detected):
-        raise InputError(path, f"expected a {kind.replace('_', ' ')} input but this is a {detected.replace('_', ' ')}")
+        found = "a folder" if detected == "colmap" else f"a {detected.replace('_', ' ')}"  # colmap: any folder
+        raise InputError(path, f"expected a {kind.replace('_', ' ')} input but this is {found}")
     needs_cameras = with_cameras or (capture is not None and capture.needs_cameras)
     recon = _read(path, detected, needs_cameras and cameras is None)
     if cameras is not None:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, finite_number
 from ..files import atomic_output, read_float32_rows
 from ..scan.sensors import BIN_COLUMNS
 
@@ -73,23 +73,67 @@ def write_placement(out, placement, scene, seed: int, birdseye_png: bytes | None
 
 def read_placement(folder) -> tuple:
     """(points (N, C) float32, record) of a placement folder; InputError naming the file
-    at fault (missing, damaged, rows beyond the scan)."""
+    at fault: missing or damaged, or a field its readers index that is not what
+    ``boxes_record`` writes (record_problem)."""
     folder = Path(folder)
     path = folder / BOXES
     try:
         record = json.loads(path.read_text())
-        columns = len(record["columns"])
-        boxes = record["boxes"]
     except OSError as error:
         raise InputError(path, f"cannot read the file ({error.strerror or error}): not a placement folder") from None
-    except (ValueError, KeyError, TypeError) as error:
+    except (ValueError, RecursionError) as error:  # bad JSON or UTF-8, too deep
         raise InputError(path, f"not a placement record ({type(error).__name__}: {error})") from None
-    points = read_float32_rows(folder / SCAN, columns, "point columns")
-    for index, box in enumerate(boxes):
-        values = box.get("box") if isinstance(box, dict) else None
-        if not (isinstance(values, list) and len(values) >= 7 and all(isinstance(v, (int, float)) for v in values)):
-            raise InputError(path, f"box {index} has no 7 or more numbers")
+    problem = record_problem(record)
+    if problem:
+        raise InputError(path, f"not a placement record: {problem}")
+    points = read_float32_rows(folder / SCAN, len(record["columns"]), "point columns")
+    for index, box in enumerate(record["boxes"]):
         rows = box.get("rows")
-        if rows is not None and not (isinstance(rows, list) and len(rows) == 2 and 0 <= rows[0] <= rows[1] <= len(points)):
+        if rows is not None and not rows[0] <= rows[1] <= len(points):
             raise InputError(path, f"box {index}: rows {rows!r} are not within the scan's {len(points)} points")
     return points, record
+
+
+def record_problem(record) -> str:
+    """What in a boxes.json record is not as ``boxes_record`` writes it, or "": an
+    object with ``scan`` and ``dataset`` strings, ``columns`` distinct names with x, y
+    and z, and ``boxes`` objects each with a ``class``, a ``box`` of 7 or more finite
+    numbers with positive dims, and for an inserted one ``rows`` [start, stop] integers
+    >= 0 and an ``entry`` or ``object`` name."""
+    if not isinstance(record, dict):
+        return f"expected a JSON object, got {type(record).__name__}"
+    for key in ("scan", "dataset"):
+        if not isinstance(record.get(key), str):
+            return f"{key} must be a string, got {record.get(key)!r}"
+    columns = record.get("columns")
+    if not (isinstance(columns, list) and all(isinstance(c, str) and c for c in columns)
+            and len(set(columns)) == len(columns) and {"x", "y", "z"} <= set(columns)):
+        return f"columns must be distinct names including x, y and z, got {columns!r}"
+    boxes = record.get("boxes")
+    if not isinstance(boxes, list):
+        return "boxes must be a list"
+    for index, box in enumerate(boxes):
+        problem = _box_problem(box)
+        if problem:
+            return f"box {index}: {problem}"
+    return ""
+
+
+def _box_problem(box) -> str:
+    if not isinstance(box, dict):
+        return f"expected an object, got {type(box).__name__}"
+    if not isinstance(box.get("class"), str):
+        return f"class must be a string, got {box.get('class')!r}"
+    values = box.get("box")
+    if not (isinstance(values, list) and len(values) >= 7 and all(map(finite_number, values))
+            and min(values[3:6]) > 0):
+        return f"box must be 7 or more finite numbers with positive dims, got {values!r}"
+    rows = box.get("rows")
+    if rows is None:
+        return ""
+    if not (isinstance(rows, list) and len(rows) == 2 and all(isinstance(v, int) and not isinstance(v, bool)
+                                                              and v >= 0 for v in rows)):
+        return f"rows must be two integers [start, stop] >= 0, got {rows!r}"
+    if not (isinstance(box.get("object"), str) and box["object"] or isinstance(box.get("entry"), str)):
+        return "an inserted box needs the entry or object it came from"
+    return ""

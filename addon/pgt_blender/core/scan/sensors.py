@@ -407,7 +407,7 @@ def load_sensor_toml(path) -> Sensor:
     if unknown:
         raise InputError(path, f"unknown sensor keys {', '.join(unknown)}; known: {', '.join(sorted(_TOML_KEYS))}")
     base = table.pop("base", None)
-    if base is not None and base not in PRESETS:
+    if base is not None and not (isinstance(base, str) and base in PRESETS):
         raise InputError(path, f"base {base!r} is not a preset ({', '.join(PRESETS)})")
     table.setdefault("name", path.stem)
     calibration = table.pop("calibration", None)

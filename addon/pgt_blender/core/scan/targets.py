@@ -29,6 +29,7 @@ SURFEL_SIDES = 6
 _HEXAGON_FOR_DISK = np.sqrt(2 * np.pi / (3 * np.sqrt(3)))
 SPLAT_SIGMAS = 2.0  # a splat's disk reaches 2 sigma along its two larger axes
 DEFAULT_REFLECTIVITY = 0.5
+MAX_COORDINATE = 1e8  # m, per axis: 100,000 km from the origin is a unit or import mistake, not an object
 SEE_THROUGH_NAMES = re.compile(r"glass|window|windshield|windscreen", re.IGNORECASE)
 SEE_THROUGH_OPACITY = 0.5  # a splat fainter than this is seen through
 
@@ -210,6 +211,15 @@ def relative_reflectivity(values: np.ndarray, weights: np.ndarray) -> np.ndarray
     return np.clip(values * (DEFAULT_REFLECTIVITY / mean), 0, 1).astype(np.float32)
 
 
+def _require_coordinates(points: np.ndarray, name: str, what: str) -> None:
+    """InputError naming ``name`` when a row of ``points`` (N, 3) m is NaN, infinite or
+    farther than MAX_COORDINATE from the origin on an axis."""
+    bad = ~(np.abs(points) <= MAX_COORDINATE).all(axis=1)  # NaN compares False
+    if bad.any():
+        raise InputError(name, f"{int(bad.sum())} {what} are NaN or infinite or lie over {MAX_COORDINATE:.0e} m "
+                               "from the origin (a unit or import mistake)")
+
+
 def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
                 face_reflectivity: np.ndarray | None = None, engine: str = "auto",
                 face_see_through: np.ndarray | None = None) -> ScanTarget:
@@ -225,9 +235,7 @@ def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
         raise InputError(name, "mesh has no faces to scan")
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise InputError(name, f"face indices out of range for {len(vertices)} vertices")
-    bad = ~np.isfinite(vertices).all(axis=1)
-    if bad.any():
-        raise InputError(name, f"{int(bad.sum())} vertices are NaN or infinite")
+    _require_coordinates(vertices, name, "vertices")
     corners = vertices[faces]
     normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     doubled_area = np.linalg.norm(normals, axis=1)
@@ -298,9 +306,7 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
     positions = np.asarray(positions, np.float64).reshape(-1, 3)
     if len(positions) == 0:
         raise InputError(name, "point cloud is empty")
-    bad = ~np.isfinite(positions).all(axis=1)
-    if bad.any():
-        raise InputError(name, f"{int(bad.sum())} points are NaN or infinite")
+    _require_coordinates(positions, name, "points")
     if not radius_scale > 0:
         raise InputError(name, f"surfel radius scale must be positive, got {radius_scale}")
     if scales is not None and rotations is not None:
