@@ -169,8 +169,9 @@ def test_scale_to_anisotropic_and_uniform():
     scale, dims = sizing.scale_to([2.0, 1.0, 0.5], [8.0, 2.0, 2.0], uniform=True)
     np.testing.assert_allclose(np.diag(scale)[:3], np.cbrt(32.0))
     assert np.prod(dims) == pytest.approx(32.0)
-    with pytest.raises(ValueError, match="sizes must be positive"):
-        sizing.scale_to([2.0, 1.0, 0.0], [8.0, 2.0, 2.0])
+    for flat in ([2.0, 1.0, 0.0], [2.0, 1.0, 1e-16]):  # 1e-16: a flat cloud's float noise after Align
+        with pytest.raises(ValueError, match="sizes must be positive .* is flat"):
+            sizing.scale_to(flat, [8.0, 2.0, 2.0])
 
 
 # ---- the chain --------------------------------------------------------------------------

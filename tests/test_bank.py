@@ -373,6 +373,7 @@ def test_manifest_checksums_every_file(bank):
     (lambda m: m.update(config=[]), "config must be an object, got list"),
     (lambda m: m["info_pickles"].pop("mmdet3d"), "info_pickles must name one pickle file per format"),
     (lambda m: m.update(data_root=7), "data_root must be a folder path or null"),
+    (lambda m: m["info_pickles"].update(openpcdet="a\0b.pkl"), "info_pickles must name one pickle file per format"),
 ])
 def test_a_manifest_is_read_with_the_checks_of_a_config_file(bank, tmp_path, change, problem):
     """What reads a finished bank (Preview Bank, place_objects, score_bank) indexes its

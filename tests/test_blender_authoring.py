@@ -292,6 +292,20 @@ def test_up_from_the_cursor_and_from_selected_faces(scene, tilted_truck):
         bpy.ops.object.pgt_align()
 
 
+def test_up_from_faces_whose_normals_cancel_is_named(scene):
+    import trimesh
+    from pgt_blender.core.reconstruction import Reconstruction
+
+    box = trimesh.creation.box((4.0, 2.0, 1.5))
+    obj = objects.add_reconstruction(scene, Reconstruction(box.vertices.astype(np.float32), "mesh", Path("box.ply"),
+                                                           "", faces=box.faces.astype(np.int32)))
+    bpy.context.view_layer.objects.active = obj
+    obj.data.polygons.foreach_set("select", np.ones(len(obj.data.polygons), bool))  # a closed surface: all of it
+    scene.pgt_authoring.up = "face"
+    with pytest.raises(RuntimeError, match=f"{obj.name}: the normals of its 12 selected faces cancel out"):
+        bpy.ops.object.pgt_align()
+
+
 def test_align_from_faces_picked_in_edit_mode(scene, tilted_truck):
     """Pick the roof in Edit Mode and press Align there: the step runs (out of Edit Mode
     and back), the object stays in Edit Mode, and Scan there sees the same mesh."""
@@ -395,16 +409,28 @@ def test_up_from_a_cursor_at_the_median_is_named(scene, truck_file):
         bpy.ops.object.pgt_align()
 
 
-def test_author_selected_checks_every_object_before_changing_any(scene, truck_file):
+@pytest.mark.parametrize("points, problem", [(0, "has no points to author"),
+                                             (5, "its 5 points all lie at one place: nothing to align or size")])
+def test_author_selected_checks_every_object_before_changing_any(scene, truck_file, points, problem):
     good = imported(scene, truck_file)
-    empty = bpy.data.objects.new("ZZZ empty", bpy.data.meshes.new("ZZZ empty"))
-    empty.pgt.source_kind = "point_ply"
-    scene.collection.objects.link(empty)
-    for obj in (good, empty):
+    bad = bpy.data.objects.new("ZZZ bad", bpy.data.meshes.new("ZZZ bad"))
+    bad.data.vertices.add(points)
+    bad.pgt.source_kind = "point_ply"
+    scene.collection.objects.link(bad)
+    for obj in (good, bad):
         obj.select_set(True)
     scene.pgt_authoring.dataset, scene.pgt_authoring.class_name = "nuscenes", "truck"
     before = vertices(good).copy()
-    with pytest.raises(RuntimeError, match="ZZZ empty: has no points to author"):
+    with pytest.raises(RuntimeError, match=f"ZZZ bad: {problem}"):
         bpy.ops.object.pgt_author_selected()
     np.testing.assert_array_equal(vertices(good), before)
     assert good.pgt.steps_json == ""
+
+
+def test_a_point_display_the_user_emptied_does_not_stop_a_step(scene, truck_file):
+    """The Points modifier is display only: cleared (X in its panel), the step still applies
+    whole, once."""
+    obj = imported(scene, truck_file)
+    obj.modifiers[objects.POINTS_GROUP].node_group = None
+    assert bpy.ops.object.pgt_align() == {"FINISHED"}
+    assert [step["step"] for step in authoring.steps(obj)] == ["align"]

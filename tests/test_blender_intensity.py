@@ -145,8 +145,22 @@ def _delete_faces(obj, preview):
     edited.free()
 
 
+def _delete_faces_of_an_unstamped_scan(obj, preview):
+    del preview[scanning.GEOMETRY_TAG]  # a preview saved before previews carried the stamp
+    _delete_faces(obj, preview)
+
+
+def _give_the_name_to_another_mesh(obj, preview):
+    obj.name = "Old box"
+    mesh_object(bpy.context.scene, "Box", *box_geometry()).scale = (0.1, 0.1, 0.1)
+    bpy.context.scene.objects["Box"].data.vertices[0].co.x += 0.5
+
+
 @pytest.mark.parametrize("edit, problem", [
-    (_delete_faces, r"Box: has 6 faces but the scan hit number \d+: it changed since the scan; scan it again"),
+    (_delete_faces, r"Box: changed since the scan \(its vertices or faces differ, or another object took its name\)"),
+    (_give_the_name_to_another_mesh, "Box: changed since the scan"),
+    (_delete_faces_of_an_unstamped_scan,
+     r"Box: has 6 faces but the scan hit number \d+: it changed since the scan; scan it again"),
     (lambda obj, preview: preview.data.attributes.remove(preview.data.attributes["face"]),
      "Box Scan: has no per-point int attribute 'face': scan Box again"),
     (lambda obj, preview: preview.data.color_attributes.remove(preview.data.color_attributes["color"]),
@@ -184,4 +198,30 @@ def test_a_preview_whose_object_name_went_to_a_camera_is_not_a_preview(scene, pr
     preferences.intensity_checkpoint = str(checkpoint)
     bpy.context.view_layer.objects.active = bpy.data.objects["Box Scan"]
     with pytest.raises(RuntimeError, match="Select a scan preview .* whose object still exists"):
+        bpy.ops.object.pgt_apply_intensity()
+
+
+def test_apply_intensity_on_a_preview_in_edit_mode(scene, preferences, checkpoint):
+    """Edit Mode holds the preview's points in an edit mesh: the operator leaves it for the
+    step and returns, with the same values as in Object Mode."""
+    colored_box(scene)
+    bpy.ops.object.pgt_scan()
+    preview = bpy.data.objects["Box Scan"]
+    preferences.intensity_checkpoint = str(checkpoint)
+    bpy.context.view_layer.objects.active = preview
+    assert bpy.ops.object.pgt_apply_intensity() == {"FINISHED"}
+    expected = intensities(preview)
+    bpy.ops.object.mode_set(mode="EDIT")
+    assert bpy.ops.object.pgt_apply_intensity() == {"FINISHED"} and preview.mode == "EDIT"
+    bpy.ops.object.mode_set(mode="OBJECT")
+    assert np.array_equal(intensities(preview), expected)
+
+
+def test_a_preview_tag_that_is_no_name_is_no_preview(scene, preferences, checkpoint):
+    colored_box(scene)
+    bpy.ops.object.pgt_scan()
+    preview = bpy.data.objects["Box Scan"]
+    preview[scanning.SOURCE_TAG] = 5
+    bpy.context.view_layer.objects.active = preview
+    with pytest.raises(RuntimeError, match="Select a scan preview"):
         bpy.ops.object.pgt_apply_intensity()

@@ -151,6 +151,13 @@ def test_bad_inputs_leave_scene_and_disk_as_they_were(scene, folder, tmp_path):
 
     bank_settings = scene.pgt_bank
     refused(bpy.ops.scene.pgt_export_bank, "no output folder chosen")
+    refused(bpy.ops.scene.pgt_open_bank_report, "Open Report: no output folder chosen")  # not ./report.md
+    bank_settings["dataset"] = 99  # a .blend of a version with more datasets: reads as ""
+    refused(bpy.ops.scene.pgt_save_bank_config, "Bank: no dataset chosen", filepath=str(tmp_path / "stale.toml"))
+    bank_settings.dataset = "nuscenes"
+    bpy.ops.object.mode_set(mode="EDIT")  # an object's mesh lives in an edit mesh there
+    refused(bpy.ops.scene.pgt_export_bank, "Export Bank works in Object Mode")
+    bpy.ops.object.mode_set(mode="OBJECT")
     small_bank(bank_settings, tmp_path / "bank")
     refused(bpy.ops.scene.pgt_export_bank, "2 incomplete object")
     bank_settings.openpcdet = bank_settings.mmdet3d = False

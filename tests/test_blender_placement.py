@@ -114,6 +114,25 @@ def test_a_users_collection_of_the_same_name_stays(scene, placed):
     assert list(bpy.data.collections["PGT Placed Scene"].objects) == [note]
 
 
+def test_what_the_user_copied_from_a_placement_stays(scene, placed):
+    """A Shift+D copy of a loaded object and a duplicated, renamed collection are the
+    user's: the next load replaces only what the last one made."""
+    assert bpy.ops.import_scene.pgt_placed_scene(directory=str(placed)) == {"FINISHED"}
+    loaded = bpy.data.collections["PGT Placed Scene"]
+    kept = loaded.objects[0].copy()
+    loaded.objects.link(kept)  # Shift+D puts the copy beside the original
+    mine = loaded.copy()  # Duplicate Collection: the tags come along, the objects are copies
+    for obj in list(mine.objects):
+        mine.objects.unlink(obj)
+        mine.objects.link(obj.copy())
+    mine.name = "My placement"
+    scene.collection.children.link(mine)
+    count = len(mine.objects)
+    assert bpy.ops.import_scene.pgt_placed_scene(directory=str(placed)) == {"FINISHED"}
+    assert kept.name in scene.collection.objects and kept.name not in bpy.data.collections["PGT Placed Scene"].objects
+    assert bpy.data.collections.get("My placement") == mine and len(mine.objects) == count
+
+
 def test_an_inserted_object_with_no_points_loads_empty(scene, placed, tmp_path):
     folder = shutil.copytree(placed, tmp_path / "placed")
     box_changed(lambda box: box.update(rows=[box["rows"][0], box["rows"][0]]))(folder)

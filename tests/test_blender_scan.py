@@ -231,6 +231,15 @@ def test_a_copy_of_a_result_is_the_users_and_stays(scene):
     assert len(bpy.data.objects["Box Scan"].data.vertices) < len(kept.data.vertices)  # the new scan, from 25 m
 
 
+def test_a_result_saved_without_its_name_tag_is_still_replaced(scene):
+    mesh_object(scene, "Box", *box_geometry())
+    bpy.ops.object.pgt_scan()
+    for obj in result_objects("Box").values():
+        del obj[objects.MADE_TAG]  # a .blend saved by an earlier version
+    bpy.ops.object.pgt_scan()
+    assert sorted(result_objects("Box")) == ["Box Scan", "PGT Ground", "PGT Sensor"]
+
+
 def test_point_cloud_scans_as_surfels(scene):
     rng = np.random.default_rng(0)
     count = 4000

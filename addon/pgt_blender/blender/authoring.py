@@ -46,7 +46,9 @@ def object_mode(obj: bpy.types.Object):
 def require_authorable(obj: bpy.types.Object) -> None:
     """InputError when an authoring step cannot apply to ``obj``: it shares its mesh with
     other objects (a linked duplicate: rewriting the mesh would reshape them behind their
-    records), its step record is damaged (``steps``), or it has no points or NaN/Inf ones."""
+    records), its step record is damaged (``steps``), or it has no points, NaN/Inf ones or
+    all at one place (nothing to align or size: checked before Author Selected changes
+    any object)."""
     if obj.data.users > 1:
         raise InputError(obj.name, f"shares its mesh '{obj.data.name}' with {obj.data.users - 1} other user(s); "
                                    "authoring rewrites the mesh: make it single user first (Object > Relations > "
@@ -54,7 +56,9 @@ def require_authorable(obj: bpy.types.Object) -> None:
     steps(obj)
     if not len(obj.data.vertices):
         raise InputError(obj.name, "has no points to author")
-    checked_points(positions(obj), source=obj.name)
+    points, _ = checked_points(positions(obj), source=obj.name)
+    if not np.ptp(points, axis=0).any():
+        raise InputError(obj.name, f"its {len(points)} points all lie at one place: nothing to align or size")
 
 
 def object_from_world(obj: bpy.types.Object) -> Matrix:
@@ -98,20 +102,23 @@ def triangles(obj: bpy.types.Object):
     return values.reshape(-1, 3)
 
 
-def selected_face_normal(obj: bpy.types.Object):
-    """(3,) area-weighted mean normal of the selected faces (local frame), or None."""
+def selected_face_normal(obj: bpy.types.Object) -> np.ndarray:
+    """(3,) area-weighted mean normal of the selected faces (local frame; the object out
+    of Edit Mode: ``object_mode``); InputError when none is selected or their normals
+    cancel out."""
     mesh = obj.data
-    if obj.mode == "EDIT":
-        obj.update_from_editmode()
     count = len(mesh.polygons)
     selected, normals, areas = np.empty(count, bool), np.empty(count * 3, np.float32), np.empty(count, np.float32)
     mesh.polygons.foreach_get("select", selected)
     mesh.polygons.foreach_get("normal", normals)
     mesh.polygons.foreach_get("area", areas)
     if not selected.any():
-        return None
+        raise InputError(obj.name, "has no selected faces to take up from (select them in Edit Mode)")
     mean = (normals.reshape(-1, 3)[selected] * areas[selected, None]).sum(axis=0)
-    return mean if np.linalg.norm(mean) > 0 else None
+    if not np.linalg.norm(mean) > 1e-3 * areas[selected].sum():
+        raise InputError(obj.name, f"the normals of its {int(selected.sum())} selected faces cancel out (a closed "
+                                   "surface): select the faces of one side, the bottom or the top")
+    return mean
 
 
 def camera_poses(obj: bpy.types.Object) -> np.ndarray:
@@ -127,6 +134,7 @@ def _local_matrix(child) -> Matrix:
 def apply_step(obj: bpy.types.Object, step: Step) -> None:
     """Apply ``step`` to the mesh data, the child cameras and the record on ``obj.pgt``;
     ``require_authorable(obj)`` first, as the record is read after the mesh is written."""
+    radius = _points_radius(obj)
     mesh = obj.data
     mesh.attributes["position"].data.foreach_set("vector", apply_transform(positions(obj), step.transform).ravel())
     splats = splat_attributes(mesh)
@@ -146,9 +154,8 @@ def apply_step(obj: bpy.types.Object, step: Step) -> None:
         moved[:3, 3] = apply_transform(local[None, :3, 3], step.transform)[0]
         camera.matrix_basis = camera.matrix_parent_inverse.inverted() @ Matrix(moved.tolist())
         camera.data.display_size *= scale
-    modifier = obj.modifiers.get(POINTS_GROUP)
-    if modifier is not None:  # point radius in object units
-        identifier = modifier.node_group.interface.items_tree["Radius"].identifier
+    if radius is not None:  # point radius in object units
+        modifier, identifier = radius
         modifier[identifier] = modifier[identifier] * scale
     settings = obj.pgt
     before = np.array(settings.object_from_source).reshape(4, 4)
@@ -160,6 +167,17 @@ def apply_step(obj: bpy.types.Object, step: Step) -> None:
     record.append({"step": step.name, "transform": step.transform.tolist(), "dims": list(step.dims), **step.details})
     settings.steps_json = json.dumps(record)
     show_box(obj)
+
+
+def _points_radius(obj: bpy.types.Object):
+    """(modifier, input identifier) of the radius the point display draws ``obj`` with,
+    or None: no display, or one the user emptied or rewired (it is theirs then)."""
+    modifier = obj.modifiers.get(POINTS_GROUP)
+    group = getattr(modifier, "node_group", None)
+    socket = group.interface.items_tree.get("Radius") if group is not None else None
+    if socket is None or not isinstance(modifier.get(getattr(socket, "identifier", "")), float):
+        return None
+    return modifier, socket.identifier
 
 
 def show_box(obj: bpy.types.Object) -> bpy.types.Object:

@@ -61,6 +61,8 @@ def bank_config(settings, checkpoint: str = "") -> BankConfig:
     checkpoint) makes the intensities learned, as in the Scan section."""
     if settings.config_file:
         return load_config(bpy.path.abspath(settings.config_file))
+    if settings.dataset not in DATASET_GRIDS:  # "": a stored index this version has no item for
+        raise InputError("Bank", "no dataset chosen: choose one in the Bank section")
     formats = tuple(name for name in FORMATS if getattr(settings, name))
     if not formats:
         raise InputError("Bank", "no format chosen: tick OpenPCDet or mmdetection3d")

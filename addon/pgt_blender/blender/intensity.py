@@ -25,7 +25,7 @@ GREY = (0.5, 0.5, 0.5)
 def source_of(preview: bpy.types.Object):
     """The mesh object a scan preview was made of, or None."""
     name = preview.get(scanning.SOURCE_TAG)
-    if not (name and preview.type == "MESH" and scanning.DATASET_TAG in preview):
+    if not (isinstance(name, str) and name and preview.type == "MESH" and scanning.DATASET_TAG in preview):
         return None
     source = bpy.data.objects.get(name)
     return source if source is not None and source.type == "MESH" else None
@@ -105,8 +105,13 @@ def apply_estimator(preview: bpy.types.Object, checkpoint, settings) -> float:
     """Overwrite the preview's ``intensity`` attribute (and its colors when the scan
     ``settings``, ``Scene.pgt_scan``, show intensity) with ``learned_intensity``. Returns
     points per second; InputError (nothing written) as ``preview_scan`` and
-    ``learned_intensity``, and for a preview without its ``color`` attribute."""
+    ``learned_intensity``, for a source whose geometry differs from the one scanned
+    (scanning.geometry_stamp) and for a preview without its ``color`` attribute."""
     source = source_of(preview)
+    stamp = scanning.geometry_stamp(source.data)
+    if preview.get(scanning.GEOMETRY_TAG, stamp) != stamp:  # a preview saved without the stamp: learned_intensity
+        raise InputError(source.name, "changed since the scan (its vertices or faces differ, or another object took "
+                                      "its name): scan it again")
     mesh = preview.data
     colors = mesh.color_attributes.get("color") if settings.color_by == "INTENSITY" else None
     if settings.color_by == "INTENSITY" and (colors is None or colors.domain != "POINT"):

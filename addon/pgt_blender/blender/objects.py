@@ -14,6 +14,8 @@ from ..core.errors import InputError, printable
 from ..core.reconstruction import CameraView, Reconstruction
 
 _BLENDER_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+ROLE_TAG = "pgt_role"  # on a collection the add-on made: what it shows (replace_collection)
+MADE_TAG = "pgt_made_as"  # on what the add-on made and replaces later: the name it was made with
 _SENSOR_WIDTH_MM = 36.0
 _ATTRIBUTE_TYPES = {  # (dtype kind, columns) -> (Blender type, foreach_set field)
     ("f", 1): ("FLOAT", "value"), ("i", 1): ("INT", "value"), ("b", 1): ("BOOLEAN", "value"),
@@ -65,21 +67,39 @@ def box_empty(name: str, box: np.ndarray, made: list) -> bpy.types.Object:
     return cube
 
 
+def mark_made(block) -> None:
+    """Tag ``block`` (an ID) as made by the add-on under its current name (``made_here``)."""
+    block[MADE_TAG] = block.name
+
+
+def made_here(block) -> bool:
+    """Whether ``block`` is still what the add-on made, to replace at will: a copy of it
+    (Shift+D, Duplicate Collection) or a renamed one has another name and is the user's.
+    A block saved before blocks carried the tag counts as made here."""
+    return block.get(MADE_TAG, block.name) == block.name
+
+
 def replace_collection(scene: bpy.types.Scene, role: str, objects: list) -> bpy.types.Collection:
     """A new collection named ``role`` in ``scene`` holding ``objects``, in place of the
-    one made for ``role`` before (removed with its objects and their own meshes). A
-    collection of that name the add-on did not make is the user's and stays: the new one
-    then takes Blender's next free name."""
-    old = next((collection for collection in bpy.data.collections if collection.get(ROLE_TAG) == role), None)
+    one made for ``role`` before, which goes with the objects made in it and their own
+    meshes; what the user made, copied or renamed stays: their objects in it move to the
+    scene's collection, their collection of that name makes the new one take Blender's
+    next free name."""
+    old = next((c for c in bpy.data.collections if c.get(ROLE_TAG) == role and made_here(c)), None)
     if old is not None:
-        shown = list(old.objects)
-        remove_datablocks(shown + [obj.data for obj in shown if obj.type == "MESH" and obj.data.users == 1])
+        ours = [obj for obj in old.objects if made_here(obj)]
+        for obj in old.objects:
+            if not made_here(obj) and len(obj.users_collection) == 1:
+                scene.collection.objects.link(obj)
+        remove_datablocks(ours + [obj.data for obj in ours if obj.type == "MESH" and obj.data.users == 1])
         bpy.data.collections.remove(old)
     collection = bpy.data.collections.new(role)
     collection[ROLE_TAG] = role
+    mark_made(collection)
     scene.collection.children.link(collection)
     for obj in objects:
         collection.objects.link(obj)
+        mark_made(obj)
     return collection
 
 
@@ -92,7 +112,6 @@ def remove_datablocks(datablocks) -> None:
         collection.remove(block)
 
 
-ROLE_TAG = "pgt_role"  # on a collection the add-on made: what it shows (replace_collection)
 POINTS_GROUP = "PGT Points"
 
 

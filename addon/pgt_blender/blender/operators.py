@@ -311,8 +311,6 @@ def align(context, obj, settings) -> prepare.Step:
                                        "(up points from the median to the cursor)")
     elif settings.up == "face":
         up = authoring.selected_face_normal(obj)
-        if up is None:
-            raise InputError(source, "has no selected faces to take up from (select them in Edit Mode)")
     else:
         up = prepare.up_vector(settings.up, authoring.camera_poses(obj), source)
     return prepare.align_step(points, authoring.weights(obj), up, source, settings.refine, authoring.triangles(obj))
@@ -458,21 +456,22 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
 
     def execute(self, context):
         obj, settings = context.active_object, context.scene.pgt_scan
-        try:
-            with warnings.catch_warnings(record=True) as caught, authoring.object_mode(obj):
-                warnings.simplefilter("always")
-                result, sensor, sensor_from_object = scanning.scan(obj, settings)
-        except REPORTED as error:
-            self.report({"ERROR"}, str(error))
-            return {"CANCELLED"}
-        for warning in caught:  # the core's own (dropped faces); numpy's RuntimeWarnings are not the user's
-            if warning.category is UserWarning:
-                self.report({"WARNING"}, str(warning.message))
-        if not result.hits:  # legal but empty: say why, and leave the scene as it was
-            self.report({"WARNING"}, f"{obj.name}: no returns at this pose, out of the {sensor.name} sensor's "
-                                     f"range or view; no scan preview made")
-            return {"CANCELLED"}
-        learned = self.learned_intensity(context, obj, result, settings)
+        with authoring.object_mode(obj):
+            try:
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    result, sensor, sensor_from_object = scanning.scan(obj, settings)
+            except REPORTED as error:
+                self.report({"ERROR"}, str(error))
+                return {"CANCELLED"}
+            for warning in caught:  # the core's own (dropped faces); numpy's RuntimeWarnings are not the user's
+                if warning.category is UserWarning:
+                    self.report({"WARNING"}, str(warning.message))
+            if not result.hits:  # legal but empty: say why, and leave the scene as it was
+                self.report({"WARNING"}, f"{obj.name}: no returns at this pose, out of the {sensor.name} sensor's "
+                                         f"range or view; no scan preview made")
+                return {"CANCELLED"}
+            learned = self.learned_intensity(context, obj, result, settings)
         scanning.show_scan(context.scene, obj, result, sensor, sensor_from_object, settings)
         settings.stats = scanning.stats_text(result)
         self.report({"INFO"}, f"{obj.name}: {settings.stats}{learned}")
@@ -517,7 +516,8 @@ class OBJECT_OT_pgt_apply_intensity(bpy.types.Operator):
             return {"CANCELLED"}
         preview = context.active_object
         try:
-            rate = intensity.apply_estimator(preview, checkpoint, context.scene.pgt_scan)
+            with authoring.object_mode(preview):
+                rate = intensity.apply_estimator(preview, checkpoint, context.scene.pgt_scan)
         except REPORTED as error:  # no torch, bad checkpoint, other dataset or class, a changed source
             self.report({"ERROR"}, f"{error} (the scan keeps its physical intensities)")
             return {"CANCELLED"}
@@ -660,6 +660,9 @@ class SCENE_OT_pgt_export_bank(_BackgroundSteps, bpy.types.Operator):
         if context.scene.pgt_bank.running:
             cls.poll_message_set("An export is running")
             return False
+        if context.mode != "OBJECT":  # an object in Edit Mode holds its mesh in an edit mesh
+            cls.poll_message_set("Export Bank works in Object Mode")
+            return False
         return True
 
     def steps(self, context):
@@ -751,21 +754,25 @@ class SCENE_OT_pgt_open_bank_report(bpy.types.Operator):
 
     def execute(self, context):
         settings = context.scene.pgt_bank
+        if not settings.output:
+            self.report({"ERROR"}, "Open Report: no output folder chosen")
+            return {"CANCELLED"}
         out = Path(bpy.path.abspath(settings.output))
         path = out / "report.md"
-        if not path.is_file():
-            self.report({"ERROR"}, printable(f"{path}: no report yet: export the bank first"))
-            return {"CANCELLED"}
         real = bank.real_database(settings)
-        if real is not None:  # set after the export, or changed since: the report follows it
-            try:
+        try:
+            if not path.is_file():
+                raise InputError(path, "no report yet: export the bank first")
+            if real is not None:  # set after the export, or changed since: the report follows it
                 bank.write_bank_report(out, real)
-            except REPORTED as error:
-                self.report({"ERROR"}, str(error))
-                return {"CANCELLED"}
-        for old in [text for text in bpy.data.texts if text.filepath and _same_file(text.filepath, path)]:
-            bpy.data.texts.remove(old)  # this report, loaded before; a text of the same name is the user's
+        except REPORTED as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        for old in [text for text in bpy.data.texts
+                    if text.filepath and _same_file(text.filepath, path) and objects.made_here(text)]:
+            bpy.data.texts.remove(old)  # this report, opened before; a text of the same name or a copy is the user's
         text = bpy.data.texts.load(str(path))
+        objects.mark_made(text)
         for area in context.screen.areas if context.screen else ():
             if area.type == "TEXT_EDITOR":
                 area.spaces.active.text = text

@@ -27,13 +27,13 @@ from ..core.scan.sensors import PRESETS, Sensor, load_sensor_toml
 from ..core.scan.targets import (DEFAULT_REFLECTIVITY, ScanTarget, gaussian_target, has_gaussians, mesh_target,
                                  reflectivity_from_linear, reflectivity_from_srgb, resolve_engine,
                                  see_through_materials, surfel_target)
-from .objects import add_attribute, show_as_points, remove_datablocks
+from .objects import add_attribute, made_here, mark_made, remove_datablocks, show_as_points
 
 CUSTOM = "CUSTOM"
 SCAN_COLLECTION = "PGT Scan"
 SOURCE_TAG = "pgt_scan_of"  # on every result object: the name of the object scanned
-RESULT_TAG = "pgt_result_name"  # on every result object: its name when made (a copy or a renamed one differs)
 DATASET_TAG = "pgt_dataset"  # on the points object: whose intensity scale its returns use
+GEOMETRY_TAG = "pgt_scanned_geometry"  # on the points object: geometry_stamp of the mesh scanned
 POINT_RADIUS = 0.03  # m: a visible dot per return at street distances
 GROUND_MARGIN = 10.0  # m beyond the object's distance on each side
 CACHE_SIZE = 4  # objects whose BVH stays in memory
@@ -132,6 +132,14 @@ def splat_attributes(mesh: bpy.types.Mesh) -> dict:
             values = read(attribute.data, field, len(mesh.vertices) * width, np.float32)
             found[name] = values if width == 1 else values.reshape(-1, width)
     return found
+
+
+def geometry_stamp(mesh: bpy.types.Mesh) -> str:
+    """What a scan's ``face`` column addresses in ``mesh``, stamped: CRC-32s (hex) of its
+    vertex positions, its corners' vertices and its polygons' first corners."""
+    parts = (mesh_vertices(mesh), _corner_vertices(mesh),
+             read(mesh.polygons, "loop_start", len(mesh.polygons), np.int32))
+    return "-".join(f"{zlib.crc32(np.ascontiguousarray(part).data):08x}" for part in parts)
 
 
 def _fingerprint(inputs: tuple) -> tuple:
@@ -301,10 +309,11 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
         remove_datablocks(made)
         raise
     remove_results(source.name)
-    points[DATASET_TAG] = sensor.dataset
+    points[DATASET_TAG], points[GEOMETRY_TAG] = sensor.dataset, geometry_stamp(source.data)
     for obj, name in ((points, f"{source.name} Scan"), (origin, "PGT Sensor"), (ground, "PGT Ground")):
         obj.name = name  # the earlier result's name, free now
-        obj[SOURCE_TAG], obj[RESULT_TAG] = source.name, obj.name
+        obj[SOURCE_TAG] = source.name
+        mark_made(obj)
         obj.matrix_world = world
         collection.objects.link(obj)
     return points
@@ -312,8 +321,8 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
 
 def remove_results(source_name: str) -> None:
     """Remove the result objects of ``source_name``'s last scan and their own meshes; a
-    copy of one (Shift+D) or one renamed is the user's and stays."""
-    old = [obj for obj in bpy.data.objects if obj.get(SOURCE_TAG) == source_name and obj.get(RESULT_TAG) == obj.name]
+    copy of one (Shift+D) or one renamed is the user's and stays (objects.made_here)."""
+    old = [obj for obj in bpy.data.objects if obj.get(SOURCE_TAG) == source_name and made_here(obj)]
     meshes = [obj.data for obj in old if obj.type == "MESH" and obj.data.users == 1]
     remove_datablocks(old + meshes)
 

@@ -12,6 +12,7 @@ from ..classes import CLASS_SIZES
 from ..errors import InputError
 
 SIZE_NOISE = 0.1
+FLAT = 1e-6  # a box side under this share of the longest is a flat object's float noise
 
 
 def class_dims(dataset: str, class_name: str, source="size") -> np.ndarray:
@@ -40,8 +41,9 @@ def scale_to(dims, target, uniform: bool = False, source="size") -> tuple:
     factor, the geometric mean of the three ratios (the proportions stay, the volume
     matches the target's)."""
     dims, target = np.asarray(dims, np.float64), np.asarray(target, np.float64)
-    if (dims <= 0).any() or (target <= 0).any() or not np.isfinite([*dims, *target]).all():
-        raise InputError(source, f"cannot scale a box of {dims.tolist()} to {target.tolist()}: sizes must be positive")
+    if (target <= 0).any() or not np.isfinite([*dims, *target]).all() or not (dims > FLAT * dims.max()).all():
+        raise InputError(source, f"cannot scale a box of {dims.tolist()} to {target.tolist()}: sizes must be positive "
+                                 f"(a side under {FLAT:g} of the longest is flat: float noise, not a size)")
     factors = target / dims
     if uniform:
         factors = np.full(3, np.exp(np.log(factors).mean()))

@@ -128,7 +128,7 @@ def read_manifest(out: Path) -> dict:
     formats = config_from_dict(manifest["config"], path).formats
     pickles = manifest["info_pickles"]
     if not (isinstance(pickles, dict) and set(pickles) == set(formats)
-            and all(isinstance(name, str) and name for name in pickles.values())):
+            and all(isinstance(name, str) and name and "\0" not in name for name in pickles.values())):
         raise InputError(path, f"info_pickles must name one pickle file per format ({', '.join(formats)})")
     if not isinstance(manifest.get("data_root") or "", str):
         raise InputError(path, "data_root must be a folder path or null")
