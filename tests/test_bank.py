@@ -86,6 +86,20 @@ def objects(prepared) -> list:
     return checked_objects(found, incomplete, False, prepared)
 
 
+@pytest.mark.parametrize("damage, problem", [
+    (lambda xyz: np.zeros_like(xyz), "truck_chassis: every face has zero area"),
+    (lambda xyz: np.where(np.arange(len(xyz))[:, None] == 3, np.nan, xyz),
+     "truck_chassis: 1 vertices are NaN or infinite"),
+])
+def test_geometry_no_scan_can_be_made_of_is_refused_up_front(objects, damage, problem):
+    """What a chunk's ray target would refuse is named before the output folder is made,
+    so a retry does not find a half-made bank."""
+    mesh = next(obj for obj in objects if obj.geometry.kind == "mesh")
+    broken = replace(mesh, geometry=replace(mesh.geometry, positions=damage(mesh.geometry.positions)))
+    with pytest.raises(InputError, match=re.escape(f"scene.blend: {problem}")):
+        checked_objects([broken], [], False, "scene.blend")
+
+
 @pytest.fixture(scope="module", params=["nuscenes", "kitti", "lyft"])
 def bank(request, objects, tmp_path_factory):
     """(out folder, manifest) of a small bank of the three objects."""

@@ -139,7 +139,7 @@ def test_an_emptied_object_refuses_the_export_before_the_folder_is_made(scene, s
     emptied.data.clear_geometry()
     settings = scene.pgt_bank
     settings.output, settings.grid_step = str(tmp_path / "bank"), 50.0
-    with pytest.raises(RuntimeError, match=f"{emptied.name}: its geometry has no points"):
+    with pytest.raises(RuntimeError, match=f"{emptied.name}: point cloud is empty"):
         bpy.ops.scene.pgt_export_bank()
     assert not (tmp_path / "bank").exists()
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..reconstruction import Reconstruction
+from ..scan.targets import require_scannable
 
 
 @dataclass
@@ -93,7 +94,8 @@ def checked_objects(objects: list, incomplete: list, skip_incomplete: bool, sour
     """``objects`` (from ``source``, a folder or .blend) sorted by name, when they can make
     a bank: InputError listing the incomplete ones (unless skipped), when there is none,
     when two share a file name, for a box that is not three positive lengths, or for
-    geometry without points or with NaN/Inf coordinates (an emptied Blender mesh)."""
+    geometry no scan can be made of (targets.require_scannable: an emptied Blender mesh,
+    NaN points, faces all of zero area)."""
     if incomplete and not skip_incomplete:
         listed = "; ".join(f"{Path(path).name}: {reason}" for path, reason in incomplete)
         raise InputError(source, f"{len(incomplete)} incomplete object(s), set class and size "
@@ -107,7 +109,8 @@ def checked_objects(objects: list, incomplete: list, skip_incomplete: bool, sour
     for obj in objects:
         if obj.dims.shape != (3,) or not np.all(obj.dims > 0):
             raise InputError(source, f"{obj.name}: box dims {obj.dims.tolist()} are not three positive lengths")
-        positions = obj.geometry.positions
-        if not len(positions) or not np.isfinite(positions).all():  # before the output folder is made
-            raise InputError(source, f"{obj.name}: its geometry has no points, or NaN/Inf coordinates")
+        try:  # before the output folder is made: a chunk would fail after it
+            require_scannable(obj.geometry.positions, obj.geometry.faces, obj.name)
+        except InputError as error:
+            raise InputError(source, f"{obj.name}: {error.problem}") from None
     return sorted(objects, key=lambda obj: obj.name)

@@ -220,17 +220,11 @@ def _require_coordinates(points: np.ndarray, name: str, what: str) -> None:
                                "from the origin (a unit or import mistake)")
 
 
-def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
-                face_reflectivity: np.ndarray | None = None, engine: str = "auto",
-                face_see_through: np.ndarray | None = None) -> ScanTarget:
-    """Triangles, built for ``engine`` (ready_for; the other engine's structure is built
-    when first cast with). vertices (V, 3) object frame m; faces (F, 3) int;
-    ``face_see_through`` (F,) bool marks glass (see_through_materials).
-    Faces of zero area (or with a repeated vertex) are dropped with a warning; an empty
-    mesh or non-finite vertices are an InputError naming ``name``."""
-    _checked_engine(engine)
-    vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
-    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+def _triangles(vertices: np.ndarray, faces: np.ndarray, name: str) -> tuple:
+    """(corners (F, 3, 3), normals (F, 3) of length twice the area, twice the areas (F,),
+    keep (F,) bool: not of zero area) of the (F, 3) ``faces`` of float64 ``vertices``;
+    InputError naming ``name`` for no faces, indices out of range, bad coordinates or
+    every face of zero area."""
     if len(faces) == 0 or len(vertices) == 0:
         raise InputError(name, "mesh has no faces to scan")
     if faces.min() < 0 or faces.max() >= len(vertices):
@@ -243,6 +237,35 @@ def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
     keep = doubled_area > 1e-12 * np.max(bounds[1] - bounds[0])**2
     if not keep.any():
         raise InputError(name, "every face has zero area")
+    return corners, normals, doubled_area, keep
+
+
+def require_scannable(positions, faces, name: str) -> None:
+    """InputError naming ``name`` for geometry no ray target can be made of, as
+    mesh_target (``faces`` (F, 3) given) or surfel_target refuse it: what a bank checks
+    before its output folder is made."""
+    positions = np.asarray(positions, np.float64).reshape(-1, 3)
+    if len(faces):
+        _triangles(positions, np.asarray(faces, np.int64).reshape(-1, 3), name)
+    elif not len(positions):
+        raise InputError(name, "point cloud is empty")
+    else:
+        _require_coordinates(positions, name, "points")
+
+
+def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
+                face_reflectivity: np.ndarray | None = None, engine: str = "auto",
+                face_see_through: np.ndarray | None = None) -> ScanTarget:
+    """Triangles, built for ``engine`` (ready_for; the other engine's structure is built
+    when first cast with). vertices (V, 3) object frame m; faces (F, 3) int;
+    ``face_see_through`` (F,) bool marks glass (see_through_materials).
+    Faces of zero area (or with a repeated vertex) are dropped with a warning; an empty
+    mesh or non-finite vertices are an InputError naming ``name``."""
+    _checked_engine(engine)
+    vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    corners, normals, doubled_area, keep = _triangles(vertices, faces, name)
+    bounds = _vertex_bounds(vertices, faces)
     kept = np.flatnonzero(keep)
     used, origins = faces, corners[:, 0]
     if len(kept) < len(faces):
@@ -304,9 +327,7 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
     """
     _checked_engine(engine)
     positions = np.asarray(positions, np.float64).reshape(-1, 3)
-    if len(positions) == 0:
-        raise InputError(name, "point cloud is empty")
-    _require_coordinates(positions, name, "points")
+    require_scannable(positions, (), name)
     if not radius_scale > 0:
         raise InputError(name, f"surfel radius scale must be positive, got {radius_scale}")
     if scales is not None and rotations is not None:
