@@ -100,6 +100,23 @@ def test_geometry_no_scan_can_be_made_of_is_refused_up_front(objects, damage, pr
         checked_objects([broken], [], False, "scene.blend")
 
 
+@pytest.mark.parametrize("field, value, problem", [
+    ("scale", np.nan, "splat scale must be 3000 finite rows"),
+    ("rotation", 0.0, "a splat has a zero-length rotation quaternion"),
+])
+def test_splat_fields_no_scan_can_use_are_refused_up_front(objects, field, value, problem):
+    """Splat fields edited after import (a Blender attribute) are checked as the Gaussian
+    target would, before the output folder is made."""
+    cloud = next(obj for obj in objects if obj.name == "truck_reconstruction")
+    count = len(cloud.geometry.positions)
+    splats = {"scale": np.full((count, 3), 0.05, np.float32), "opacity": np.ones(count, np.float32),
+              "rotation": np.tile(np.float32([1, 0, 0, 0]), (count, 1))}
+    splats[field][7] = value
+    broken = replace(cloud, geometry=replace(cloud.geometry, attributes={**cloud.geometry.attributes, **splats}))
+    with pytest.raises(InputError, match=re.escape(f"scene.blend: truck_reconstruction: {problem}")):
+        checked_objects([broken], [], False, "scene.blend")
+
+
 @pytest.fixture(scope="module", params=["nuscenes", "kitti", "lyft"])
 def bank(request, objects, tmp_path_factory):
     """(out folder, manifest) of a small bank of the three objects."""

@@ -95,7 +95,7 @@ def checked_objects(objects: list, incomplete: list, skip_incomplete: bool, sour
     a bank: InputError listing the incomplete ones (unless skipped), when there is none,
     when two share a file name, for a box that is not three positive lengths, or for
     geometry no scan can be made of (targets.require_scannable: an emptied Blender mesh,
-    NaN points, faces all of zero area)."""
+    NaN points, faces all of zero area, splat fields edited to NaN)."""
     if incomplete and not skip_incomplete:
         listed = "; ".join(f"{Path(path).name}: {reason}" for path, reason in incomplete)
         raise InputError(source, f"{len(incomplete)} incomplete object(s), set class and size "
@@ -110,7 +110,7 @@ def checked_objects(objects: list, incomplete: list, skip_incomplete: bool, sour
         if obj.dims.shape != (3,) or not np.all(obj.dims > 0):
             raise InputError(source, f"{obj.name}: box dims {obj.dims.tolist()} are not three positive lengths")
         try:  # before the output folder is made: a chunk would fail after it
-            require_scannable(obj.geometry.positions, obj.geometry.faces, obj.name)
+            require_scannable(obj.geometry.positions, obj.geometry.faces, obj.name, obj.geometry.attributes)
         except InputError as error:
             raise InputError(source, f"{obj.name}: {error.problem}") from None
     return sorted(objects, key=lambda obj: obj.name)

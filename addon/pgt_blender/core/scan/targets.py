@@ -240,17 +240,26 @@ def _triangles(vertices: np.ndarray, faces: np.ndarray, name: str) -> tuple:
     return corners, normals, doubled_area, keep
 
 
-def require_scannable(positions, faces, name: str) -> None:
+def require_scannable(positions, faces, name: str, attributes: dict | None = None) -> None:
     """InputError naming ``name`` for geometry no ray target can be made of, as
-    mesh_target (``faces`` (F, 3) given) or surfel_target refuse it: what a bank checks
-    before its output folder is made."""
+    mesh_target (``faces`` (F, 3) given), gaussian_target (``attributes`` holding the
+    splat fields: has_gaussians) or surfel_target refuse it: what a bank checks before
+    its output folder is made."""
     positions = np.asarray(positions, np.float64).reshape(-1, 3)
     if len(faces):
         _triangles(positions, np.asarray(faces, np.int64).reshape(-1, 3), name)
-    elif not len(positions):
+        return
+    if not len(positions):
         raise InputError(name, "point cloud is empty")
-    else:
-        _require_coordinates(positions, name, "points")
+    _require_coordinates(positions, name, "points")
+    if attributes is None or not has_gaussians(attributes):
+        return
+    for what in ("scale", "rotation", "opacity"):
+        values = np.asarray(attributes[what], np.float64)
+        if len(values) != len(positions) or not np.isfinite(values).all():
+            raise InputError(name, f"splat {what} must be {len(positions)} finite rows")
+    if (np.linalg.norm(np.asarray(attributes["rotation"], np.float64), axis=1) == 0).any():
+        raise InputError(name, "a splat has a zero-length rotation quaternion")
 
 
 def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
@@ -378,15 +387,7 @@ def gaussian_target(positions: np.ndarray, scales: np.ndarray, rotations: np.nda
     CUTOFF_SIGMAS ellipsoid; reflectivity per splat from ``colors`` (sRGB), weighted by
     opacity x its two larger scales (what a ray sees of it)."""
     positions = np.asarray(positions, np.float64).reshape(-1, 3)
-    if len(positions) == 0:
-        raise InputError(name, "point cloud is empty")
-    arrays = {"positions": positions, "scales": scales, "rotations": rotations, "opacities": opacities}
-    for what, array in arrays.items():
-        array = np.asarray(array, np.float64)
-        if len(array) != len(positions) or not np.isfinite(array).all():
-            raise InputError(name, f"splat {what} must be {len(positions)} finite rows")
-    if (np.linalg.norm(np.asarray(rotations, np.float64), axis=1) == 0).any():
-        raise InputError(name, "a splat has a zero-length rotation quaternion")
+    require_scannable(positions, (), name, {"scale": scales, "rotation": rotations, "opacity": opacities})
     splats = Gaussians.from_splats(positions, scales, rotations, opacities)
     extents = splats.extents
     weights = splats.opacities * np.sort(splats.scales, axis=1)[:, 1:].prod(axis=1)
