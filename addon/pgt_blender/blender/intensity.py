@@ -81,13 +81,19 @@ def preview_scan(preview: bpy.types.Object, source: bpy.types.Object) -> Scan:
     return Scan(rows, np.zeros(9), count, 0.0, dataset, [sensor_from_object])
 
 
-def learned_intensity(scan: Scan, source: bpy.types.Object, checkpoint, settings) -> tuple[np.ndarray, float]:
+def learned_intensity(scan: Scan, source: bpy.types.Object, checkpoint, settings,
+                      scanned: str | None = None) -> tuple[np.ndarray, float]:
     """(values (N,) float32 in the dataset's scale, points per second): the estimator at
     ``checkpoint`` (intensity/estimator.scan_intensity) on the N returns of ``scan``, a
     scan of ``source`` whose ``face`` column names its polygons (meshes) or vertices
     (point clouds); the class is ``source.pgt.class_name``, else the checkpoint's only
-    one. InputError as the core's, and when the scan hit a face or point ``source`` no
-    longer has (edited since the scan)."""
+    one. InputError as the core's, when ``source``'s geometry differs from ``scanned``
+    (scanning.scanned_geometry at the scan; None: not known) and when the scan hit a face
+    or point ``source`` no longer has (edited since the scan)."""
+    bounds = scanning.scan_target(source, settings.surfel_scale).bounds
+    if scanned is not None and scanned != scanning.scanned_geometry(source):
+        raise InputError(source.name, "changed since the scan (its vertices or faces differ, or another object took "
+                                      "its name): scan it again")
     estimator = cached_estimator(checkpoint)
     class_name = source.pgt.class_name or (estimator.classes[0] if len(estimator.classes) == 1 else "")
     rgb = element_rgb(source)
@@ -96,28 +102,23 @@ def learned_intensity(scan: Scan, source: bpy.types.Object, checkpoint, settings
         elements = "faces" if len(source.data.polygons) else "points"
         raise InputError(source.name, f"has {len(rgb)} {elements} but the scan hit number {hit.max()}: "
                                       "it changed since the scan; scan it again")
-    bounds = scanning.scan_target(source, settings.surfel_scale).bounds
     values, _ = scan_intensity(scan, bounds, rgb, class_name, estimator, name=source.name)
     return values, estimator.last_rate
 
 
 def apply_estimator(preview: bpy.types.Object, checkpoint, settings) -> float:
     """Overwrite the preview's ``intensity`` attribute (and its colors when the scan
-    ``settings``, ``Scene.pgt_scan``, show intensity) with ``learned_intensity``. Returns
-    points per second; InputError (nothing written) as ``preview_scan`` and
-    ``learned_intensity``, for a source whose geometry differs from the one scanned
-    (scanning.geometry_stamp) and for a preview without its ``color`` attribute."""
+    ``settings``, ``Scene.pgt_scan``, show intensity) with ``learned_intensity``, given
+    the geometry the preview says was scanned. Returns points per second; InputError
+    (nothing written) as ``preview_scan`` and ``learned_intensity``, and for a preview
+    without its ``color`` attribute."""
     source = source_of(preview)
-    stamp = scanning.geometry_stamp(source.data)
-    if preview.get(scanning.GEOMETRY_TAG, stamp) != stamp:  # a preview saved without the stamp: learned_intensity
-        raise InputError(source.name, "changed since the scan (its vertices or faces differ, or another object took "
-                                      "its name): scan it again")
     mesh = preview.data
     colors = mesh.color_attributes.get("color") if settings.color_by == "INTENSITY" else None
     if settings.color_by == "INTENSITY" and (colors is None or colors.domain != "POINT"):
         raise InputError(preview.name, f"has no per-point color attribute 'color': scan {source.name} again")
     scan = preview_scan(preview, source)
-    values, rate = learned_intensity(scan, source, checkpoint, settings)
+    values, rate = learned_intensity(scan, source, checkpoint, settings, preview.get(scanning.GEOMETRY_TAG))
     mesh.attributes["intensity"].data.foreach_set("value", values)
     if colors is not None:
         colors.data.foreach_set("color", scanning.ramp(values / INTENSITY_MAX[scan.dataset]).ravel())

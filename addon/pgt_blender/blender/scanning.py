@@ -33,14 +33,14 @@ CUSTOM = "CUSTOM"
 SCAN_COLLECTION = "PGT Scan"
 SOURCE_TAG = "pgt_scan_of"  # on every result object: the name of the object scanned
 DATASET_TAG = "pgt_dataset"  # on the points object: whose intensity scale its returns use
-GEOMETRY_TAG = "pgt_scanned_geometry"  # on the points object: geometry_stamp of the mesh scanned
+GEOMETRY_TAG = "pgt_scanned_geometry"  # on the points object: scanned_geometry of the object scanned
 POINT_RADIUS = 0.03  # m: a visible dot per return at street distances
 GROUND_MARGIN = 10.0  # m beyond the object's distance on each side
 CACHE_SIZE = 4  # objects whose BVH stays in memory
 # Colormap stops (scene-linear RGB), low to high: dark blue, azure, green, yellow, red.
 _RAMP = np.array([[0.004, 0.004, 0.17], [0.0, 0.26, 1.0], [0.01, 0.6, 0.03], [1.0, 0.69, 0.0], [0.79, 0.01, 0.005]])
 
-_cache: dict = {}  # object name -> (fingerprint, ScanTarget)
+_cache: dict = {}  # object name -> ((geometry fingerprint, other inputs' fingerprint), ScanTarget)
 
 
 def sensor_of(settings) -> Sensor:
@@ -77,8 +77,8 @@ def scan_target(obj: bpy.types.Object, radius_scale: float = 1.0, engine: str = 
     Without: Gaussians when it carries the splat attributes (scale, rotation, opacity:
     splat_attributes), else surfels of ``radius_scale`` x the point spacing;
     ``source_index`` = the vertex index."""
-    inputs, build = _target_inputs(obj, radius_scale, resolve_engine(engine))
-    fingerprint = _fingerprint(inputs)
+    geometry, rest, build = _target_inputs(obj, radius_scale, resolve_engine(engine))
+    fingerprint = (_fingerprint(geometry), _fingerprint(rest))
     cached = _cache.pop(obj.name, None)
     if cached is None or cached[0] != fingerprint:
         cached = (fingerprint, build())
@@ -88,20 +88,29 @@ def scan_target(obj: bpy.types.Object, radius_scale: float = 1.0, engine: str = 
     return cached[1]
 
 
+def scanned_geometry(obj: bpy.types.Object) -> str:
+    """What a scan's ``face`` column addresses in ``obj``'s mesh, stamped: the fingerprint
+    of its vertex positions and, with faces, its triangles and their polygons, as held
+    for the target scan_target last made of ``obj`` (call it first; the mesh is not read
+    again)."""
+    return repr(_cache[obj.name][0][0])
+
+
 def _target_inputs(obj: bpy.types.Object, radius_scale: float, engine: str):
-    """Everything the target is made of (the cache's fingerprint covers it all) and the
-    function that builds the target from it."""
+    """Everything the target is made of (the cache's fingerprint covers it all): the
+    geometry a return's ``face`` addresses and the rest; and the function that builds
+    the target from them."""
     mesh = obj.data
     vertices = mesh_vertices(mesh)
     if not len(mesh.polygons):
         colors = point_colors(mesh)
         splats = splat_attributes(mesh)
         if has_gaussians(splats):
-            return ("gaussians", vertices, colors, splats["scale"], splats["rotation"], splats["opacity"]), \
+            return (vertices,), ("gaussians", colors, splats["scale"], splats["rotation"], splats["opacity"]), \
                 lambda: gaussian_target(vertices, splats["scale"], splats["rotation"], splats["opacity"], obj.name,
                                         colors)
         opacities = splats.get("opacity")  # faint points are seen through
-        return ("surfels", vertices, colors, radius_scale, opacities, engine), \
+        return (vertices,), ("surfels", colors, radius_scale, opacities, engine), \
             lambda: surfel_target(vertices, obj.name, colors, radius_scale, engine=engine, opacities=opacities)
     corners, polygon_index = _triangle_corners(mesh)
     triangles = _corner_vertices(mesh)[corners]
@@ -114,7 +123,7 @@ def _target_inputs(obj: bpy.types.Object, radius_scale: float, engine: str):
                              face_see_through=see_through)
         return replace(target, source_index=polygon_index[target.source_index])
 
-    return ("mesh", vertices, triangles, polygon_index, reflectivity, see_through, engine), build
+    return (vertices, triangles, polygon_index), ("mesh", reflectivity, see_through, engine), build
 
 
 SPLAT_ATTRIBUTES = {"opacity": ("FLOAT", "value", 1), "scale": ("FLOAT_VECTOR", "vector", 3),
@@ -132,14 +141,6 @@ def splat_attributes(mesh: bpy.types.Mesh) -> dict:
             values = read(attribute.data, field, len(mesh.vertices) * width, np.float32)
             found[name] = values if width == 1 else values.reshape(-1, width)
     return found
-
-
-def geometry_stamp(mesh: bpy.types.Mesh) -> str:
-    """What a scan's ``face`` column addresses in ``mesh``, stamped: CRC-32s (hex) of its
-    vertex positions, its corners' vertices and its polygons' first corners."""
-    parts = (mesh_vertices(mesh), _corner_vertices(mesh),
-             read(mesh.polygons, "loop_start", len(mesh.polygons), np.int32))
-    return "-".join(f"{zlib.crc32(np.ascontiguousarray(part).data):08x}" for part in parts)
 
 
 def _fingerprint(inputs: tuple) -> tuple:
@@ -293,8 +294,9 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
     """Replace ``source``'s previous results in the "PGT Scan" collection by the returns
     ("<name> Scan", a point per return with every column as an attribute), the sensor
     origin ("PGT Sensor") and the ground ("PGT Ground"), all placed where ``source``
-    stands. The previous results go only once the new ones are built. Returns the points
-    object."""
+    stands. The previous results go only once the new ones are built. ``result`` is the
+    scan just made of ``source`` (scanned_geometry reads what its target was made of).
+    Returns the points object."""
     world = source.matrix_world @ Matrix(np.linalg.inv(sensor_from_object).tolist())
     made = []
     try:
@@ -309,7 +311,7 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
         remove_datablocks(made)
         raise
     remove_results(source.name)
-    points[DATASET_TAG], points[GEOMETRY_TAG] = sensor.dataset, geometry_stamp(source.data)
+    points[DATASET_TAG], points[GEOMETRY_TAG] = sensor.dataset, scanned_geometry(source)
     for obj, name in ((points, f"{source.name} Scan"), (origin, "PGT Sensor"), (ground, "PGT Ground")):
         obj.name = name  # the earlier result's name, free now
         obj[SOURCE_TAG] = source.name

@@ -222,9 +222,9 @@ def _require_coordinates(points: np.ndarray, name: str, what: str) -> None:
 
 def _triangles(vertices: np.ndarray, faces: np.ndarray, name: str) -> tuple:
     """(corners (F, 3, 3), normals (F, 3) of length twice the area, twice the areas (F,),
-    keep (F,) bool: not of zero area) of the (F, 3) ``faces`` of float64 ``vertices``;
-    InputError naming ``name`` for no faces, indices out of range, bad coordinates or
-    every face of zero area."""
+    keep (F,) bool: not of zero area, bounds (2, 3) of the faces' vertices) of the (F, 3)
+    ``faces`` of float64 ``vertices``; InputError naming ``name`` for no faces, indices
+    out of range, bad coordinates or every face of zero area."""
     if len(faces) == 0 or len(vertices) == 0:
         raise InputError(name, "mesh has no faces to scan")
     if faces.min() < 0 or faces.max() >= len(vertices):
@@ -237,7 +237,7 @@ def _triangles(vertices: np.ndarray, faces: np.ndarray, name: str) -> tuple:
     keep = doubled_area > 1e-12 * np.max(bounds[1] - bounds[0])**2
     if not keep.any():
         raise InputError(name, "every face has zero area")
-    return corners, normals, doubled_area, keep
+    return corners, normals, doubled_area, keep, bounds
 
 
 def require_scannable(positions, faces, name: str, attributes: dict | None = None) -> None:
@@ -273,8 +273,7 @@ def mesh_target(vertices: np.ndarray, faces: np.ndarray, name: str = "object",
     _checked_engine(engine)
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    corners, normals, doubled_area, keep = _triangles(vertices, faces, name)
-    bounds = _vertex_bounds(vertices, faces)
+    corners, normals, doubled_area, keep, bounds = _triangles(vertices, faces, name)
     kept = np.flatnonzero(keep)
     used, origins = faces, corners[:, 0]
     if len(kept) < len(faces):
