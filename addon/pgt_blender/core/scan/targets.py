@@ -21,6 +21,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from ..authoring.alignment import density_inliers
 from ..errors import InputError
 from .gaussians import Gaussians, rotation_matrices
 
@@ -328,7 +329,11 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
     mesh_target).
 
     Point clouds: normal from local PCA over ``neighbours`` points, radius =
-    ``radius_scale`` x the mean distance to them. Gaussian splats (``scales`` (N, 3) m,
+    ``radius_scale`` x the mean distance to them. Floaters (isolated points: the
+    alignment's density test, authoring.alignment.density_inliers) are left out: a
+    floater's disk is as wide as its distance to the surface, and a few percent of them
+    hid the object from most rays (80-99 % of a built-in sample's returns came from its
+    3 % of floaters). Gaussian splats (``scales`` (N, 3) m,
     ``rotations`` (N, 4) w x y z): an ellipse along the two larger axes with semi-axes
     ``SPLAT_SIGMAS`` x scale (x ``radius_scale``), normal along the smallest; a splat
     with ``opacities`` below SEE_THROUGH_OPACITY lets rays pass (see_through).
@@ -338,7 +343,10 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
     require_scannable(positions, (), name)
     if not radius_scale > 0:
         raise InputError(name, f"surfel radius scale must be positive, got {radius_scale}")
-    if scales is not None and rotations is not None:
+    splats = scales is not None and rotations is not None
+    kept = np.arange(len(positions)) if splats else np.flatnonzero(density_inliers(positions))
+    positions = positions[kept]
+    if splats:
         axes = rotation_matrices(rotations)
         scales = np.asarray(scales, np.float64)
         order = np.argsort(scales, axis=1)[:, ::-1]  # largest first
@@ -356,14 +364,14 @@ def surfel_target(positions: np.ndarray, name: str = "object", colors: np.ndarra
     corners = positions[:, None, :] + np.einsum("sk,nk,nik->nsi", unit, semi_axes, tangents)
     polygons = np.arange(len(positions) * SURFEL_SIDES).reshape(-1, SURFEL_SIDES)
     reflectivity = (np.full(len(positions), DEFAULT_REFLECTIVITY, np.float32) if colors is None
-                    else relative_reflectivity(reflectivity_from_srgb(colors), semi_axes.prod(axis=1)))
+                    else relative_reflectivity(reflectivity_from_srgb(colors[kept]), semi_axes.prod(axis=1)))
     flat = corners.reshape(-1, 3)
     normals = np.cross(tangents[:, :, 0], tangents[:, :, 1])
     fan = np.array([[0, side, side + 1] for side in range(1, SURFEL_SIDES - 1)])  # a hexagon as 4 triangles
-    faint = None if opacities is None else np.asarray(opacities, np.float64).reshape(-1) < SEE_THROUGH_OPACITY
+    faint = None if opacities is None else np.asarray(opacities, np.float64).reshape(-1)[kept] < SEE_THROUGH_OPACITY
     return ready_for(ScanTarget(None, np.stack([positions.min(0), positions.max(0)]),
                                 np.stack([flat.min(0), flat.max(0)]), _planes(normals, positions), reflectivity,
-                                np.arange(len(positions), dtype=np.int32), "surfels", name,
+                                kept.astype(np.int32), "surfels", name,
                                 flat.astype(np.float32), polygons[:, fan].reshape(-1, 3).astype(np.int32),
                                 np.repeat(np.arange(len(positions), dtype=np.int32), len(fan)),
                                 see_through=faint if faint is not None and faint.any() else None), engine)
