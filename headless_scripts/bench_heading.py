@@ -37,7 +37,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "addon"))
 
 import numpy as np  # noqa: E402
-import torch  # noqa: E402
 import trimesh  # noqa: E402
 
 from pgt_blender import cli, dev  # noqa: E402
@@ -124,6 +123,8 @@ def main(argv: list) -> int:
     steps = args.steps or (150 if args.quick else hc.STEPS)
     samplings = args.samplings or (8 if args.quick else 10)
     seeds = args.seeds or (1 if args.quick else 3)
+    import torch  # after the arguments: --help works without it
+
     torch.set_num_threads(args.threads)
     labelled = hc.sample_meshes()
     if args.chrono.is_dir():

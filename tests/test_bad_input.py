@@ -434,6 +434,7 @@ def test_a_non_finite_pose_is_a_usage_error(inputs, tmp_path, flag, value):
     ("prepare_objects.py --size 1e308,1e308,1e308", "argument --size: expected class, keep or three sizes"),
     ("mix_bank.py --ratio 1e-320:1", "ratio '1e-320:1': at most 1000 PGT entries per GT entry"),
     ("export_bank.py --workers 0", "argument --workers: expected a whole number 1 .. 1,024"),
+    ("export_bank.py --out bank", "no input: give --blend FILE, --objects DIR, or run in Blender with a .blend"),
     ("score_bank.py --limit 0", "argument --limit: expected a whole number 1 .. 10,000,000"),
 ])
 def test_out_of_range_arguments_are_usage_errors(tmp_path, command, problem):

@@ -154,3 +154,12 @@ def test_the_bank_fields_hold_the_config_file_bounds(scene, tmp_path):
     settings.openpcdet = settings.mmdet3d = False
     with pytest.raises(InputError, match="Bank: no format chosen"):
         bank_config(settings)
+
+
+def test_the_bank_fields_default_to_the_command_lines_grid(scene):
+    """The Bank section's defaults make the default config's grid: its heading step, a
+    float32 angle, reads 30.000001 degrees, which left out the last of the 13 headings."""
+    from pgt_blender.core.bank.config import BankConfig
+
+    fields, default = bank_config(scene.pgt_bank), BankConfig()
+    assert (fields.headings_deg, fields.x, fields.y) == (default.headings_deg, default.x, default.y)

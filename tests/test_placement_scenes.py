@@ -76,6 +76,10 @@ def test_a_nuscenes_openpcdet_info_keeps_its_boxes_and_pose(shared_data, tmp_pat
     folder = shared_data / "nuscenes_format_sample"
     scan = folder / "samples" / "LIDAR_TOP" / "n015-2018-08-02-17-16-37+0800__LIDAR_TOP__1533201470948018.pcd.bin"
     reference = read_scene(scan, folder / "nus_info.pkl")
+    raw = np.fromfile(scan, np.float32).reshape(-1, 5)
+    assert np.unique(raw[:, 4]).size > 1  # the file's fifth column is the ring index ...
+    np.testing.assert_array_equal(reference.points[:, :4], raw[:, :4])
+    assert not reference.points[:, 4].any()  # ... and the key frame's time lag, 0, in the scene
     car_from_global, ref_from_car = np.eye(4), np.eye(4)
     car_from_global[:3, 3] = [-100.0, -200.0, 0.0]
     ref_from_car[:3, 3] = [-0.9, 0.0, -1.84]

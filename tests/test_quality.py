@@ -253,7 +253,7 @@ def test_score_bank_command_writes_json_and_caches_its_encoder(banks, real, tmp_
     assert dense["classes"]["Car"]["w1_points"] != car["w1_points"]  # one car of two: another distance
 
 
-@pytest.mark.parametrize("case", ["no bank", "missing real", "crafted real", "bad encoder"])
+@pytest.mark.parametrize("case", ["no bank", "missing real", "crafted real", "bad encoder", "no class in common"])
 def test_bad_input_is_one_line_and_exit_1(banks, real, tmp_path, capsys, case):
     """In this process (run_main: what the console script and the shim run)."""
     bank, real_pickle, extra = banks[MATCHED], real, []
@@ -266,6 +266,11 @@ def test_bad_input_is_one_line_and_exit_1(banks, real, tmp_path, capsys, case):
         infos["Car"][0]["score"] = CodeOnLoad(tmp_path / "code_ran")
         real_pickle = tmp_path / "crafted.pkl"
         real_pickle.write_bytes(pickle.dumps(infos))
+    elif case == "no class in common":  # nothing to score is no score
+        infos = pickle.loads(real.read_bytes())
+        real_pickle = tmp_path / "trams.pkl"
+        real_pickle.write_bytes(pickle.dumps({"Tram": [dict(info, name="Tram") for info in infos["Car"]]}))
+        extra = ["--real-root", real.parent]
     else:
         (tmp_path / "encoder.pt").write_bytes(b"not a checkpoint")
         extra = ["--encoder", tmp_path / "encoder.pt"]
@@ -274,7 +279,7 @@ def test_bad_input_is_one_line_and_exit_1(banks, real, tmp_path, capsys, case):
     stderr = capsys.readouterr().err
     assert code == 1 and stderr.strip().count("\n") == 0
     culprit = {"no bank": tmp_path, "missing real": real_pickle, "crafted real": real_pickle,
-               "bad encoder": tmp_path / "encoder.pt"}[case]
+               "bad encoder": tmp_path / "encoder.pt", "no class in common": real_pickle}[case]
     assert stderr.startswith(f"error: {culprit}: ") and not (tmp_path / "s.json").exists()
     assert not (tmp_path / "code_ran").exists()
 

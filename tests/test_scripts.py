@@ -23,7 +23,7 @@ def test_import_colmap_json_and_blend(statue, tmp_path):
     blend = tmp_path / "scene.blend"
     result = run_script("import_reconstruction.py", statue, "--out", blend, "--json")
     assert result.returncode == 0, result.stderr
-    summary = last_json_line(result.stdout)
+    summary = json.loads(result.stdout)  # all of it: Blender's "Saved as" goes to stderr
     assert (summary["points"], summary["cameras"], summary["faces"]) == (1816, 40, 0)
     assert {"Col", "track_length", "reprojection_error"} <= set(summary["attributes"])
     assert blend.stat().st_size > 0
@@ -218,6 +218,28 @@ def test_scan_object_bin_equals_the_core_scan(chrono_meshes, tmp_path):
     expected = scan_sweeps(target, PRESETS["nuscenes"], 14.0, -3.0,
                            np.radians(20.0), Motion(6.0), 10)
     assert out.read_bytes() == expected.dataset_array().tobytes()
+
+
+@pytest.mark.parametrize("surface", ["auto", "range-view"])
+def test_scan_object_reports_the_authored_box(truck_sample, tmp_path, surface):
+    """A prepared object (with its sidecar) stands on the ground in its authored box, as
+    in the bank, and that box is the one printed: not the bounds of its points, which
+    floaters and noise widen."""
+    import json
+
+    from pgt_blender.core.authoring.prepare import prepare, write_prepared
+    from pgt_blender.core.importing import load_reconstruction
+
+    authored = prepare(load_reconstruction(truck_sample["reconstruction.ply"]), "truck", up="+z",
+                       heading_method="none")
+    paths = write_prepared(authored, "truck", "nuscenes", tmp_path / "prepared")
+    dims = json.loads(paths[".json"].read_text())["dims"]
+    result = run_script("scan_object.py", "--object", paths[".ply"], "--x", 12, "--y", 0, "--surface", surface,
+                        "--out", tmp_path / "scan.npy")
+    assert result.returncode == 0, result.stderr
+    box = [float(value) for value in result.stdout.split("box [x, y, z, dx, dy, dz, heading, vx, vy] = [")[1]
+           .split("]")[0].split(",")]
+    assert box[3:6] == pytest.approx(dims, abs=1e-3)
 
 
 @pytest.mark.parametrize("surface, suffix", [("auto", ".ply"), ("range-view", ".npy")])

@@ -68,9 +68,10 @@ def bank_config(settings, checkpoint: str = "") -> BankConfig:
         raise InputError("Bank", "no format chosen: tick OpenPCDet or mmdetection3d")
     (x_low, x_high, _), (y_low, y_high, _) = DATASET_GRIDS[settings.dataset]
     learned = checkpoint and settings.dataset not in DATASET_CONSTANT_INTENSITY
+    # heading_step is float32 radians: 30 deg reads back as 30.000001, a grid without its last heading
     fields = BankConfig(dataset=settings.dataset, sensor="" if settings.sensor == "DATASET" else settings.sensor,
                         formats=formats, seed=settings.seed, sweeps=settings.sweeps, chunk_size=settings.chunk_size,
-                        headings_deg=(-180.0, 180.0, round(math.degrees(settings.heading_step), 6)),
+                        headings_deg=(-180.0, 180.0, round(math.degrees(settings.heading_step), 4)),
                         x=(x_low, x_high, settings.grid_step), y=(y_low, y_high, settings.grid_step),
                         engine=settings.engine, intensity_checkpoint=checkpoint if learned else "")
     return config_from_table(config_table(fields), "Bank")  # held to a config file's bounds
@@ -132,10 +133,17 @@ class BankRun:
         return True
 
     def finish(self) -> Path:
-        """Assemble the info pickles and the manifest, write the report (write_bank_report);
-        its path."""
-        export.assemble(self.out, existed=self.existed)
+        """Assemble the info pickles and the manifest (kept as ``manifest``), write the
+        report (write_bank_report); its path."""
+        self.manifest = export.assemble(self.out, existed=self.existed)
         return write_bank_report(self.out, self.real, self.reference)
+
+    def summary(self) -> str:
+        """What the finished bank holds, as export_bank.py prints it: entries kept and
+        poses dropped below the minimum points."""
+        dropped = sum(self.manifest["dropped_below_min_points"].values())
+        return (f"{self.manifest['entries']:,} entries written to {self.out} ({dropped:,} poses under "
+                f"{self.manifest['config']['min_points']} points left out)")
 
     def stop(self) -> None:
         self._chunks.close()

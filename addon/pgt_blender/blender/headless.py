@@ -2,8 +2,12 @@
 process as Blender would register it (arguments and exit codes: ../cli.py)."""
 
 import atexit
+import os
+import sys
 
 import bpy
+
+from ..core.errors import InputError
 
 
 def ensure_registered() -> None:
@@ -21,6 +25,24 @@ def start_scene() -> None:
     """An empty scene, unless a .blend was given on Blender's command line."""
     if not bpy.data.filepath:
         bpy.ops.wm.read_factory_settings(use_empty=True)
+
+
+def save_blend(path) -> None:
+    """Save the open file as ``path`` (its folder made first); InputError when Blender
+    cannot write it. Blender prints "Info: Saved as ..." on the process's standard
+    output, which would break a command's --json output: it goes to standard error."""
+    path = os.path.abspath(path)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    sys.stdout.flush()
+    stdout = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        bpy.ops.wm.save_as_mainfile(filepath=path)
+    except RuntimeError as error:  # Blender reports a failed write as a RuntimeError
+        raise InputError(path, f"cannot write the .blend: {str(error).strip().splitlines()[-1]}") from None
+    finally:
+        os.dup2(stdout, 1)
+        os.close(stdout)
 
 
 def object_summary(obj: bpy.types.Object) -> dict:

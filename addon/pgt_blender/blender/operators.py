@@ -688,7 +688,7 @@ class SCENE_OT_pgt_export_bank(_BackgroundSteps, bpy.types.Operator):
     def finished(self, context):
         settings, run = context.scene.pgt_bank, self.bank_run
         settings.progress = 1.0
-        settings.status = printable(f"{run.done:,} entries written to {run.out}; report: {self.report_path}")
+        settings.status = printable(f"{run.summary()}; report: {self.report_path}")
         self.report({"INFO"}, settings.status)
         return {"FINISHED"}
 

@@ -80,7 +80,7 @@ def main(argv: list) -> int:
         truth = json.loads(paths["truth.json"].read_text())
         rows.append({**headless.object_summary(obj), **author(obj, truth, method), **scan(obj)})
     blend = out / "demo.blend"
-    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    headless.save_blend(blend)
     print(f"\nheading by: {method}; error = angle to the true object frame (180 deg: front/back wrong)")
     print("scan: nuScenes HDL-32E, object broadside 15 m away, surfels of the authored points")
     print(f"{'object':34} {'points':>7} {'error deg':>9}  {'box [l, w, h] m':20}  scan")

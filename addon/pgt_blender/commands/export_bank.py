@@ -61,8 +61,6 @@ def gather(args) -> tuple[list, Path]:
     for source in args.objects:
         found, missing = prepared_objects(source)
         objects, incomplete, sources = objects + found, incomplete + missing, sources + [source]
-    if not sources:
-        raise InputError(".", "no input: give --blend FILE, --objects DIR, or run in Blender with a .blend")
     return checked_objects(objects, incomplete, args.skip_incomplete, sources[0]), sources[0]
 
 
@@ -196,6 +194,8 @@ def main(argv: list) -> int:
         parser.error("--resume and --overwrite exclude each other")
     if args.workers < 1:
         parser.error("--workers must be at least 1")
+    if not (args.assemble or args.blend or args.objects or _open_blend_file()):
+        parser.error("no input: give --blend FILE, --objects DIR, or run in Blender with a .blend")
     return export_bank(args)
 
 

@@ -25,7 +25,6 @@ import bpy
 from ..blender import headless, objects
 from .. import cli
 from ..core.capture import FOREGROUND_MODES, CaptureOptions
-from ..core.errors import InputError
 from ..core.importing import load_reconstruction
 
 
@@ -59,11 +58,7 @@ def main(argv: list) -> int:
                                 capture=capture if capture.needs_cameras else None)
     obj = objects.add_reconstruction(bpy.context.scene, recon, not args.no_cameras)
     if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            bpy.ops.wm.save_as_mainfile(filepath=str(args.out.resolve()))
-        except RuntimeError as error:  # Blender reports a failed write as a RuntimeError
-            raise InputError(args.out, f"cannot write the .blend: {str(error).strip().splitlines()[-1]}") from None
+        headless.save_blend(args.out)
     summary = headless.object_summary(obj)
     if recon.capture:
         summary["capture"] = recon.capture

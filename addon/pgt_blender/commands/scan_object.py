@@ -12,7 +12,9 @@ ray composites the splats it meets and returns where their opacity reaches 0.5,
 pgt_blender/core/scan/gaussians.py); points become surfels (splats too with --surface
 surfels; or, with --surface range-view, the paper's range-view projection). The object
 stands on the ground with its object-frame origin at (--x, --y) m in the sensor frame,
-turned by --heading deg counter-clockwise from +x. --sensor: nuscenes, kitti, lyft, vlp16 or a .toml file.
+turned by --heading deg counter-clockwise from +x. Its box (what stands on the ground
+and the printed box) is the authored one, the sidecar <object>.json's dims centred on
+the origin, as in the bank; without a sidecar, the geometry's bounds. --sensor: nuscenes, kitti, lyft, vlp16 or a .toml file.
 
 Output by suffix: .bin float32 in the dataset's columns (KITTI x y z intensity;
 nuScenes/Lyft x y z intensity time_lag), .ply every column, .npy the structured rows
@@ -43,12 +45,17 @@ from ..core.scan.sweeps import CLASS_MOTION, Motion, motion_class, sample_motion
 from ..core.scan.targets import element_colors, has_gaussians, reflectivity_from_srgb, target_from_reconstruction
 
 
-def sidecar_class(path: Path) -> str | None:
-    """The class recorded by prepare_objects.py beside the object, if any."""
-    sidecar = path.with_suffix(".json")
-    if not sidecar.is_file():
-        return None
-    return read_sidecar(sidecar).get("class")
+def sidecar(path: Path) -> dict:
+    """What prepare_objects.py recorded beside the object (read_sidecar), or {}."""
+    record = path.with_suffix(".json")
+    return read_sidecar(record) if record.is_file() else {}
+
+
+def authored_box(record: dict):
+    """(2, 3) the authored box of a prepared object (its sidecar's dims, centred on the
+    object-frame origin, as the bank takes it), or None without a sidecar."""
+    dims = record.get("dims")
+    return None if dims is None else np.outer([-0.5, 0.5], dims)
 
 
 def scan(args):
@@ -56,17 +63,19 @@ def scan(args):
     recon = load_reconstruction(args.object, with_cameras=False)
     options = ScanOptions(range_noise=args.noise, drop_rate=args.drop_rate, ray_drop=args.ray_drop, seed=args.seed)
     heading = np.radians(args.heading)
-    class_name = args.class_name or sidecar_class(args.object)
+    record = sidecar(args.object)
+    class_name = args.class_name or record.get("class")
+    box = authored_box(record)
     if args.surface == "range-view":
         if args.sweeps != 1:
             raise InputError(args.object, "range view scans one sweep; drop --sweeps")
         positions = recon.positions.astype(np.float64)
-        bounds = np.stack([positions.min(0), positions.max(0)])
+        bounds = np.stack([positions.min(0), positions.max(0)]) if box is None else box
         reflectivity = None if recon.colors is None else reflectivity_from_srgb(recon.colors)
         pose = placement(bounds, sensor, args.x, args.y, heading)
         result = range_view_scan(positions, sensor, pose, bounds, reflectivity, options=options)
     else:
-        result, bounds = ray_cast(args, recon, sensor, heading, class_name, options)
+        result, bounds = ray_cast(args, recon, sensor, heading, class_name, options, box)
     if args.intensity_checkpoint and not class_name:
         raise InputError(recon.source, "the learned intensity needs the object's class: give --class")
     result.returns["intensity"], note = scan_intensity(result, bounds, element_colors(recon), class_name,
@@ -74,8 +83,9 @@ def scan(args):
     return result, sensor, note
 
 
-def ray_cast(args, recon, sensor, heading: float, class_name: str, options):
-    """A mesh, Gaussian or surfel scan over --sweeps sweeps: (Scan, the object's box bounds (2, 3))."""
+def ray_cast(args, recon, sensor, heading: float, class_name: str, options, box=None):
+    """A mesh, Gaussian or surfel scan over --sweeps sweeps: (Scan, the object's box
+    bounds (2, 3): ``box``, else the geometry's)."""
     if args.surface == "mesh" and not len(recon.faces):
         raise InputError(args.object, "has no faces to scan as a mesh; use --surface surfels")
     if args.surface == "gaussians" and (len(recon.faces) or not has_gaussians(recon.attributes)):
@@ -88,7 +98,8 @@ def ray_cast(args, recon, sensor, heading: float, class_name: str, options):
         motion = Motion(args.speed, args.acceleration)
     elif class_name and args.sweeps > 1:
         motion = sample_motion(moving_class(args, class_name), np.random.default_rng(args.seed))
-    return scan_sweeps(target, sensor, args.x, args.y, heading, motion, args.sweeps, options), target.bounds
+    bounds = target.bounds if box is None else box
+    return scan_sweeps(target, sensor, args.x, args.y, heading, motion, args.sweeps, options, bounds), bounds
 
 
 def moving_class(args, class_name: str) -> str:

@@ -19,6 +19,7 @@ import json
 from pathlib import Path
 
 from .. import cli
+from ..core.errors import InputError
 from ..core.files import atomic_output
 from ..core.gt_database import CONVENTIONS
 from ..core.quality.score import quality_available, score_bank, table_rows
@@ -48,6 +49,9 @@ def main(argv: list) -> int:
     learned = not args.no_learned and (args.encoder is not None or quality_available())
     scores = score_bank(args.bank, args.real, args.convention, args.real_root, args.encoder, learned,
                         args.reference, args.limit, args.seed, progress=not args.no_progress)
+    if not scores["classes"]:
+        raise InputError(args.real, f"no class in common with the bank {args.bank} (classes in only one of them: "
+                                    f"{', '.join(scores['unmatched']) or 'none'}); nothing to score")
     print(cli.markdown_table(*table_rows(scores)))
     if scores["unmatched"]:
         print(f"classes in only one database (not scored): {', '.join(scores['unmatched'])}")

@@ -1,7 +1,10 @@
 """Real scenes to place objects into: a scan, its labelled boxes and its pose.
 
 Read from the scan file (raw float32 rows: KITTI 4 columns x y z intensity, nuScenes
-and Lyft 5, the file's own columns kept) and one of:
+and Lyft 5) and one of the infos below. A nuScenes or Lyft scan is the key frame's file
+that the info names, whose fifth column is the laser's ring index: it becomes the key
+frame's time lag, 0, as OpenPCDet's and mmdetection3d's loaders make it, so the rows
+come out in the bank's columns x y z intensity time_lag.
 
 - a **KITTI label file** (``label_2/<frame>.txt``, its ``calib/<frame>.txt`` beside
   ``label_2``): boxes from camera 2's frame (core.boxes.kitti_camera_to_lidar);
@@ -77,6 +80,8 @@ def read_scene(scan, info, dataset: str | None = None) -> Scene:
     points = read_float32_rows(scan, columns, f"point columns ({', '.join(BIN_COLUMNS[dataset])})")
     if not len(points):
         raise InputError(scan, "the scan has no points")
+    if dataset != "kitti":
+        points[:, 4] = 0.0  # the key frame's ring index becomes its time lag
     return Scene(points, np.asarray(boxes, np.float64), np.asarray(names, str), np.asarray(pose, np.float64),
                  dataset, scan)
 
