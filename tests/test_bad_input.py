@@ -546,3 +546,53 @@ def test_a_pipe_or_device_named_as_a_file_is_refused_unread(tmp_path, reader, sp
         signal.alarm(0)
         signal.signal(signal.SIGALRM, previous)
     assert error.value.path == path and "not a regular file (a pipe, socket or device)" in error.value.problem
+
+
+OUTPUT_IS_INPUT = [  # (command with IN / OUT placeholders, the output): each would overwrite what it reads
+    ("scan_object.py --object IN/truck.ply --x 10 --y 0 --out IN/truck.ply", "IN/truck.ply"),
+    ("import_reconstruction.py IN/truck.ply --out IN/truck.ply", "IN/truck.ply"),
+    ("fit_sensor.py IN/scan.bin --out IN/scan.bin", "IN/scan.bin"),
+    ("score_bank.py --bank IN --real IN/real.pkl --json IN/real.pkl", "IN/real.pkl"),
+    ("place_objects.py --scan IN/scan.bin --info IN/label.txt --bank IN/real.pkl --out IN", "IN"),
+    ("prepare_objects.py --in IN --class truck --out IN", "IN"),
+    ("train_heading.py --gt-database IN/real.pkl --out IN/real.pkl", "IN/real.pkl"),
+    ("train_intensity.py --real IN --out IN", "IN"),
+    ("export_bank.py --objects IN --out IN", "IN"),
+]
+
+
+@pytest.mark.parametrize("command, output", OUTPUT_IS_INPUT)
+def test_an_output_that_is_or_holds_an_input_is_refused(tmp_path, command, output):
+    """Checked before anything is read: one line naming the output, exit 1, the input
+    as it was (the inputs here are placeholders: no reader gets to them)."""
+    inputs = tmp_path / "in"
+    inputs.mkdir()
+    for name in ("truck.ply", "scan.bin", "real.pkl", "label.txt"):
+        (inputs / name).write_bytes(b"input " + name.encode())
+    before = {path.name: path.read_bytes() for path in inputs.iterdir()}
+    result = run_script(*command.replace("IN", str(inputs)).split())
+    assert result.returncode == 1 and result.stderr.count("\n") == 1, result.stderr
+    assert result.stderr.startswith(f"error: {output.replace('IN', str(inputs))}: is or holds the input ")
+    assert {path.name: path.read_bytes() for path in inputs.iterdir()} == before
+
+
+@pytest.mark.parametrize("reader", ["sensor", "bank config"])
+def test_a_toml_file_nested_too_deeply_is_named(tmp_path, reader):
+    """5,000 nested arrays exhaust the TOML parser's recursion: one line, not a traceback."""
+    from pgt_blender.core.bank.config import load_config
+    from pgt_blender.core.scan.sensors import load_sensor_toml
+
+    path = tmp_path / "deep.toml"
+    path.write_text("elevations_deg = " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(InputError, match="^" + str(path) + ": not a readable TOML file: nested too deeply$"):
+        (load_sensor_toml if reader == "sensor" else load_config)(path)
+
+
+def test_a_training_mesh_no_scan_can_use_is_named(tmp_path):
+    """train_heading --chrono scans its meshes: a vertex 1e200 m away is named with its
+    file up front, as a bank names it (targets.require_scannable)."""
+    from pgt_blender.core.authoring.heading_classifier import mesh_folder_meshes
+
+    (tmp_path / "car.obj").write_text("v 0 0 0\nv 1 0 0\nv 1e200 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n")
+    with pytest.raises(InputError, match=f"^{tmp_path / 'car.obj'}: "):
+        mesh_folder_meshes(tmp_path)

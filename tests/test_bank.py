@@ -519,7 +519,7 @@ def test_output_folder_rules(reference, prepared, tmp_path):
     assert json.loads((copy / "manifest.json").read_text())["seed"] == 5
 
 
-def test_damaged_or_crafted_chunk_records_are_redone_never_run(reference, prepared, tmp_path):
+def test_damaged_or_crafted_chunk_records_and_lost_files_are_redone_never_run(reference, prepared, tmp_path):
     out, config = reference
     copy = tmp_path / "bank"
     import shutil
@@ -532,9 +532,11 @@ def test_damaged_or_crafted_chunk_records_are_redone_never_run(reference, prepar
     crafted = json.loads(records[3].read_text())
     crafted["stats"] = {"numpy": "|O", "shape": [1], "bytes": "AAAAAAAAAAA="}  # an object array
     records[3].write_text(json.dumps(crafted))
+    (copy / next(iter(json.loads(records[4].read_text())["files"]))).unlink()  # a lost entry file
     result = run_export("--assemble", "--out", copy, check=False)
     assert result.returncode == 1 and not marker.exists()
-    assert last_line(result) == f"error: {records[1]}: damaged (3 chunk record(s)); --resume redoes them"
+    assert last_line(result) == (f"error: {records[1]}: damaged or an entry file it lists is missing (4 chunk(s)); "
+                                 f"--resume redoes them")
     run_export("--objects", prepared, "--config", config, "--out", copy, "--resume")
     assert not marker.exists() and bank_bytes(copy) == bank_bytes(out)
 

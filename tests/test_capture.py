@@ -464,3 +464,7 @@ def test_splatfacto_export_with_its_run_transform_sees_through_the_colmap_camera
     (tmp_path / "dataparser_transforms.json").write_text('{"transform": [[2, 0, 0, 0]], "scale": 1}')
     with pytest.raises(InputError, match="dataparser_transforms.json: not a nerfstudio dataparser transform"):
         load_reconstruction(tmp_path / "splat.ply", cameras=statue)
+    overflowing = {"transform": np.eye(3, 4).tolist(), "scale": 1e308}
+    (tmp_path / "dataparser_transforms.json").write_text(json.dumps(overflowing))
+    with pytest.raises(InputError, match="dataparser_transforms.json: moves camera .* beyond the floating-point range"):
+        load_reconstruction(tmp_path / "splat.ply", cameras=statue)

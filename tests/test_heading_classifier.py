@@ -133,6 +133,14 @@ def test_missing_and_corrupt_checkpoints_name_the_file(tmp_path):
     torch.save({"state_dict": {}}, foreign)
     with pytest.raises(InputError, match="format None"):
         hc.load_checkpoint(foreign)
+    shipped = torch.load(hc.DEFAULT_CHECKPOINT, weights_only=True)
+    no_points = {key: value for key, value in shipped["config"].items() if key != "points"}
+    for config in (None, {**shipped["config"], "points": 0}, no_points):
+        damaged = tmp_path / "damaged.pt"
+        torch.save({**shipped, "config": config}, damaged)
+        with pytest.raises(InputError, match=f"^{damaged}: not a readable heading-classifier checkpoint "
+                                             r"\(ValueError: its config"):
+            hc.load_checkpoint(damaged)
 
 
 def test_without_torch_the_message_is_clear():

@@ -215,6 +215,13 @@ def test_an_undecodable_file_name_is_printable_in_the_error(tmp_path):
                                                + SUPPORTED.encode() + b")")
 
 
+def test_a_line_break_in_a_file_name_keeps_the_error_on_one_line(tmp_path):
+    path = tmp_path / "two\nlines.xyz"
+    path.write_text("")
+    error = pytest.raises(InputError, load_reconstruction, path).value
+    assert "\n" not in str(error) and str(error).startswith(f"{tmp_path}/two\\nlines.xyz: unsupported format")
+
+
 @pytest.mark.parametrize("missing", ["points3D.bin", "cameras.bin"])
 def test_colmap_missing_file(statue_copy, missing):
     for text in statue_copy.glob("*.txt"):

@@ -65,6 +65,8 @@ def _calib_line(key, numbers):
 @pytest.mark.parametrize("damage, named, problem", [
     (_label_line(lambda f: f.__setitem__(8, "nan")), "label", "line 1: the box must be finite numbers"),
     (_label_line(lambda f: f.__setitem__(9, "-1.5")), "label", "line 1: the box must be finite numbers with positive"),
+    (_label_line(lambda f: f.__setitem__(11, "1e200")), "label",  # fit_ground's neighbour search overflowed
+     "line 1: the box must be finite numbers with positive dimensions, within 1e+08 m"),
     (lambda label, calib: label.write_bytes(b"Car \xff\xfe 0 0\n"), "label", "not a readable text file"),
     (lambda label, calib: calib.write_bytes(b"R0_rect: \xff\n"), "calib", "not a readable text file"),
     (_calib_line("R0_rect", "abc"), "calib", "not a KITTI calib file"),

@@ -299,6 +299,18 @@ def test_resume_refuses_another_run_and_a_corrupt_checkpoint(sets, trained, tmp_
     with pytest.raises(InputError, match=r"checkpoint.pt: was written by a different run \(seed: 0 there, 1 now\)"):
         train(*sets, TrainConfig(**{**SMALL, "steps": 40, "checkpoint_every": 10, "seed": 1}), folder,
               resume=True, progress=False)
+    settings = (folder / "config.json").read_bytes()
+    with pytest.raises(InputError, match=r"checkpoint.pt: is at step \d+, past the 5 steps asked for"):
+        train(*sets, TrainConfig(**{**SMALL, "steps": 5, "checkpoint_every": 10}), folder, resume=True, progress=False)
+    assert (folder / "config.json").read_bytes() == settings  # a refused resume changes nothing
+    import torch
+
+    state = torch.load(folder / "checkpoint.pt", weights_only=True)
+    for damage in ({"step": "x"}, {"step": -5}, {"networks": None}, {"networks": {"g": {}}}):
+        torch.save({**state, **damage}, folder / "checkpoint.pt")
+        with pytest.raises(InputError, match=r"checkpoint.pt: damaged \(.*; train without --resume"):
+            train(*sets, config, folder, resume=True, progress=False)
+        assert (folder / "config.json").read_bytes() == settings
     (folder / "checkpoint.pt").write_bytes(b"PK\x03\x04 broken")
     with pytest.raises(InputError, match="not a readable intensity training checkpoint"):
         train(*sets, TrainConfig(**{**SMALL, "steps": 40, "checkpoint_every": 10}), folder, resume=True, progress=False)
@@ -318,6 +330,14 @@ def test_bad_checkpoints_classes_datasets_and_arrays(trained, tmp_path):
             IntensityEstimator.load(path)
         assert str(error.value).startswith(f"{path}: ") and "\n" not in str(error.value)
     path = trained / "intensity.pt"
+    saved = torch.load(path, weights_only=True)
+    for field, value in (("dataset", None), ("points", -1), ("classes", "car"), ("config", None)):
+        damaged = tmp_path / f"{field}.pt"
+        config = None if field == "config" else {**saved["config"], field: value}
+        torch.save({**saved, "config": config}, damaged)
+        with pytest.raises(InputError, match=f"^{damaged}: not a readable intensity-estimator checkpoint "
+                                             f"\\(ValueError: its config"):
+            IntensityEstimator.load(damaged)
     with pytest.raises(InputError, match=f"^{path}: was trained on kitti intensities, not nuscenes's$"):
         IntensityEstimator.load(path, "nuscenes")
     xyz, dims, rgb = an_object(20)

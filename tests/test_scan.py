@@ -101,6 +101,9 @@ def test_paper_ablation_settings_are_expressible(tmp_path):
     ('elevations_deg = "12"', "elevations_deg must be a list of numbers"),
     ('firing_us = [0, "a"]', "firing_us must be a list of numbers"),
     ("firing_us = [1" + "0" * 400 + "]", "firing_us must be a list of numbers"),  # beyond a float
+    ("intensity_law = [1, 0, 1e200]", "intensity_law needs 0 < scale <= 1e+06, 0 <= range_exponent <= 10 and "
+                                      "0 <= spread <= 10"),  # exp(spread x normal) overflowed
+    ("intensity_law = [1e308, 1, 0]", "intensity_law needs 0 < scale <= 1e+06"),
 ])
 def test_bad_sensor_files_name_the_file_and_the_problem(tmp_path, body, problem):
     path = tmp_path / "bad.toml"

@@ -10,6 +10,8 @@ import math
 import os
 import sys
 
+from .core.learning import MAX_CLOUD_POINTS
+
 
 def script_argv() -> list:
     """The script's own arguments: those after ``--`` (Blender's convention), else argv[1:]."""
@@ -123,7 +125,7 @@ def whole(low: int, high: int):
 SEED = whole(0, 2**31 - 1)  # numpy, torch and COLMAP (a C int) all take it
 THREADS = whole(1, 64)
 STEPS = whole(1, 10**7)  # optimiser steps
-CLOUD_POINTS = whole(1, 16384)  # points per cloud a network sees: beyond, GBs per batch
+CLOUD_POINTS = whole(1, MAX_CLOUD_POINTS)  # points per cloud a network sees
 
 
 def output(folder: bool):

@@ -38,6 +38,7 @@ from ..core.bank.config import BankConfig, load_config
 from ..core.bank.executors import check_ray_address
 from ..core.bank.inputs import checked_objects, prepared_objects
 from ..core.errors import InputError
+from ..core.files import apart_from_inputs
 
 
 def shard_argument(text: str) -> tuple:
@@ -190,6 +191,7 @@ def main(argv: list) -> int:
     parser.add_argument("--from", dest="shard_dirs", type=Path, nargs="+", default=[],
                         help="with --assemble: shard folders to copy into --out first")
     args = parser.parse_args(argv)
+    apart_from_inputs(args.out, [*args.objects, args.blend, args.config, args.real])
     if args.resume and args.overwrite:
         parser.error("--resume and --overwrite exclude each other")
     if args.workers < 1:

@@ -36,7 +36,7 @@ from scipy.stats import wasserstein_distance
 
 from .. import cli
 from ..core.errors import InputError
-from ..core.files import atomic_output, read_float32_rows
+from ..core.files import apart_from_inputs, atomic_output, read_float32_rows
 from ..core.intensity.objects import kitti_frames
 from ..core.scan import ray_drop, replay
 from ..core.scan.physical_intensity import relative_intensity
@@ -110,6 +110,7 @@ def main(argv: list) -> int:
     parser.add_argument("--out", type=cli.OUTPUT_FILE, help="write the fitted models as a sensor TOML here")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     args = parser.parse_args(argv)
+    apart_from_inputs(args.out, [args.folder, *(args.intensity_points or [])])
     sensor = sensor_from_name(args.sensor)
     frames = replay.replay_frames(kitti_frames(args.folder), sensor, replay.class_meshes(args.meshes))
     if not frames:

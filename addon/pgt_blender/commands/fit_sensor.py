@@ -23,7 +23,7 @@ import numpy as np
 
 from .. import cli
 from ..core.errors import InputError
-from ..core.files import atomic_output, read_float32_rows
+from ..core.files import apart_from_inputs, atomic_output, read_float32_rows
 from ..core.scan import sensor_fit
 from ..core.scan.sensors import PRESETS
 
@@ -84,6 +84,7 @@ def main(argv: list) -> int:
                         help="float32 values per point (KITTI: 4)")
     parser.add_argument("--json", action="store_true", help="print the fit as one JSON object")
     args = parser.parse_args(argv)
+    apart_from_inputs(args.out, args.scans)
     files = scan_files(args.scans)
     scans = [read_float32_rows(path, args.values_per_point).astype(np.float64) for path in files]
     fit = sensor_fit.fit_lasers(scans, files)

@@ -25,6 +25,7 @@ import bpy
 from ..blender import headless, objects
 from .. import cli
 from ..core.capture import FOREGROUND_MODES, CaptureOptions
+from ..core.files import apart_from_inputs
 from ..core.importing import load_reconstruction
 
 
@@ -46,6 +47,7 @@ def main(argv: list) -> int:
                         help="share of the views seeing an element that must put it inside the mask (default 0.5)")
     parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of the capture steps' random draws")
     args = parser.parse_args(argv)
+    apart_from_inputs(args.out, [args.input, args.cameras, args.masks])
     if args.foreground == "masks" and not args.masks:
         parser.error("--foreground masks needs --masks FOLDER")
     if not 0 <= args.mask_share <= 1:

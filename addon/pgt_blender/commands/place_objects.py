@@ -27,7 +27,7 @@ import numpy as np
 
 from .. import cli
 from ..core.errors import InputError
-from ..core.files import regular_file
+from ..core.files import apart_from_inputs, regular_file
 from ..core.placement.bandit import ThompsonCells
 from ..core.placement.birdseye import birdseye_png
 from ..core.placement.entries import open_database
@@ -76,6 +76,9 @@ def main(argv: list) -> int:
     parser.add_argument("--no-occlusion", action="store_true", help="skip the range-view ray tracing")
     parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of every draw (default 0)")
     args = parser.parse_args(argv)
+    apart_from_inputs(args.out,
+                      [args.scan, args.info, args.bank, args.map_polygons, args.map, args.map_legend,
+                       args.class_layers, args.thompson])
     if args.map is not None and (args.map_pose is None or args.map_legend is None):
         parser.error("--map needs --map-pose and --map-legend")
     if args.map_pose is not None and len(args.map_pose) not in (3, 4):

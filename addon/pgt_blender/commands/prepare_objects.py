@@ -26,6 +26,7 @@ from ..core.authoring.heading import best_available_method
 from ..core.authoring.prepare import UP_CHOICES, heading_label, prepare, write_prepared
 from ..core.classes import CLASS_SIZES
 from ..core.errors import InputError
+from ..core.files import apart_from_inputs
 from ..core.importing import SUPPORTED, find_reconstructions, load_reconstruction
 
 def size_argument(text: str):
@@ -60,6 +61,7 @@ def main(argv: list) -> int:
     parser.add_argument("--no-refine", dest="refine", action="store_false",
                         help="keep the up choice and PCA yaw as they are (no refinement to the surface planes)")
     args = parser.parse_args(argv)
+    apart_from_inputs(args.out, [args.inputs, args.checkpoint])
     if args.class_name not in CLASS_SIZES[args.dataset]:
         parser.error(f"{args.dataset} has no class '{args.class_name}' (have: {', '.join(CLASS_SIZES[args.dataset])})")
     inputs = find_reconstructions(args.inputs)

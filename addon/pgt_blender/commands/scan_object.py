@@ -35,6 +35,7 @@ from .. import cli
 from ..core.authoring.prepare import read_sidecar
 from ..core.bank.config import MAX_SWEEPS
 from ..core.errors import InputError
+from ..core.files import apart_from_inputs
 from ..core.importing import load_reconstruction
 from ..core.intensity.estimator import scan_intensity
 from ..core.scan.range_view import range_view_scan
@@ -140,6 +141,7 @@ def main(argv: list) -> int:
     parser.add_argument("--out", type=cli.OUTPUT_FILE, required=True,
                         help=f"output file ({', '.join(OUTPUT_SUFFIXES)})")
     args = parser.parse_args(argv)
+    apart_from_inputs(args.out, [args.object, args.intensity_checkpoint])
     if args.out.suffix not in OUTPUT_SUFFIXES:
         parser.error(f"--out must end in {', '.join(OUTPUT_SUFFIXES)}")
     if not 0 <= args.drop_rate < 1:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from .. import cli
 from ..core.errors import InputError
-from ..core.files import atomic_output
+from ..core.files import apart_from_inputs, atomic_output
 from ..core.gt_database import CONVENTIONS
 from ..core.quality.score import quality_available, score_bank, table_rows
 from ..core.quality.sets import REFERENCES
@@ -46,6 +46,7 @@ def main(argv: list) -> int:
     parser.add_argument("--json", type=cli.OUTPUT_FILE, help="write the scores to this JSON file")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
+    apart_from_inputs(args.json, [args.bank, args.real, args.encoder])
     learned = not args.no_learned and (args.encoder is not None or quality_available())
     scores = score_bank(args.bank, args.real, args.convention, args.real_root, args.encoder, learned,
                         args.reference, args.limit, args.seed, progress=not args.no_progress)

@@ -30,6 +30,7 @@ from tqdm import tqdm
 from .. import cli
 from ..core.authoring import heading_classifier as hc
 from ..core.errors import InputError
+from ..core.files import apart_from_inputs
 
 
 
@@ -79,6 +80,7 @@ def main(argv: list) -> int:
     parser.add_argument("--threads", type=cli.THREADS, default=1,
                         help="torch CPU threads (part of what makes bytes repeat)")
     args = parser.parse_args(argv)
+    apart_from_inputs(args.out, [args.chrono, args.gt_database])
     if args.gt_database is not None and args.gt_convention is None:
         parser.error("--gt-database needs --gt-convention mmdet3d or openpcdet")
     hc.require_torch(args.out)

@@ -31,6 +31,7 @@ from pathlib import Path
 
 
 from .. import cli
+from ..core.files import apart_from_inputs
 from ..core.intensity import model
 from ..core.intensity.estimator import IntensityEstimator
 from ..core.intensity.training import TrainConfig, train
@@ -80,6 +81,7 @@ def parse(argv: list):
                         help="torch CPU threads (part of what makes the bytes repeat)")
     parser.add_argument("--resume", action="store_true", help="go on from DIR/checkpoint.pt")
     args = parser.parse_args(argv)
+    apart_from_inputs(args.out, args.real)
     config = TrainConfig(points=args.points, steps=args.steps, checkpoint_every=args.checkpoint_every,
                          seed=args.seed, threads=args.threads)
     try:

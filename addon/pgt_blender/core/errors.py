@@ -32,4 +32,6 @@ class InputError(ValueError):
     def __init__(self, path, problem: str):
         self.path = Path(path)
         self.problem = " ".join(str(problem).split())  # keep it on one line
-        super().__init__(printable(f"{self.path}: {self.problem}"))
+        # a line break in a file name is written as its escape: the message stays one line
+        where = str(self.path).replace("\r", "\\r").replace("\n", "\\n")
+        super().__init__(printable(f"{where}: {self.problem}"))

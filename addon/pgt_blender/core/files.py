@@ -69,6 +69,35 @@ def output_path(path, folder: bool = False) -> Path:
     return path
 
 
+def read_toml(path) -> dict:
+    """The table of the TOML file ``path`` (a regular file); InputError naming it when it
+    cannot be read or parsed, or nests too deeply for the parser."""
+    import tomllib
+
+    path = regular_file(path)
+    try:
+        return tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
+        raise InputError(path, f"not a readable TOML file: {error}") from None
+    except RecursionError:
+        raise InputError(path, "not a readable TOML file: nested too deeply") from None
+
+
+def apart_from_inputs(out, inputs) -> None:
+    """InputError naming the output ``out`` (a file, or a folder the command writes into)
+    when it is one of ``inputs`` (paths; None skipped) or holds one: writing it would
+    destroy what the command reads. No output (None): nothing to check."""
+    if out is None:
+        return
+    target = Path(out).resolve()
+    for given in inputs:
+        if given is None:
+            continue
+        source = Path(given).resolve()
+        if source == target or target in source.parents:
+            raise InputError(out, f"is or holds the input {given}; write the output elsewhere")
+
+
 def npy_header(stream, path, where: str = "") -> tuple:
     """(shape, dtype) of the .npy array at ``stream``'s position, read without the
     array (numpy allocates what a header declares before reading); InputError naming

@@ -58,6 +58,27 @@ def load_checkpoint(torch, path, format_tag: str, kind: str, missing: str, build
         raise InputError(path, f"not a readable {kind} checkpoint ({type(error).__name__}: {reason})") from None
 
 
+MAX_CLOUD_POINTS = 16384  # points per cloud a network sees: beyond, GBs per batch
+
+
+def cloud_points(value) -> bool:
+    """Whether ``value`` is a checkpoint's points per cloud: a whole number 1 .. MAX_CLOUD_POINTS."""
+    return isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= MAX_CLOUD_POINTS
+
+
+def checked_config(saved: dict, checks: dict) -> dict:
+    """``saved["config"]`` once every ``checks`` entry (field -> (test, what it must be))
+    holds; ValueError naming the first field that does not, which load_checkpoint
+    reports as a damaged checkpoint (a build calls this)."""
+    config = saved.get("config")
+    if not isinstance(config, dict):
+        raise ValueError(f"its config is {type(config).__name__}, not a table")
+    for field, (test, meaning) in checks.items():
+        if not test(config.get(field)):
+            raise ValueError(f"its config's {field} is {config.get(field)!r}, not {meaning}")
+    return config
+
+
 def _canonical(value):
     """A copy of nested dicts, lists and tuples with every string interned. Pickle
     writes an object seen before as a reference to it, by identity: a resumed run's

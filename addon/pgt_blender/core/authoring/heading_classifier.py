@@ -165,6 +165,8 @@ def mesh_folder_meshes(directory) -> list:
     ``NO_FRONT``), each in metres with X forward, Y left, Z up, e.g. the Chrono meshes."""
     import trimesh
 
+    from ..scan.targets import require_scannable
+
     directory = Path(directory)
     if not directory.is_dir():
         raise InputError(directory, "no such mesh folder")
@@ -179,6 +181,7 @@ def mesh_folder_meshes(directory) -> list:
             raise InputError(path, f"cannot read the mesh ({error})") from None
         if len(mesh.faces) == 0:
             raise InputError(path, "the mesh has no faces")
+        require_scannable(mesh.vertices, mesh.faces, path)  # the training scans it
         meshes.append((path.stem, mesh, f"mesh:{path.name} sha256:{_sha256(path.read_bytes())}"))
     return meshes
 
@@ -327,9 +330,11 @@ def load_checkpoint(path=DEFAULT_CHECKPOINT) -> HeadingClassifier:
     torch = require_torch(path)
 
     def build(saved):
+        config = learning.checked_config(saved, {"points": (learning.cloud_points,
+                                                            f"a whole number 1 .. {learning.MAX_CLOUD_POINTS}")})
         model = _network(torch)
         model.load_state_dict(saved["state_dict"])
-        return HeadingClassifier(model.eval(), saved["config"])
+        return HeadingClassifier(model.eval(), config)
 
     return learning.load_checkpoint(torch, path, FORMAT, "heading-classifier",
                                     "train one with headless_scripts/train_heading.py", build)

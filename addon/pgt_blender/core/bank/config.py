@@ -45,7 +45,6 @@ Unknown keys and wrong types raise InputError naming the file and the key.
 """
 
 import re
-import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -53,7 +52,7 @@ import numpy as np
 
 from ..classes import DATASETS
 from ..errors import InputError, finite_number
-from ..files import regular_file
+from ..files import read_toml, regular_file
 from ..scan.raycast import ENGINES
 from ..scan.sensors import INTENSITY_MAX
 
@@ -184,11 +183,7 @@ def load_config(path) -> BankConfig:
     """The BankConfig of a TOML file; relative sensor and checkpoint paths are taken
     relative to the file. A bad file, section, key or value raises InputError."""
     path = regular_file(path)
-    try:
-        table = tomllib.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
-        raise InputError(path, f"not a readable TOML file: {error}") from None
-    return config_from_table(table, path)
+    return config_from_table(read_toml(path), path)
 
 
 def config_from_table(table: dict, path="bank config") -> BankConfig:

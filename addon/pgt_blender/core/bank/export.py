@@ -273,8 +273,8 @@ def assemble(out: Path, data_root=None, existed: bool | None = None) -> dict:
                               f"(first: {missing[0]}); run the missing shards or --resume")
     damaged = [i for i in range(ident["chunks"]) if chunk_record(out, i) is None]
     if damaged:
-        raise InputError(chunk_record_path(out, damaged[0]), f"damaged ({len(damaged)} chunk record(s)); "
-                                                             f"--resume redoes them")
+        raise InputError(chunk_record_path(out, damaged[0]), f"damaged or an entry file it lists is missing "
+                                                             f"({len(damaged)} chunk(s)); --resume redoes them")
     # A list for every class of the dataset: the samplers index the pickle by each class they sample.
     infos = {fmt: {name: [] for name in DATABASE_CLASSES[config["dataset"]]} for fmt in config["formats"]}
     prefixes = {fmt: _path_prefix(out / fmt, data_root) for fmt in config["formats"]}

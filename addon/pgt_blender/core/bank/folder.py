@@ -141,8 +141,9 @@ def chunk_record_path(out: Path, chunk_id: int) -> Path:
 
 def chunk_record(out: Path, chunk_id: int, path: Path | None = None) -> dict | None:
     """The record of chunk ``chunk_id`` (read from ``path``, default its place in OUT),
-    or None when it is missing or damaged: such a chunk is not done and is redone.
-    Checked field by field."""
+    or None when it is missing or damaged or an entry file it lists is not in ``out``
+    (lost after the export, or a shard copied in part): such a chunk is not done and is
+    redone. Checked field by field."""
     path = chunk_record_path(out, chunk_id) if path is None else path
     if not path.is_file():
         return None
@@ -156,7 +157,7 @@ def chunk_record(out: Path, chunk_id: int, path: Path | None = None) -> dict | N
         and all(isinstance(infos, list) and all(isinstance(info, dict) for info in infos)
                 for infos in record["infos"].values()) \
         and all(isinstance(name, str) and isinstance(digest, str) for name, digest in record["files"].items())
-    return record if whole else None
+    return record if whole and all((out / name).is_file() for name in record["files"]) else None
 
 
 def pending_chunks(out: Path, chunk_count: int, shard=(0, 1)) -> list:

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..files import atomic_output
+from ..files import apart_from_inputs, atomic_output
 from ..gt_database import load_infos
 from .folder import info_path_root
 
@@ -76,9 +76,7 @@ def mix_databases(real_path, bank_path, out_path, ratio=(1.0, 1.0), seed=0, root
     """
     real_path, bank_path, out_path = Path(real_path), Path(bank_path), Path(out_path)
     gt, pgt = _checked_ratio(ratio, ratio)
-    for source, role in ((real_path, "real database"), (bank_path, "bank")):
-        if out_path.resolve() == source.resolve():
-            raise InputError(out_path, f"is the {role} pickle; the mix must go to a new file")
+    apart_from_inputs(out_path, (real_path, bank_path))
     if out_path.is_dir():
         raise InputError(out_path, "is a folder; expected the path of the .pkl to write")
     root = Path(root) if root is not None else real_path.parent

@@ -48,6 +48,10 @@ def to_model_frame(cameras: list, path) -> list:
     for view in cameras:
         world_from_camera = np.eye(4)
         world_from_camera[:3, :3] = rotation @ view.world_from_camera[:3, :3]
-        world_from_camera[:3, 3] = scale * (rotation @ view.world_from_camera[:3, 3] + translation)
+        with np.errstate(over="ignore", invalid="ignore"):  # named below
+            world_from_camera[:3, 3] = scale * (rotation @ view.world_from_camera[:3, 3] + translation)
+        if not np.isfinite(world_from_camera).all():
+            raise InputError(path, f"moves camera {view.name!r} beyond the floating-point range: "
+                                   f"scale and translation are not this run's")
         moved.append(replace(view, world_from_camera=world_from_camera))
     return moved

@@ -20,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..classes import DATASETS
 from ..errors import InputError
-from ..learning import TORCH_REQUIREMENT, load_checkpoint
+from ..learning import MAX_CLOUD_POINTS, TORCH_REQUIREMENT, checked_config, cloud_points, load_checkpoint
 from ..scan.physical_intensity import dataset_intensity
 from . import model
 from .losses import farthest_point_centres
@@ -47,9 +48,14 @@ class IntensityEstimator:
         path = Path(path)
 
         def build(saved):
-            network = model.generator(len(saved["config"]["classes"]), 3, 1)
+            config = checked_config(saved, {
+                "classes": (lambda v: isinstance(v, list) and v and all(isinstance(c, str) for c in v),
+                            "a list of class names"),
+                "dataset": (lambda v: v in DATASETS, f"one of {', '.join(DATASETS)}"),
+                "points": (cloud_points, f"a whole number 1 .. {MAX_CLOUD_POINTS}")})
+            network = model.generator(len(config["classes"]), 3, 1)
             network.load_state_dict(saved["state_dict"])
-            return cls(network.eval(), saved["config"], path)
+            return cls(network.eval(), config, path)
 
         estimator = load_checkpoint(model.require_torch(path), path, model.FORMAT, "intensity-estimator",
                                     "train one with headless_scripts/train_intensity.py", build)

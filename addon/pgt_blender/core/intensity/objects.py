@@ -20,6 +20,7 @@ from ..boxes import box_frame, kitti_camera_to_lidar
 from ..errors import InputError
 from ..files import read_float32_rows, regular_file
 from ..scan.sensors import INTENSITY_MAX
+from ..scan.targets import MAX_COORDINATE
 
 DEFAULT_POINTS = 256  # the paper's point count per object, and its minimum
 # KITTI label types that are not objects; every other type is kept under its own name.
@@ -122,8 +123,11 @@ def kitti_label_boxes(label_path: Path, calib_path: Path) -> list:
             height, width, length, x, y, z, ry = map(float, fields[8:15])
         except ValueError:
             raise InputError(label_path, f"line {number} is not a KITTI label (15 fields)") from None
-        if not (np.isfinite([height, width, length, x, y, z, ry]).all() and min(height, width, length) > 0):
-            raise InputError(label_path, f"line {number}: the box must be finite numbers with positive dimensions")
+        values = np.array([height, width, length, x, y, z, ry])
+        if not (np.isfinite(values).all() and min(height, width, length) > 0
+                and np.abs(values[:6]).max() <= MAX_COORDINATE):
+            raise InputError(label_path, f"line {number}: the box must be finite numbers with positive dimensions, "
+                                         f"within {MAX_COORDINATE:g} m")
         kinds.append(fields[0])
         camera_boxes.append([x, y, z, length, height, width, ry])
     boxes = kitti_camera_to_lidar(np.array(camera_boxes).reshape(-1, 7), velodyne_from_rect)

@@ -261,10 +261,17 @@ def _csv_text(rows: list) -> str:
 
 def _resume_state(torch, out_dir: Path, config: dict) -> tuple:
     """(training state dict, loss rows up to its step) of out_dir's checkpoint; InputError
-    when it is unreadable or from a different run (any setting but ``steps`` differs)."""
+    when it is unreadable or damaged, from a different run (any setting but ``steps``
+    differs) or past the ``steps`` asked for."""
     path = out_dir / "checkpoint.pt"
     state = load_checkpoint(torch, path, TRAINING_FORMAT, "intensity training", "train without --resume")
-    saved = state["config"]
+    saved, step = state.get("config"), state.get("step")
+    if not isinstance(saved, dict) or isinstance(step, bool) or not isinstance(step, int) or step < 0 \
+            or not isinstance(state.get("networks"), dict) or not isinstance(state.get("optimisers"), dict):
+        raise InputError(path, "damaged (its settings, step, networks or optimisers are missing or not what "
+                               "training writes); train without --resume")
+    if step > config["steps"]:
+        raise InputError(path, f"is at step {step}, past the {config['steps']} steps asked for")
     changed = sorted(key for key in set(saved) | set(config) if key != "steps" and saved.get(key) != config.get(key))
     if changed:
         key = changed[0]
@@ -307,7 +314,6 @@ def train(real, rgb, config: TrainConfig, out_dir, resume: bool = False, progres
     state, rows = (None, [])
     if resume and (out_dir / "checkpoint.pt").is_file():
         state, rows = _resume_state(torch, out_dir, record)
-    _write_text(out_dir / "config.json", json.dumps(record, indent=2, sort_keys=True) + "\n")
     rgb_domain, real_domain = _Domain(rgb, config), _Domain(real, config)
 
     previous = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
@@ -319,11 +325,14 @@ def train(real, rgb, config: TrainConfig, out_dir, resume: bool = False, progres
             nets = _Networks(torch, len(real.classes), config)
         start = 0
         if state is not None:
-            if state["step"] > config.steps:
-                raise InputError(out_dir / "checkpoint.pt", f"is at step {state['step']}, past the "
-                                                            f"{config.steps} steps asked for")
-            nets.load(state)
+            try:
+                nets.load(state)
+            except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as error:  # torch's load_state_dict
+                raise InputError(out_dir / "checkpoint.pt", f"damaged ({type(error).__name__}: {error}); train "
+                                                            f"without --resume") from None
             start = state["step"]
+        # written once a resume is accepted: a refused one leaves the folder as it was
+        _write_text(out_dir / "config.json", json.dumps(record, indent=2, sort_keys=True) + "\n")
         bar = progress_bar(progress, config.steps, "step", initial=start)
         for step in range(start + 1, config.steps + 1):
             rgb_rows, real_rows = draw_pairs(real, rgb, config.batch, config.seed, step)

@@ -25,7 +25,6 @@ ray meeting a surface returns nothing, fitted to real scans (empty: none known).
 (physical_intensity.py; empty: the unfitted default).
 """
 
-import tomllib
 from dataclasses import dataclass, field, fields, replace
 from functools import cached_property
 
@@ -33,7 +32,7 @@ import numpy as np
 
 from ..classes import DATASETS
 from ..errors import InputError
-from ..files import regular_file
+from ..files import read_toml, regular_file
 
 # Point formats of the datasets: intensity scale and .bin columns (REFERENCE.md 1-2).
 INTENSITY_MAX = {"nuscenes": 255.0, "kitti": 1.0, "lyft": 255.0}
@@ -53,6 +52,8 @@ FORWARD = {"nuscenes": (0.0, 1.0), "kitti": (1.0, 0.0), "lyft": (1.0, 0.0)}
 
 # Fitted sensor models (tuples of numbers): what their numbers are.
 _MODELS = {"ray_drop": "(a, k)", "intensity_law": "(scale, range_exponent, spread)"}
+# intensity_law bounds: beyond them a law saturates or overflows (exp(spread x normal))
+MAX_LAW = (1e6, 10.0, 10.0)
 PER_BEAM = ("elevations_deg", "azimuth_offsets_deg", "firing_us", "vertical_offsets_m", "horizontal_offsets_m")
 
 
@@ -261,8 +262,11 @@ def validate(sensor: Sensor) -> None:
         values = getattr(sensor, name)
         if values and (len(values) != len(meaning.split(",")) or not np.isfinite(values).all()):
             problems.append(f"{name} must be empty or {meaning}, got {list(values)}")
-    if len(sensor.intensity_law) == 3 and not (sensor.intensity_law[0] > 0 and min(sensor.intensity_law[1:]) >= 0):
-        problems.append("intensity_law needs scale > 0, range_exponent >= 0 and spread >= 0")
+    if len(sensor.intensity_law) == 3 and not (0 < sensor.intensity_law[0] <= MAX_LAW[0]
+                                               and 0 <= sensor.intensity_law[1] <= MAX_LAW[1]
+                                               and 0 <= sensor.intensity_law[2] <= MAX_LAW[2]):
+        problems.append("intensity_law needs 0 < scale <= {:g}, 0 <= range_exponent <= {:g} and "
+                        "0 <= spread <= {:g}".format(*MAX_LAW))
     if isinstance(sensor.direction, bool) or sensor.direction not in (-1, 1):
         problems.append("direction must be -1 (clockwise) or 1 (counter-clockwise)")
     if sensor.dataset not in DATASETS:
@@ -399,10 +403,7 @@ def load_sensor_toml(path) -> Sensor:
         calibration = "32db.yaml"
     """
     path = regular_file(path)
-    try:
-        table = tomllib.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
-        raise InputError(path, f"not a readable TOML file: {error}") from None
+    table = read_toml(path)
     unknown = sorted(set(table) - _TOML_KEYS - {"base", "calibration"})
     if unknown:
         raise InputError(path, f"unknown sensor keys {', '.join(unknown)}; known: {', '.join(sorted(_TOML_KEYS))}")
