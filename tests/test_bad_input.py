@@ -576,6 +576,19 @@ def test_an_output_that_is_or_holds_an_input_is_refused(tmp_path, command, outpu
     assert {path.name: path.read_bytes() for path in inputs.iterdir()} == before
 
 
+def test_an_output_folder_above_its_inputs_is_allowed(tmp_path):
+    """``place_objects --out .`` in a KITTI folder, ``prepare_objects --in proj/recons --out
+    proj``: the output folder holds the inputs only further down, where nothing is written."""
+    from pgt_blender.core.files import apart_from_inputs
+
+    scan = tmp_path / "velodyne" / "000001.bin"
+    scan.parent.mkdir()
+    scan.write_bytes(b"")
+    apart_from_inputs(tmp_path, [scan, scan.parent])
+    with pytest.raises(InputError, match="is or holds the input"):
+        apart_from_inputs(scan.parent, [scan])
+
+
 @pytest.mark.parametrize("reader", ["sensor", "bank config"])
 def test_a_toml_file_nested_too_deeply_is_named(tmp_path, reader):
     """5,000 nested arrays exhaust the TOML parser's recursion: one line, not a traceback."""

@@ -104,7 +104,9 @@ def test_demo(tmp_path):
     assert "heading by: classifier" in result.stdout  # torch is a test dependency
     assert len(rows) == 6 and all(e < 1.0 for e in errors)  # aligned, front at +x (180: front/back wrong)
     scanned = [int(line.split("]")[1].split()[0]) for line in table]
-    assert len(scanned) == 6 and min(scanned) > 100  # every object scanned at 15 m
+    # every object scanned at 15 m: the bicycle's tubes and wheels give a few dozen returns,
+    # the buses and trucks hundreds (floaters no longer add their own)
+    assert len(scanned) == 6 and min(scanned) > 20 and sorted(scanned)[2] > 200
 
 
 def test_bench_import_runs(tmp_path):

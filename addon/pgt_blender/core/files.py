@@ -85,8 +85,10 @@ def read_toml(path) -> dict:
 
 def apart_from_inputs(out, inputs) -> None:
     """InputError naming the output ``out`` (a file, or a folder the command writes into)
-    when it is one of ``inputs`` (paths; None skipped) or holds one: writing it would
-    destroy what the command reads. No output (None): nothing to check."""
+    when it is one of ``inputs`` (paths; None skipped) or, as a folder, directly holds
+    an input file: writing it would destroy what the command reads. Inputs deeper down
+    (a KITTI folder's velodyne/ under ``--out .``) are left alone. No output (None):
+    nothing to check."""
     if out is None:
         return
     target = Path(out).resolve()
@@ -94,7 +96,7 @@ def apart_from_inputs(out, inputs) -> None:
         if given is None:
             continue
         source = Path(given).resolve()
-        if source == target or target in source.parents:
+        if source == target or (source.parent == target and source.is_file()):
             raise InputError(out, f"is or holds the input {given}; write the output elsewhere")
 
 
