@@ -100,7 +100,7 @@ def test_the_intensity_fit_recovers_a_known_law():
 @pytest.mark.parametrize("key, value, message", [
     ("ray_drop", "[1.0]", "ray_drop must be empty or \\(a, k\\)"),
     ("intensity_law", "[1.0, 0.0]", "intensity_law must be empty or"),
-    ("intensity_law", "[0.0, 0.0, 1.0]", "scale > 0"),
+    ("intensity_law", "[0.0, 0.0, 1.0]", "0 < scale <= 1e\\+06"),
     ("ray_drop", '"high"', "ray_drop must be \\(a, k\\)"),
 ])
 def test_bad_model_keys_in_a_sensor_toml_name_the_file(tmp_path, key, value, message):

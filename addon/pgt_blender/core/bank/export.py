@@ -30,7 +30,7 @@ from .entries import TargetCache, scan_entries
 from .formats import DATABASE_CLASSES, DATABASE_FOLDER, class_name_for, database_record, entry_points
 from .grid import object_entries, sweeps_of
 from .inputs import BankObject, safe_name
-from .folder import (INTENSITY_BINS, MANIFEST, STATS_DTYPE, chunk_record, chunk_record_path, drop_cached,
+from .folder import (INTENSITY_BINS, MANIFEST, STATS_DTYPE, chunk_record_path, done_chunk, drop_cached,
                      pending_chunks, prepare_folder, read_identity, write_entry_file, write_file)
 from .records import write_record
 
@@ -271,7 +271,7 @@ def assemble(out: Path, data_root=None, existed: bool | None = None) -> dict:
     if missing:
         raise InputError(out, f"{len(missing)} of {ident['chunks']} chunks not exported yet "
                               f"(first: {missing[0]}); run the missing shards or --resume")
-    damaged = [i for i in range(ident["chunks"]) if chunk_record(out, i) is None]
+    damaged = [i for i in range(ident["chunks"]) if done_chunk(out, i) is None]
     if damaged:
         raise InputError(chunk_record_path(out, damaged[0]), f"damaged or an entry file it lists is missing "
                                                              f"({len(damaged)} chunk(s)); --resume redoes them")
@@ -280,7 +280,7 @@ def assemble(out: Path, data_root=None, existed: bool | None = None) -> dict:
     prefixes = {fmt: _path_prefix(out / fmt, data_root) for fmt in config["formats"]}
     files, counts, dropped = {}, {}, {}
     for chunk_id in range(ident["chunks"]):
-        record = chunk_record(out, chunk_id)
+        record = done_chunk(out, chunk_id)
         for fmt, entries in record["infos"].items():
             for info in entries:
                 infos[fmt].setdefault(info["name"], []).append(dict(info, path=prefixes[fmt] + info["path"]))

@@ -141,9 +141,7 @@ def chunk_record_path(out: Path, chunk_id: int) -> Path:
 
 def chunk_record(out: Path, chunk_id: int, path: Path | None = None) -> dict | None:
     """The record of chunk ``chunk_id`` (read from ``path``, default its place in OUT),
-    or None when it is missing or damaged or an entry file it lists is not in ``out``
-    (lost after the export, or a shard copied in part): such a chunk is not done and is
-    redone. Checked field by field."""
+    or None when it is missing or damaged. Checked field by field."""
     path = chunk_record_path(out, chunk_id) if path is None else path
     if not path.is_file():
         return None
@@ -157,28 +155,36 @@ def chunk_record(out: Path, chunk_id: int, path: Path | None = None) -> dict | N
         and all(isinstance(infos, list) and all(isinstance(info, dict) for info in infos)
                 for infos in record["infos"].values()) \
         and all(isinstance(name, str) and isinstance(digest, str) for name, digest in record["files"].items())
-    return record if whole and all((out / name).is_file() for name in record["files"]) else None
+    return record if whole else None
+
+
+def done_chunk(out: Path, chunk_id: int, path: Path | None = None) -> dict | None:
+    """chunk_record when every entry file it lists is in ``out`` too, else None: a chunk
+    with a damaged record or a lost file (deleted after the export, a shard copied in
+    part) is not done, and is redone."""
+    record = chunk_record(out, chunk_id, path)
+    return record if record is not None and all((out / name).is_file() for name in record["files"]) else None
 
 
 def pending_chunks(out: Path, chunk_count: int, shard=(0, 1)) -> list:
     """The chunk ids of this shard (id % count == index) without a whole record."""
     index, count = shard
-    return [i for i in range(index, chunk_count, count) if chunk_record(out, i) is None]
+    return [i for i in range(index, chunk_count, count) if done_chunk(out, i) is None]
 
 
 def copy_shard(source: Path, out: Path) -> int:
-    """Copy a shard folder's whole chunk records and their database files into ``out``
-    (same identity required); returns the records copied. Damaged records are left:
-    their chunks stay to do."""
+    """Copy a shard folder's done chunks (done_chunk: the records and their database
+    files) into ``out`` (same identity required); returns the records copied. The
+    others are left: their chunks stay to do."""
     if Path(source).resolve() == Path(out).resolve():
         raise InputError(source, "is the bank being assembled (--out); --from takes the shards' folders")
     if read_identity(source) != read_identity(out):
         raise InputError(source, "is not a shard of this bank (its .work/identity.json differs)")
     copied = 0
     for record_path in sorted((source / WORK / "chunks").glob("*.json")):
-        record = chunk_record(source, int(record_path.stem), record_path) if record_path.stem.isdigit() else None
+        record = done_chunk(source, int(record_path.stem), record_path) if record_path.stem.isdigit() else None
         if record is None:
-            continue  # damaged: the chunk stays to do
+            continue  # damaged or a file lost: the chunk stays to do
         for relative in record["files"]:
             target = out / relative
             target.parent.mkdir(parents=True, exist_ok=True)
