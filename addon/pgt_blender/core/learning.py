@@ -61,9 +61,9 @@ def load_checkpoint(torch, path, format_tag: str, kind: str, missing: str, build
 MAX_CLOUD_POINTS = 16384  # points per cloud a network sees: beyond, GBs per batch
 
 
-def cloud_points(value) -> bool:
-    """Whether ``value`` is a checkpoint's points per cloud: a whole number 1 .. MAX_CLOUD_POINTS."""
-    return isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= MAX_CLOUD_POINTS
+# checked_config's check of a checkpoint's points per cloud
+CLOUD_POINTS_FIELD = (lambda value: isinstance(value, int) and not isinstance(value, bool)
+                      and 1 <= value <= MAX_CLOUD_POINTS, f"a whole number 1 .. {MAX_CLOUD_POINTS}")
 
 
 def checked_config(saved: dict, checks: dict) -> dict:

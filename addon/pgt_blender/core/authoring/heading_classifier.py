@@ -330,8 +330,7 @@ def load_checkpoint(path=DEFAULT_CHECKPOINT) -> HeadingClassifier:
     torch = require_torch(path)
 
     def build(saved):
-        config = learning.checked_config(saved, {"points": (learning.cloud_points,
-                                                            f"a whole number 1 .. {learning.MAX_CLOUD_POINTS}")})
+        config = learning.checked_config(saved, {"points": learning.CLOUD_POINTS_FIELD})
         model = _network(torch)
         model.load_state_dict(saved["state_dict"])
         return HeadingClassifier(model.eval(), config)

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..classes import DATASETS
 from ..errors import InputError
-from ..learning import MAX_CLOUD_POINTS, TORCH_REQUIREMENT, checked_config, cloud_points, load_checkpoint
+from ..learning import CLOUD_POINTS_FIELD, TORCH_REQUIREMENT, checked_config, load_checkpoint
 from ..scan.physical_intensity import dataset_intensity
 from . import model
 from .losses import farthest_point_centres
@@ -52,7 +52,7 @@ class IntensityEstimator:
                 "classes": (lambda v: isinstance(v, list) and v and all(isinstance(c, str) for c in v),
                             "a list of class names"),
                 "dataset": (lambda v: v in DATASETS, f"one of {', '.join(DATASETS)}"),
-                "points": (cloud_points, f"a whole number 1 .. {MAX_CLOUD_POINTS}")})
+                "points": CLOUD_POINTS_FIELD})
             network = model.generator(len(config["classes"]), 3, 1)
             network.load_state_dict(saved["state_dict"])
             return cls(network.eval(), config, path)

@@ -332,12 +332,21 @@ def paired_sets(real: list, rgb: list, dataset: str, min_points: int = DEFAULT_P
     return tuple(sets)
 
 
-def rgb_objects(source, sensor) -> list:
-    """RGB objects of one source: "class=mesh path" or a folder of prepared objects."""
+def rgb_source(source) -> tuple:
+    """(class name, path) of one RGB source, "class=mesh path"; (None, path) for a
+    folder of prepared objects."""
     if isinstance(source, str) and "=" in source:
         class_name, path = source.split("=", 1)
+        return class_name, Path(path)
+    return None, Path(source)
+
+
+def rgb_objects(source, sensor) -> list:
+    """RGB objects of one source (rgb_source): a mesh of a class or a folder of prepared objects."""
+    class_name, path = rgb_source(source)
+    if class_name is not None:
         return material_mesh_rgb_objects(path, class_name, sensor)
-    return prepared_rgb_objects(source, sensor)
+    return prepared_rgb_objects(path, sensor)
 
 
 def _topped_up(obj: LidarObject, points: int, rng: np.random.Generator) -> LidarObject:
