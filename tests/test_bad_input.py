@@ -601,11 +601,17 @@ def test_a_toml_file_nested_too_deeply_is_named(tmp_path, reader):
         (load_sensor_toml if reader == "sensor" else load_config)(path)
 
 
-def test_a_training_mesh_no_scan_can_use_is_named(tmp_path):
-    """train_heading --chrono scans its meshes: a vertex 1e200 m away is named with its
-    file up front, as a bank names it (targets.require_scannable)."""
+@pytest.mark.parametrize("obj, problem", [
+    ("v 0 0 0\nv 1 0 0\nv 1e200 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n", "1 vertices are NaN or infinite or lie over"),
+    ("v 0 0 0\nv 1 0 0\nv nan 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n", "1 vertices are NaN or infinite or lie over"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", r"the mesh is flat \(extents \[1.0, 1.0, 0.0\] m\)"),
+], ids=["far vertex", "NaN vertex", "flat"])
+def test_a_training_mesh_no_scan_can_use_is_named(tmp_path, obj, problem):
+    """train_heading --chrono scans its meshes: a vertex 1e200 m away or NaN (which
+    trimesh's processing would drop with its face, silently) and a flat mesh are named
+    with their file up front, not reported later as a collapsed network."""
     from pgt_blender.core.authoring.heading_classifier import mesh_folder_meshes
 
-    (tmp_path / "car.obj").write_text("v 0 0 0\nv 1 0 0\nv 1e200 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n")
-    with pytest.raises(InputError, match=f"^{tmp_path / 'car.obj'}: "):
+    (tmp_path / "car.obj").write_text(obj)
+    with pytest.raises(InputError, match=f"^{tmp_path / 'car.obj'}: {problem}"):
         mesh_folder_meshes(tmp_path)

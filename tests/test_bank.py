@@ -144,6 +144,23 @@ def test_default_config_is_the_papers_nuscenes_bank():
     assert BankConfig(intensity=40).constant_intensity == 40.0
 
 
+def test_the_sample_config_lists_every_key_at_its_default(tmp_path):
+    """docs/bank.toml, the file a user copies, loads to the defaults and names every key;
+    the grid's x and y are commented out, so that another dataset keeps its own, and
+    uncommented they are nuScenes' defaults."""
+    from pgt_blender.core.bank.config import _KEYS
+
+    text = (ROOT / "docs" / "bank.toml").read_text()
+    assert load_config(ROOT / "docs" / "bank.toml") == BankConfig()
+    named = {f"{section}.{key}"
+             for section, body in re.findall(r"^\[(\w+)\][^\n]*\n(.*?)(?=^\[|\Z)", text, re.M | re.S)
+             for key in re.findall(r"^(?:# )?(\w+) = ", body, re.M) if section != "classes"}
+    assert named == set(_KEYS)
+    (tmp_path / "bank.toml").write_text(text.replace("# x = ", "x = ").replace("# y = ", "y = "))
+    uncommented = load_config(tmp_path / "bank.toml")
+    assert (uncommented.x, uncommented.y) == (BankConfig().x, BankConfig().y)
+
+
 @pytest.mark.parametrize("text, named", [
     ("[grid]\nheadingz = [0, 1, 1]\n", "grid.headingz"),
     ("[bank]\nmin_points = 0\n", "bank.min_points"),

@@ -141,9 +141,7 @@ class BankRun:
     def summary(self) -> str:
         """What the finished bank holds, as export_bank.py prints it: entries kept and
         poses dropped below the minimum points."""
-        dropped = sum(self.manifest["dropped_below_min_points"].values())
-        return (f"{self.manifest['entries']:,} entries written to {self.out} ({dropped:,} poses under "
-                f"{self.manifest['config']['min_points']} points left out)")
+        return f"{export.kept_summary(self.manifest)}; wrote {self.out}"
 
     def stop(self) -> None:
         self._chunks.close()

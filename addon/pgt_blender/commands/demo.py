@@ -88,11 +88,8 @@ def main(argv: list) -> int:
         dims = ", ".join(f"{d:.2f}" for d in row["dims"])
         print(f"{row['object']:34} {row['points']:7d} {row['error_deg']:9.2f}  [{dims:18}]  {row['scan_stats']}")
     bank, manifest, seconds = export_demo_bank(out / "bank")
-    counts = ", ".join(f"{name} {count}" for name, count in manifest["counts"].items())
-    dropped = sum(manifest["dropped_below_min_points"].values())
-    print(f"\nbank: {manifest['entries']:,} entries [{counts}] in {seconds:.0f} s "
-          f"({(manifest['entries'] + dropped) / seconds:.0f} poses/s), {dropped} poses dropped below "
-          f"{manifest['config']['min_points']} points; nuScenes HDL-32E, 10 sweeps, x and y "
+    print(f"\nbank: {export.kept_summary(manifest)} in {seconds:.0f} s "
+          f"({manifest['entries'] / seconds:.0f} entries/s); nuScenes HDL-32E, 10 sweeps, x and y "
           f"{DEMO_BANK.x[0]:g}..{DEMO_BANK.x[1]:g} m every {DEMO_BANK.x[2]:g} m, headings every "
           f"{DEMO_BANK.headings_deg[2]:g} deg")
     print(f"\nsamples: {out / 'samples'}\nscene:   {blend}\nbank:    {bank} (report: {bank / 'report.md'})")

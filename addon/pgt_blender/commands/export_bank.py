@@ -155,17 +155,15 @@ def finish(args, manifest: dict, reference, seconds: float, poses: int = 0) -> i
     from ..core.bank.report import write_report
 
     report = f"report: {write_report(args.out, reference, quality_score(args) if reference else None)[0]}"
-    counts = ", ".join(f"{name} {count:,}" for name, count in manifest["counts"].items())
-    dropped = sum(manifest["dropped_below_min_points"].values())
     rate = f" ({poses / seconds:,.0f} poses/s)" if seconds and poses else ""
-    print(f"bank: {manifest['entries']:,} entries [{counts}], {dropped:,} dropped below "
-          f"{manifest['config']['min_points']} points{rate}\nwrote {args.out}; {report}")
+    print(f"bank: {export.kept_summary(manifest)}{rate}\nwrote {args.out}; {report}")
     return 0
 
 
 def main(argv: list) -> int:
     parser = argparse.ArgumentParser(prog="export_bank.py", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", type=Path, help="bank TOML (default: the paper's nuScenes settings)")
+    parser.add_argument("--config", type=Path,
+                        help="bank TOML, every key optional (docs/bank.toml lists them; default: the paper's nuScenes bank)")
     parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True, help="output folder")
     parser.add_argument("--blend", type=Path, help=".blend with authored objects (python route)")
     parser.add_argument("--objects", type=Path, action="append", default=[],

@@ -163,8 +163,6 @@ def sample_meshes(classes=None) -> list:
 def mesh_folder_meshes(directory) -> list:
     """(name, trimesh, source) of every ``*.obj`` under ``directory`` (sorted, except
     ``NO_FRONT``), each in metres with X forward, Y left, Z up, e.g. the Chrono meshes."""
-    import trimesh
-
     from ..scan.targets import require_scannable
 
     directory = Path(directory)
@@ -175,15 +173,26 @@ def mesh_folder_meshes(directory) -> list:
         raise InputError(directory, "holds no .obj meshes")
     meshes = []
     for path in paths:
-        try:
-            mesh = trimesh.load(path, force="mesh")
-        except Exception as error:  # trimesh raises many types for a broken file
-            raise InputError(path, f"cannot read the mesh ({error})") from None
-        if len(mesh.faces) == 0:
+        raw = _read_obj(path, process=False)  # as the file holds it: processing drops a NaN vertex silently
+        if len(raw.faces) == 0:
             raise InputError(path, "the mesh has no faces")
-        require_scannable(mesh.vertices, mesh.faces, path)  # the training scans it
+        require_scannable(raw.vertices, raw.faces, path)  # the training scans it
+        mesh = _read_obj(path, process=True)  # the mesh trained on
+        if mesh.extents.min() <= 1e-6 * mesh.extents.max():
+            raise InputError(path, f"the mesh is flat (extents {np.round(mesh.extents, 6).tolist()} m): "
+                                   "a vehicle has a front, a side and a top to learn from")
         meshes.append((path.stem, mesh, f"mesh:{path.name} sha256:{_sha256(path.read_bytes())}"))
     return meshes
+
+
+def _read_obj(path: Path, process: bool):
+    """The trimesh.Trimesh of an .obj file; InputError naming it when trimesh cannot read it."""
+    import trimesh
+
+    try:
+        return trimesh.load(path, force="mesh", process=process)
+    except Exception as error:  # trimesh raises many types for a broken file
+        raise InputError(path, f"cannot read the mesh ({error})") from None
 
 
 def sample_point_sets(classes=None) -> list:

@@ -1,45 +1,5 @@
 """The bank's settings, from a TOML file; every key optional (defaults: the paper's).
-
-    [bank]
-    dataset = "nuscenes"        # nuscenes | kitti | lyft: grid, columns, intensity scale, class names
-    sensor = ""                 # preset name or sensor .toml (relative to this file); "" = the dataset's
-    formats = ["openpcdet", "mmdet3d"]
-    seed = 0
-    min_points = 16             # entries with fewer points in the box are dropped
-    max_distance = 0.0          # m from the sensor to the box centre; 0 = no filter (paper option: 54)
-    sweeps = 0                  # merged sweeps per entry; 0 = the dataset's (nuScenes, Lyft 10; KITTI 1)
-    radius_scale = 1.0          # surfel radius / point spacing, for point objects
-    intensity = "auto"          # auto: as the dataset's files (Lyft: constant 100, others: "model");
-                                # "model": the learned (checkpoint) or else physical intensity;
-                                # a number: that constant, on the dataset's scale
-    intensity_checkpoint = ""   # train_intensity.py output; "" = the physical intensity
-    chunk_size = 64             # entries per unit of work (resume and sharding granularity)
-
-    [grid]                      # [start, stop, step], stop included
-    headings_deg = [-180, 180, 30]
-    x = [-50, 50, 5]            # m, box centre in the sensor frame (defaults per dataset)
-    y = [-50, 50, 5]
-    ego_clearance = 2.0         # m: positions whose box comes closer to the sensor are skipped
-
-    [jitter]
-    centre = 0.5                # m: box centre moved by U(-centre, centre) in x and y
-    size = 0.05                 # relative: each axis scaled by 1 + N(0, size) clipped to +-size
-    size_variants = 8           # differently jittered copies per object (a mesh's share its target)
-
-    [scan]
-    range_noise = true          # Gaussian range noise with the sensor's sigma
-    drop_rate = 0.0             # extra random drop on top of ray_drop
-    ray_drop = true             # the sensor's fitted ray-drop model (ray_drop.py; kitti has one)
-    max_incidence_deg = 90.0
-    engine = "auto"             # auto: embree where embreex imports, else bvh (Blender's BVHTree)
-    ego_motion = true           # multi-sweep entries seen from a moving ego vehicle (sweeps.EGO_MOTION)
-
-    [ground]                    # the ground under each pose (ground.py); 0 and 0: flat at -mounting height
-    grade_deg = 0.69            # road grade sigma: ground under the box at distance * tan(N(0, grade))
-    slope_deg = 1.32            # local slope sigma: the object's pitch and roll
-
-    [classes]                   # object class = dataset class name; "" skips that class
-    bus = "Misc"
+Every key with its default and meaning: docs/bank.toml (a test keeps it complete).
 
 Unknown keys and wrong types raise InputError naming the file and the key.
 """

@@ -314,6 +314,15 @@ def assemble(out: Path, data_root=None, existed: bool | None = None) -> dict:
     return manifest
 
 
+def kept_summary(manifest: dict) -> str:
+    """What a finished bank holds, in the one wording of the command line, the demo and
+    the Bank panel: '1,234 entries [bus 600, truck 634], 12 poses dropped below 5 points'."""
+    counts = ", ".join(f"{name} {count:,}" for name, count in manifest["counts"].items())
+    dropped = sum(manifest["dropped_below_min_points"].values())
+    return (f"{manifest['entries']:,} entries [{counts}], {dropped:,} poses dropped below "
+            f"{manifest['config']['min_points']} points")
+
+
 def _discard_bank(out: Path, keep_folder: bool) -> None:
     """Remove what an export that kept no entry wrote into ``out`` (its work folder and
     empty format folders; the folder held nothing else, prepare_folder saw to it), and
