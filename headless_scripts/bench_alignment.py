@@ -22,7 +22,6 @@ setting (0.5 % noise, 10 % floaters) gives the share of no-prior trials with up 
 1 degree.
 """
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -153,7 +152,7 @@ def summary(records: list) -> dict:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="bench_alignment.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_alignment.py", __doc__)
     parser.add_argument("--trials", type=int, default=5, help="trials per object and setting")
     parser.add_argument("--quick", action="store_true",
                         help="1 trial of the default setting, no sweeps; the target setting with --target-trials "

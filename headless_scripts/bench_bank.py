@@ -439,7 +439,7 @@ def plot(throughput: list, series: list, series_object: str):
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="bench_bank.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_bank.py", __doc__)
     parser.add_argument("--quick", action="store_true", help="a smoke test: no 176k truck, 108-pose grid, "
                         "1 run each, 1 and 2 copies, no full grid")
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per object and worker count")

@@ -13,7 +13,6 @@ the target (reported apart); the median of ``--repeats`` later calls is the answ
 Prints a table; writes <out>.json, <out>.md, <out>.png.
 """
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -72,7 +71,7 @@ def timed_scans(bpy, name: str, vertices, faces, repeats: int) -> dict:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="bench_blender_scan.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_blender_scan.py", __doc__)
     parser.add_argument("--repeats", type=int, default=5, help="timed Scans after the first")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "blender_scan")
     args = parser.parse_args(argv)

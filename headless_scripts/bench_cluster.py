@@ -25,7 +25,6 @@ clock (export.ChunkDone) over nodes x wall time: near 100 % with a poor efficien
 the CPUs ran slower (other work on the cores), not that Ray left nodes idle.
 """
 
-import argparse
 import tempfile
 import time
 from pathlib import Path
@@ -81,7 +80,7 @@ def plot(rows: list, efficiency: float, nodes: int):
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="bench_cluster.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_cluster.py", __doc__)
     parser.add_argument("--nodes", type=int, default=2, help="nodes of the larger cluster, one CPU each")
     parser.add_argument("--repeats", type=int, default=3, help="runs per setup")
     parser.add_argument("--quick", action="store_true", help="a smoke test: 108 poses, 1 run each")

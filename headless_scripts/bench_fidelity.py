@@ -28,7 +28,6 @@ machine and the inputs), the rows and totals to <out>.json and two plots (points
 object, intensity W1) to <out>.png.
 """
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -158,7 +157,7 @@ def draw(rows: list):
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="bench_fidelity.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_fidelity.py", __doc__)
     parser.add_argument("folder", type=Path, nargs="?", default=dev.SHARED_DATA / "kitti_scans", help="KITTI frames")
     parser.add_argument("--meshes", default=str(dev.CHRONO_VEHICLES),
                         help="class meshes: samples, the Chrono vehicle folder (default) or a folder of <class>.obj/.ply")

@@ -24,7 +24,6 @@ median of --repeats calls of ``cast_rays``); build time apart. Prints Markdown t
 and writes <out>.json, <out>.md and <out>.png.
 """
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -74,7 +73,7 @@ def poses(distance: float, count: int) -> list:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="bench_gaussian_scan.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_gaussian_scan.py", __doc__)
     parser.add_argument("--quick", action="store_true", help="20k splats, nuScenes, 10 and 20 m, 1 pose")
     parser.add_argument("--poses", type=int, default=2, help="azimuth/heading poses per distance")
     parser.add_argument("--repeats", type=int, default=3, help="timed calls per scan")

@@ -27,7 +27,6 @@ over held-out meshes; per class and noise; per mesh and noise) and writes <out>.
 and <out>.png.
 """
 
-import argparse
 import sys
 import time
 import warnings
@@ -106,7 +105,7 @@ def mean(rows: list, key: str, **match) -> float:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="bench_heading.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_heading.py", __doc__)
     parser.add_argument("--quick", action="store_true",
                         help="150 training steps, 8 samplings per cell (about a minute)")
     parser.add_argument("--steps", type=int, help=f"training steps per held-out mesh (default {hc.STEPS}, --quick 150)")

@@ -10,7 +10,6 @@ the medians and writes it to <out>.md (with the machine and the inputs), the row
 <out>.json and median seconds against points to <out>.png.
 """
 
-import argparse
 import statistics
 import sys
 import tempfile
@@ -59,7 +58,7 @@ def time_import(path: Path, repeats: int) -> tuple:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="bench_import.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_import.py", __doc__)
     parser.add_argument("--sizes", type=float, nargs="+", default=[1e4, 1e5, 1e6, 1e7])
     parser.add_argument("--splat-max", type=float, default=1e6, help="largest Gaussian-splat size (62 floats each)")
     parser.add_argument("--repeats", type=int, default=5)

@@ -28,7 +28,6 @@ Prints the per-fold and summary tables and writes them to <out>.md (with the mac
 and the inputs), the rows to <out>.json and a bar chart to <out>.png.
 """
 
-import argparse
 import sys
 import tempfile
 import time
@@ -168,7 +167,7 @@ def summary(rows: list) -> list:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="bench_intensity.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_intensity.py", __doc__)
     parser.add_argument("--kitti", type=Path, default=dev.SHARED_DATA / "kitti_scans")
     parser.add_argument("--holdout", nargs="+", help="KITTI scan ids held out in turn (default: every scan)")
     parser.add_argument("--min-points", type=int, default=64, help="real training objects' minimum points")

@@ -31,7 +31,6 @@ class stand (ground-only on KITTI; the road map on nuScenes). Prints the tables;
 <out>.json, <out>.md, <out>.png.
 """
 
-import argparse
 import os
 import sys
 import tempfile
@@ -223,7 +222,7 @@ def summary(verdicts: list) -> dict:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="bench_placement.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_placement.py", __doc__)
     parser.add_argument("--repeats", type=int, default=30, help="seeds per scene (speed) and samplings (landing)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "placement")
     args = parser.parse_args(argv)

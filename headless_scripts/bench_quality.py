@@ -24,7 +24,6 @@ it (COV at most 1/1.3x; 1-NNA at least 0.6). Writes <out>.md (tables), <out>.jso
 class's scores) and <out>.png. Timings are wall-clock on a shared machine (upper bounds).
 """
 
-import argparse
 import sys
 import tempfile
 import time
@@ -95,7 +94,7 @@ def averages(scores: dict) -> dict:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_quality.py", __doc__)
     parser.add_argument("--quick", action="store_true", help="a small grid (a smoke test)")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "bench" / "quality")
     args = parser.parse_args(argv)

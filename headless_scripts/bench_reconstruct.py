@@ -14,7 +14,6 @@ step (wall clock, perf_counter inside ``reconstruct``). --quick: the first
 configuration only. Prints a Markdown table and writes <out>.json, <out>.md, <out>.png.
 """
 
-import argparse
 import sys
 import tempfile
 from pathlib import Path
@@ -82,7 +81,7 @@ def plot(plt, rows: list, reference: dict):
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="bench_reconstruct.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_reconstruct.py", __doc__)
     parser.add_argument("--quick", action="store_true", help="the first configuration only")
     parser.add_argument("--threads", type=int, default=0, help="CPU threads (0: all)")
     parser.add_argument("--out", type=Path, default=Path("bench/reconstruct"))

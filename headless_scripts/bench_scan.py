@@ -31,7 +31,6 @@ trimesh.sample.sample_surface(mesh, n, seed=n).
 Prints Markdown tables and writes <out>.json, <out>.md and <out>.png.
 """
 
-import argparse
 import re
 import sys
 import time
@@ -437,7 +436,7 @@ def plot(plt, rows: list):
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="bench_scan.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_scan.py", __doc__)
     parser.add_argument("--quick", action="store_true", help="Chrono trucks + sphere, nuScenes, 15 m, 2 poses, "
                         "3 repeats, 20k surfels / range-view points (~20 s)")
     parser.add_argument("--poses", type=int, default=4, help="azimuth/heading poses per distance")

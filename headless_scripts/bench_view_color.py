@@ -14,7 +14,6 @@ hits; the ball's facing share: of the ball's splats that face at least one camer
 (analytic), the share hit. Prints a Markdown table; writes <out>.md, <out>.json, <out>.png.
 """
 
-import argparse
 import resource
 import sys
 import time
@@ -73,7 +72,7 @@ def run(size: int, views: int, seed: int) -> dict:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="bench_view_color.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("bench_view_color.py", __doc__)
     parser.add_argument("--sizes", type=float, nargs="+", default=[1e5, 1e6])
     parser.add_argument("--views", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)

@@ -329,3 +329,20 @@ def test_every_command_is_a_console_script_with_a_shim():
     result = subprocess.run([str(console), "--real", "missing.pkl", "--bank", "b.pkl", "--out", "o.pkl"],
                             capture_output=True, text=True, timeout=120)
     assert (result.returncode, result.stderr) == (1, "error: missing.pkl: cannot read the file (No such file or directory)\n")
+
+
+def test_help_states_each_default():
+    """cli.parser's --help gives an option's default unless its text already does or
+    there is none (None, False, empty): a user need not read the code for it."""
+    from pgt_blender import cli
+
+    parser = cli.parser("x.py", "What x does.\n\nDetails.")
+    parser.add_argument("--steps", type=int, default=0, help="optimiser steps")
+    parser.add_argument("--workers", type=int, default=8, help="processes (default: all cores)")
+    parser.add_argument("--checkpoint", help="a checkpoint")
+    parser.add_argument("--quiet", action="store_true", help="print less")
+    parser.add_argument("--names", nargs="*", default=[], help="names")
+    text = " ".join(parser.format_help().split())
+    assert "What x does. options:" in text and "Details" not in text
+    assert "optimiser steps (default: 0)" in text and "(default: all cores) (default" not in text
+    assert text.count("(default:") == 2

@@ -85,6 +85,23 @@ def command(main):
     return run
 
 
+class _DefaultsShown(argparse.HelpFormatter):
+    """--help that states each option's default, unless its text already does or there
+    is none to state (None, False, empty)."""
+
+    def _get_help_string(self, action) -> str:
+        default, text = action.default, action.help
+        stated = default is None or default is False or default is argparse.SUPPRESS \
+            or (isinstance(default, (str, list, tuple)) and not default) or "default" in text.lower()
+        return text if stated or not action.option_strings else text + " (default: %(default)s)"
+
+
+def parser(prog: str, doc: str) -> argparse.ArgumentParser:
+    """The argument parser of a command or benchmark ``prog``: its docstring's first
+    paragraph as the description, each option's default stated in --help."""
+    return argparse.ArgumentParser(prog=prog, description=doc.split("\n\n")[0], formatter_class=_DefaultsShown)
+
+
 def finite(text: str) -> float:
     """A finite number, as an argparse type (NaN and infinities are refused)."""
     try:

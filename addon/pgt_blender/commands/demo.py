@@ -13,7 +13,6 @@ The samples carry no cameras, so the up direction is given from their truth file
 a user who knows the capture's up axis (or COLMAP's cameras) would give it.
 """
 
-import argparse
 import json
 import os
 import time
@@ -65,7 +64,7 @@ def scan(obj, distance: float = 15.0) -> dict:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="demo.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("demo.py", __doc__)
     parser.add_argument("--out", type=cli.OUTPUT_FOLDER, default="demo_output", help="output folder")
     parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of the synthetic samples")
     args = parser.parse_args(argv)

@@ -161,7 +161,7 @@ def finish(args, manifest: dict, reference, seconds: float, poses: int = 0) -> i
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="export_bank.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("export_bank.py", __doc__)
     parser.add_argument("--config", type=Path,
                         help="bank TOML, every key optional (docs/bank.toml lists them; default: the paper's nuScenes bank)")
     parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True, help="output folder")

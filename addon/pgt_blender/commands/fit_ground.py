@@ -12,7 +12,6 @@ ground returns; the bank config's [ground] defaults are this script's output on 
 shared KITTI frames. Bad input: a one-line error and exit code 1.
 """
 
-import argparse
 import json
 from pathlib import Path
 
@@ -26,7 +25,7 @@ def _number(value, digits: int = 2) -> str:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="fit_ground.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("fit_ground.py", __doc__)
     parser.add_argument("folder", type=Path, help="KITTI frames: velodyne/, label_2/, calib/")
     parser.add_argument("--mounting-height", type=cli.within(0.1, 10), default=1.73,
                         help="sensor height above the ground, m")

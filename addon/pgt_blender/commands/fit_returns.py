@@ -25,7 +25,6 @@ constant at the training frames' mean; then writes ``ray_drop`` and ``intensity_
 as a sensor TOML (``base`` = the sensor) that --sensor and the bank config take.
 """
 
-import argparse
 import json
 from pathlib import Path
 
@@ -96,7 +95,7 @@ def toml_text(sensor_name: str, model: tuple, law: tuple, folder: Path) -> str:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="fit_returns.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("fit_returns.py", __doc__)
     parser.add_argument("folder", type=Path, help="KITTI folder with velodyne, label_2, calib")
     parser.add_argument("--sensor", default="kitti", help="the frames' sensor: preset or TOML")
     parser.add_argument("--meshes", required=True,

@@ -14,7 +14,6 @@ plus the fitted keys) that --sensor and the bank config take. What returns look 
 error and exit code 1.
 """
 
-import argparse
 import json
 from pathlib import Path
 
@@ -76,7 +75,7 @@ def toml_text(sensor, fit, files: list, base: str, held_out: list) -> str:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="fit_sensor.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("fit_sensor.py", __doc__)
     parser.add_argument("scans", type=Path, nargs="+", help="raw scans (.bin) or folders of them")
     parser.add_argument("--base", choices=sorted(PRESETS), default="kitti", help="the preset the fit refines")
     parser.add_argument("--out", type=cli.OUTPUT_FILE, help="write the fitted sensor TOML here")

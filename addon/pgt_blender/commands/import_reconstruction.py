@@ -15,7 +15,6 @@ view_count); --foreground keeps the object: "masks" (per-image masks in --masks)
 Exit status 1 and a one-line message on bad input; nothing is written then.
 """
 
-import argparse
 import json
 from pathlib import Path
 
@@ -30,7 +29,7 @@ from ..core.importing import load_reconstruction
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="import_reconstruction.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("import_reconstruction.py", __doc__)
     parser.add_argument("input", type=Path, help="COLMAP model folder or reconstruction file")
     parser.add_argument("--out", type=cli.OUTPUT_FILE, help="save the scene to this .blend")
     parser.add_argument("--json", action="store_true", help="print what arrived as one JSON object")

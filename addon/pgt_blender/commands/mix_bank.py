@@ -28,7 +28,7 @@ def ratio_argument(text: str) -> tuple:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="mix_bank.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("mix_bank.py", __doc__)
     parser.add_argument("--real", type=Path, required=True, help="real ground-truth info pickle (*_dbinfos_*.pkl)")
     parser.add_argument("--bank", type=Path, required=True, help="the bank's info pickle")
     parser.add_argument("--out", type=cli.OUTPUT_FILE, required=True, help="the mixed info pickle to write")

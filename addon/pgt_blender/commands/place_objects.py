@@ -50,7 +50,7 @@ def objects_argument(text: str) -> tuple:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="place_objects.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("place_objects.py", __doc__)
     parser.add_argument("--scan", type=Path, required=True, help="the scene's point file (float32 rows)")
     parser.add_argument("--info", type=Path, required=True,
                         help="KITTI label file, or OpenPCDet / mmdetection3d info pickle with the scan's sample")

@@ -44,7 +44,7 @@ def size_argument(text: str):
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="prepare_objects.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("prepare_objects.py", __doc__)
     parser.add_argument("--in", dest="inputs", type=Path, required=True, help="folder of reconstructions")
     parser.add_argument("--class", dest="class_name", required=True,
                         help="class name in --dataset (a nuScenes trailer is headed by its running gear)")

@@ -18,7 +18,6 @@ and DIR/sparse/0, the model pgt-import-reconstruction and the Import panel read.
 Progress bars on stderr; bad input: a one-line error and exit code 1.
 """
 
-import argparse
 import os
 import shutil
 from pathlib import Path
@@ -34,7 +33,7 @@ VIDEO_EVERY = 10  # a video's default: 1 frame kept in 10 (3 per second at 30 fp
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="reconstruct_frames.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("reconstruct_frames.py", __doc__)
     parser.add_argument("input", type=Path, help="folder of images, or a video file")
     parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True,
                         help="output folder (database.db, sparse/0, images/)")

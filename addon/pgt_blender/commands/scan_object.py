@@ -26,7 +26,6 @@ color (the file's vertex or point colors) for the object's class. Bad input: a
 one-line error and exit code 1.
 """
 
-import argparse
 from pathlib import Path
 
 import numpy as np
@@ -115,7 +114,7 @@ def moving_class(args, class_name: str) -> str:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="scan_object.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("scan_object.py", __doc__)
     parser.add_argument("--object", type=Path, required=True, help="mesh, point or splat file, object frame")
     parser.add_argument("--sensor", default="nuscenes", help=f"{', '.join(PRESETS)} or a .toml file")
     parser.add_argument("--x", type=cli.within(-1e4, 1e4), required=True, help="object position, sensor frame (m)")

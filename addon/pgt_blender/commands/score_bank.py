@@ -14,7 +14,6 @@ same inputs and --seed give the same numbers. Exit status 1 and a one-line messa
 bad input; nothing is written then.
 """
 
-import argparse
 import json
 from pathlib import Path
 
@@ -27,7 +26,7 @@ from ..core.quality.sets import REFERENCES
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="score_bank.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("score_bank.py", __doc__)
     parser.add_argument("--bank", type=Path, required=True, help="the exported bank's folder")
     parser.add_argument("--real", type=Path, required=True, help="real ground-truth info pickle (*_dbinfos_*.pkl)")
     parser.add_argument("--convention", choices=CONVENTIONS, default="openpcdet",

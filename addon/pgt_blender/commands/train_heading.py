@@ -19,7 +19,6 @@ addon/pgt_blender/models/heading_pointnet.pt (dense samples and scans of the six
 built-in vehicles and the six Chrono chassis, 270 point sets).
 """
 
-import argparse
 import time
 from pathlib import Path
 
@@ -64,7 +63,7 @@ def accuracy_both_ways(classifier, sets: list, points: int = 512) -> float:
 
 
 def main(argv: list) -> int:
-    parser = argparse.ArgumentParser(prog="train_heading.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("train_heading.py", __doc__)
     parser.add_argument("--out", type=cli.OUTPUT_FILE, required=True, help="checkpoint to write (.pt)")
     parser.add_argument("--seed", type=cli.SEED, default=0)
     parser.add_argument("--steps", type=cli.STEPS, default=hc.STEPS, help="optimiser steps (batches of 32)")

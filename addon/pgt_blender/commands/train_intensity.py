@@ -24,7 +24,6 @@ bytes as an uninterrupted run (so does raising --steps with --resume). Same inpu
 seed and --threads give the same bytes. Bad input: a one-line error, exit status 1.
 """
 
-import argparse
 import csv
 import time
 from pathlib import Path
@@ -59,7 +58,7 @@ def inference_rate(path: Path, rgb) -> float:
 
 
 def parse(argv: list):
-    parser = argparse.ArgumentParser(prog="train_intensity.py", description=__doc__.split("\n\n")[0])
+    parser = cli.parser("train_intensity.py", __doc__)
     defaults = TrainConfig()
     parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True,
                         help="folder for the checkpoints, log and config")
