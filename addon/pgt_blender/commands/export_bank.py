@@ -171,7 +171,8 @@ def main(argv: list) -> int:
     parser.add_argument("--skip-incomplete", action="store_true", help="leave out objects without class or size")
     parser.add_argument("--workers", type=cli.whole(1, 1024), default=os.cpu_count(),
                         help="processes (default: all cores)")
-    parser.add_argument("--executor", choices=("local", "ray"), default="local")
+    parser.add_argument("--executor", choices=("local", "ray"), default="local",
+                        help="local processes or a Ray cluster (--address)")
     parser.add_argument("--address", help="Ray cluster address (default: start a local one)")
     parser.add_argument("--resume", action="store_true", help="continue the unfinished bank in --out")
     parser.add_argument("--overwrite", action="store_true", help="replace the bank in --out")

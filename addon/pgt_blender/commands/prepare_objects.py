@@ -49,10 +49,12 @@ def main(argv: list) -> int:
     parser.add_argument("--class", dest="class_name", required=True,
                         help="class name in --dataset (a nuScenes trailer is headed by its running gear)")
     parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True, help="output folder")
-    parser.add_argument("--dataset", choices=sorted(CLASS_SIZES), default="nuscenes")
+    parser.add_argument("--dataset", choices=sorted(CLASS_SIZES), default="nuscenes",
+                        help="whose class sizes --size class draws from")
     parser.add_argument("--up", choices=UP_CHOICES, default="auto",
                         help="up direction: cameras' mean up (auto, when there are cameras), PCA minor axis, or a source axis")
-    parser.add_argument("--heading", choices=("auto", "classifier", "baseline", "none"), default="auto")
+    parser.add_argument("--heading", choices=("auto", "classifier", "baseline", "none"), default="auto",
+                        help="front/back: auto is the classifier where torch imports, else the geometric baseline")
     parser.add_argument("--size", type=size_argument, default="class",
                         help="class (class mean with clipped 10%% noise), keep (already metric) or L,W,H metres")
     parser.add_argument("--uniform", action="store_true", help="scale all axes by one factor (keeps proportions)")

@@ -136,7 +136,7 @@ def main(argv: list) -> int:
     parser.add_argument("--drop-rate", type=cli.finite, default=0.0, help="random ray drop probability")
     parser.add_argument("--ray-drop", action="store_true", help="drop returns with the sensor's fitted ray-drop "
                                                                  "model (kitti has one)")
-    parser.add_argument("--seed", type=cli.SEED, default=0)
+    parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of the noise and drop draws")
     parser.add_argument("--out", type=cli.OUTPUT_FILE, required=True,
                         help=f"output file ({', '.join(OUTPUT_SUFFIXES)})")
     args = parser.parse_args(argv)

@@ -65,7 +65,7 @@ def accuracy_both_ways(classifier, sets: list, points: int = 512) -> float:
 def main(argv: list) -> int:
     parser = cli.parser("train_heading.py", __doc__)
     parser.add_argument("--out", type=cli.OUTPUT_FILE, required=True, help="checkpoint to write (.pt)")
-    parser.add_argument("--seed", type=cli.SEED, default=0)
+    parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of every draw")
     parser.add_argument("--steps", type=cli.STEPS, default=hc.STEPS, help="optimiser steps (batches of 32)")
     parser.add_argument("--points", type=cli.CLOUD_POINTS, default=512, help="points per cloud the network sees")
     parser.add_argument("--chrono", type=Path,

@@ -74,9 +74,10 @@ def parse(argv: list):
                         help="drop objects with fewer points (paper: 256)")
     parser.add_argument("--points", type=cli.CLOUD_POINTS, default=defaults.points,
                         help="points per object the networks see")
-    parser.add_argument("--steps", type=cli.STEPS, default=defaults.steps)
-    parser.add_argument("--checkpoint-every", type=cli.STEPS, default=defaults.checkpoint_every)
-    parser.add_argument("--seed", type=cli.SEED, default=defaults.seed)
+    parser.add_argument("--steps", type=cli.STEPS, default=defaults.steps, help="optimiser steps")
+    parser.add_argument("--checkpoint-every", type=cli.STEPS, default=defaults.checkpoint_every,
+                        help="steps between checkpoints (what --resume goes on from)")
+    parser.add_argument("--seed", type=cli.SEED, default=defaults.seed, help="seed of every draw")
     parser.add_argument("--threads", type=cli.THREADS, default=defaults.threads,
                         help="torch CPU threads (part of what makes the bytes repeat)")
     parser.add_argument("--resume", action="store_true", help="go on from DIR/checkpoint.pt")
