@@ -144,6 +144,20 @@ def test_an_emptied_object_refuses_the_export_before_the_folder_is_made(scene, s
     assert not (tmp_path / "bank").exists()
 
 
+def test_an_export_that_keeps_no_entry_says_nothing_is_left(scene, sources, tmp_path):
+    """No pose with min_points returns: the error names it, the folder is removed, and
+    the status does not offer a resume of it."""
+    author_in_blender(scene, sources)
+    settings = scene.pgt_bank
+    settings.output, settings.config_file = str(tmp_path / "bank"), str(
+        write_config(tmp_path / "bank.toml", {"bank": {"min_points": 100_000}, "grid": {"x": [10, 10, 1],
+                                                                                         "y": [0, 0, 1]}}))
+    with pytest.raises(RuntimeError, match="no entry kept: all 26 poses had fewer than 100000 points"):
+        bpy.ops.scene.pgt_export_bank()
+    assert not (tmp_path / "bank").exists()
+    assert settings.status == "failed: nothing written stays (the error says why)"
+
+
 def test_the_bank_fields_hold_the_config_file_bounds(scene, tmp_path):
     """Sweeps beyond a config file's 100 are clamped by the field, and what the fields
     make is checked as a file is (bank.bank_config through config_from_table)."""

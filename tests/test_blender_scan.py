@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from pgt_blender.core.reconstruction import Reconstruction
-from pgt_blender.core.scan.raycast import scan_object
+from pgt_blender.core.boxes import centred_bounds
+from pgt_blender.core.scan.raycast import ScanOptions, cast_rays, placement
 from pgt_blender.core.scan.returns import RETURN_DTYPE
 from pgt_blender.core.scan.sensors import PRESETS
 from pgt_blender.core.scan.targets import (embree_available, gaussian_target, mesh_target, reflectivity_from_srgb,
@@ -52,10 +53,13 @@ def mesh_object(scene, name, vertices, faces=()):
     return obj
 
 
-def core_scan(target, settings):
-    """The headless scan with the pose the operator derives from ``settings``."""
+def core_scan(target, settings, bounds=None):
+    """The headless scan with the pose the operator derives from ``settings``, standing
+    on ``bounds`` (2, 3) (default: the geometry's)."""
     x, y = settings.distance * math.cos(settings.azimuth), settings.distance * math.sin(settings.azimuth)
-    return scan_object(target, PRESETS[settings.sensor], x, y, settings.heading)
+    sensor = PRESETS[settings.sensor]
+    return cast_rays(target, sensor, placement(target.bounds if bounds is None else bounds, sensor, x, y,
+                                               settings.heading), ScanOptions())
 
 
 def result_objects(source_name):
@@ -259,6 +263,36 @@ def test_point_cloud_scans_as_surfels(scene):
     assert expected.hits > 100
     assert_same_rows(bpy.data.objects[f"{cloud.name} Scan"], expected.returns)
     assert scanning.scan_target(cloud, settings.surfel_scale).kind == "surfels"
+    assert "surfel_scale" in drawn_scan_panel()
+
+
+def test_an_authored_point_cloud_scans_as_scan_object_scans_it_prepared(scene, tmp_path):
+    """Authored in the panels, a sample with floaters stands on its authored box, as
+    scan_object.py stands the same object prepared (its sidecar's box) and as the bank
+    does: the same rows. Its points' bounds, floaters and all, lie 0.3 m lower."""
+    from pgt_blender.commands import scan_object as command
+    from pgt_blender.core.authoring.prepare import prepare, write_prepared
+    from pgt_blender.core.importing import load_reconstruction
+    from pgt_blender.core.samples import write_sample
+
+    path = write_sample(tmp_path, "bus", seed=3, points=6000)["reconstruction.ply"]
+    assert bpy.ops.import_scene.pgt_point_cloud(filepath=str(path)) == {"FINISHED"}
+    cloud = bpy.context.view_layer.objects.active
+    authoring = scene.pgt_authoring
+    authoring.up, authoring.heading_method, authoring.size_mode = "pca", "baseline", "class"
+    authoring.dataset, authoring.class_name, authoring.seed = "nuscenes", "bus", 3
+    for operator in (bpy.ops.object.pgt_align, bpy.ops.object.pgt_auto_heading, bpy.ops.object.pgt_set_size):
+        assert operator() == {"FINISHED"}
+    settings = scene.pgt_scan
+    settings.distance, settings.azimuth, settings.heading = 15.0, 0.0, 0.0
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+
+    prepared = write_prepared(prepare(load_reconstruction(path), "bus", up="pca", heading_method="baseline", seed=3),
+                              "bus", "nuscenes", tmp_path / "prepared")
+    assert command.main(["--object", str(prepared[".ply"]), "--sensor", "nuscenes", "--x", "15", "--y", "0",
+                         "--heading", "0", "--out", str(tmp_path / "scan.npy")]) == 0
+    assert_same_rows(bpy.data.objects[f"{cloud.name} Scan"], np.load(tmp_path / "scan.npy"))
+    assert positions(cloud)[:, 2].min() < -cloud.pgt.dims[2] / 2 - 0.3
 
 
 def test_an_authored_splat_scans_as_gaussians(scene, donut):
@@ -284,9 +318,10 @@ def test_an_authored_splat_scans_as_gaussians(scene, donut):
     settings.distance, settings.azimuth = 12.0, math.radians(20)
     assert bpy.ops.object.pgt_scan() == {"FINISHED"}
     assert scanning.scan_target(splat).kind == "gaussians"
+    assert "surfel_scale" not in drawn_scan_panel()  # its own scales, not the point spacing
     stored_colors = color_values(splat.data.color_attributes.active_color)
     target = gaussian_target(authored.positions, *authored.splat_shapes, shapes["opacity"], splat.name, stored_colors)
-    expected = core_scan(target, settings)
+    expected = core_scan(target, settings, centred_bounds(authored.dims))  # the authored box stands on the ground
     assert expected.hits > 100
     assert_same_rows(bpy.data.objects[f"{splat.name} Scan"], expected.returns)
 
@@ -497,6 +532,15 @@ def test_scan_is_undoable_and_registered():
     assert VIEW3D_PT_pgt_scan in panel_classes
 
 
+def drawn_scan_panel() -> list:
+    """What the Scan panel draws for the active object (_Layout's record)."""
+    from pgt_blender.blender.ui import VIEW3D_PT_pgt_scan
+
+    drawn = []
+    VIEW3D_PT_pgt_scan.draw(SimpleNamespace(layout=_Layout(drawn)), bpy.context)
+    return drawn
+
+
 class _Layout:
     """Stands in for UILayout: records what a panel draws, checking property names."""
 
@@ -519,15 +563,14 @@ class _Layout:
 
 @pytest.mark.parametrize("sensor", ["nuscenes", "CUSTOM"])
 def test_panel_draws_the_settings_button_and_stats(scene, sensor):
-    from pgt_blender.blender.ui import VIEW3D_PT_pgt_scan
-
     mesh_object(scene, "Box", *box_geometry())
     scene.pgt_scan.sensor = sensor
     if sensor == "nuscenes":
         bpy.ops.object.pgt_scan()
-    drawn = []
-    VIEW3D_PT_pgt_scan.draw(SimpleNamespace(layout=_Layout(drawn)), bpy.context)
+    drawn = drawn_scan_panel()
     assert drawn[:1] == ["sensor"] and "object.pgt_scan" in drawn
     assert {"distance", "azimuth", "heading", "color_by"} <= set(drawn)
     assert ("sensor_file" in drawn) == (sensor == "CUSTOM")
-    assert (scene.pgt_scan.stats in drawn) == bool(scene.pgt_scan.stats)
+    assert (f"Box at 15 m: {scene.pgt_scan.stats}" in drawn) == bool(scene.pgt_scan.stats)
+    # surfel scale only where it means something: a point cloud, not a mesh or a splat
+    assert "surfel_scale" not in drawn

@@ -16,6 +16,7 @@ from mathutils import Matrix
 
 from ..core.authoring.alignment import checked_points
 from ..core.authoring.prepare import Step, apply_to_splats, apply_transform, checked_steps, heading_label
+from ..core.boxes import centred_bounds
 from ..core.errors import InputError
 from .objects import _BLENDER_FROM_OPENCV, POINTS_GROUP
 from .scanning import splat_attributes
@@ -102,10 +103,14 @@ def triangles(obj: bpy.types.Object):
     return values.reshape(-1, 3)
 
 
+FACES_AGREE = 0.5  # a flat part's faces sum to over 95 % of their area (the Chrono roofs: 96-99.5 %)
+
+
 def selected_face_normal(obj: bpy.types.Object) -> np.ndarray:
     """(3,) area-weighted mean normal of the selected faces (local frame; the object out
     of Edit Mode: ``object_mode``); InputError when none is selected or their normals
-    cancel out."""
+    disagree: their area-weighted sum under FACES_AGREE x their area (a whole closed or
+    nearly closed surface, as Edit Mode selects a freshly imported mesh, sums to 0-13 %)."""
     mesh = obj.data
     count = len(mesh.polygons)
     selected, normals, areas = np.empty(count, bool), np.empty(count * 3, np.float32), np.empty(count, np.float32)
@@ -115,9 +120,11 @@ def selected_face_normal(obj: bpy.types.Object) -> np.ndarray:
     if not selected.any():
         raise InputError(obj.name, "has no selected faces to take up from (select them in Edit Mode)")
     mean = (normals.reshape(-1, 3)[selected] * areas[selected, None]).sum(axis=0)
-    if not np.linalg.norm(mean) > 1e-3 * areas[selected].sum():
-        raise InputError(obj.name, f"the normals of its {int(selected.sum())} selected faces cancel out (a closed "
-                                   "surface): select the faces of one side, the bottom or the top")
+    agreement = np.linalg.norm(mean) / max(areas[selected].sum(), np.finfo(np.float32).tiny)
+    if not agreement >= FACES_AGREE:
+        raise InputError(obj.name, f"the normals of its {int(selected.sum())} selected faces disagree (they sum to "
+                                   f"{agreement:.0%} of their area, {FACES_AGREE:.0%} needed: all of a closed "
+                                   "surface?): select the faces of one flat part, the bottom or the top")
     return mean
 
 
@@ -158,13 +165,15 @@ def apply_step(obj: bpy.types.Object, step: Step) -> None:
         modifier, identifier = radius
         modifier[identifier] = modifier[identifier] * scale
     settings = obj.pgt
-    before = np.array(settings.object_from_source).reshape(4, 4)
-    settings.object_from_source = Matrix((step.transform @ before).tolist())
+    record = steps(obj)
+    record.append({"step": step.name, "transform": step.transform.tolist(), "dims": list(step.dims), **step.details})
+    product = np.eye(4)
+    for done in record:  # float64, as prepare() chains them; the float32 property rounds it once
+        product = np.array(done["transform"]) @ product
+    settings.object_from_source = Matrix(product.tolist())
     settings.dims = step.dims
     if step.name == "size":
         settings.dataset, settings.class_name = step.details["dataset"], step.details["class"]
-    record = steps(obj)
-    record.append({"step": step.name, "transform": step.transform.tolist(), "dims": list(step.dims), **step.details})
     settings.steps_json = json.dumps(record)
     show_box(obj)
 
@@ -194,6 +203,14 @@ def show_box(obj: bpy.types.Object) -> bpy.types.Object:
     box.matrix_parent_inverse.identity()
     box.matrix_basis = Matrix.Diagonal((*(max(d, 1e-6) / 2 for d in obj.pgt.dims), 1.0))
     return box
+
+
+def authored_bounds(obj: bpy.types.Object):
+    """(2, 3) float64 the box of ``obj``'s last authoring step, centred on its origin (what
+    stands on the ground in the bank and in scan_object.py with a sidecar), or None
+    before any step (a scan then takes the geometry's bounds)."""
+    record = steps(obj)
+    return centred_bounds(record[-1]["dims"]) if record else None
 
 
 def current_dims(obj: bpy.types.Object) -> np.ndarray:

@@ -17,7 +17,7 @@ from ..core.scan.returns import RETURN_DTYPE, Scan
 from ..core.scan.sensors import INTENSITY_MAX
 from ..core.scan.targets import srgb_from_linear
 from . import scanning
-from .authoring import object_from_world, positions
+from .authoring import authored_bounds, object_from_world, positions
 
 GREY = (0.5, 0.5, 0.5)
 
@@ -90,7 +90,8 @@ def learned_intensity(scan: Scan, source: bpy.types.Object, checkpoint, settings
     one. InputError as the core's, when ``source``'s geometry differs from ``scanned``
     (scanning.scanned_geometry at the scan; None: not known) and when the scan hit a face
     or point ``source`` no longer has (edited since the scan)."""
-    bounds = scanning.scan_target(source, settings.surfel_scale).bounds
+    bounds = authored_bounds(source)
+    bounds = scanning.scan_target(source, settings.surfel_scale).bounds if bounds is None else bounds
     if scanned is not None and scanned != scanning.scanned_geometry(source):
         raise InputError(source.name, "changed since the scan (its vertices or faces differ, or another object took "
                                       "its name): scan it again")

@@ -12,6 +12,7 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from ..core.authoring import prepare
 from ..core.bank.config import config_toml
+from ..core.bank.folder import WORK
 from ..core.capture import CaptureOptions
 from ..core.classes import MINORITY_CLASSES
 from ..core.errors import InputError, printable
@@ -143,7 +144,8 @@ class _CameraFile:
                                  description="Training cameras in the input's frame (3DGS cameras.json or a COLMAP "
                                              "model folder); empty: the run's own or a cameras.json beside the file")
     with_cameras: BoolProperty(name="Add Cameras", default=False,
-                               description="Also add the training cameras to the scene, children of the points")
+                               description="Also add the training cameras to the scene, children of the points: "
+                                           "Align's Up Auto then takes their mean up")
 
     def cameras_path(self):
         return bpy.path.abspath(self.cameras_file) if self.cameras_file else None
@@ -171,7 +173,8 @@ class IMPORT_SCENE_OT_pgt_colmap(_ChoosesFolder, _CaptureSettings, _ImportRecons
     directory: StringProperty(name="Model folder", subtype="DIR_PATH", options=properties.PATH_OPTIONS,
                               description="Folder with cameras, images and points3D (.bin or .txt)")
     with_cameras: BoolProperty(name="Cameras", default=True,
-                               description="Add the registered photos as cameras, children of the points")
+                               description="Add the registered photos as cameras, children of the points: Align's Up "
+                                           "Auto takes their mean up (without them, the PCA minor axis)")
 
     def input_path(self) -> str:
         return self.directory
@@ -366,8 +369,9 @@ class _AuthoringStep:
                 self.report({"ERROR"}, str(error))
                 return {"CANCELLED"}
             authoring.apply_step(obj, step)
+        unit = " m" if authoring.status(obj)["size"] else " (source units)"  # metres once sized
         self.report({"INFO"}, f"{obj.name}: {self.bl_label.lower()}{self.outcome(step, context.scene.pgt_authoring)}"
-                              ", box " + " x ".join(f"{d:.3g}" for d in obj.pgt.dims))
+                              ", box " + " x ".join(f"{d:.4g}" for d in obj.pgt.dims) + unit)
         return {"FINISHED"}
 
     def outcome(self, step, settings) -> str:
@@ -385,6 +389,9 @@ class OBJECT_OT_pgt_align(_AuthoringStep, bpy.types.Operator):
     def step(self, context, obj, settings):
         return align(context, obj, settings)
 
+    def outcome(self, step, settings) -> str:
+        return f" (up from {step.details['up_from']})"
+
 
 class OBJECT_OT_pgt_turn(_AuthoringStep, bpy.types.Operator):
     """Turn the object about its up axis by quarter turns (2: swap front and back)"""
@@ -397,6 +404,9 @@ class OBJECT_OT_pgt_turn(_AuthoringStep, bpy.types.Operator):
 
     def step(self, context, obj, settings):
         return prepare.turn_step(self.turns, authoring.current_dims(obj))
+
+    def outcome(self, step, settings) -> str:
+        return f" by {self.turns} quarter turn{'s' * (abs(self.turns) != 1)}"
 
 
 class OBJECT_OT_pgt_front_from_cursor(_AuthoringStep, bpy.types.Operator):
@@ -438,6 +448,12 @@ class OBJECT_OT_pgt_set_size(_AuthoringStep, bpy.types.Operator):
     def step(self, context, obj, settings):
         return set_size(context, obj, settings)
 
+    def outcome(self, step, settings) -> str:
+        """How the size came about: kept, exact, or drawn for the dataset's class (seed)."""
+        details = step.details
+        seed = f", seed {details['seed']}" if "seed" in details else ""
+        return f" ({details['mode']}: {details['dataset']} {details['class']}{seed})"
+
 
 class OBJECT_OT_pgt_scan(bpy.types.Operator):
     """Scan the active mesh or point cloud with the chosen LiDAR, placed on the ground"""
@@ -460,7 +476,7 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
             try:
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
-                    result, sensor, sensor_from_object = scanning.scan(obj, settings)
+                    result, sensor, sensor_from_object = scanning.scan(obj, settings, authoring.authored_bounds(obj))
             except REPORTED as error:
                 self.report({"ERROR"}, str(error))
                 return {"CANCELLED"}
@@ -473,7 +489,7 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
                 return {"CANCELLED"}
             learned = self.learned_intensity(context, obj, result, settings)
         scanning.show_scan(context.scene, obj, result, sensor, sensor_from_object, settings)
-        settings.stats = scanning.stats_text(result)
+        settings.stats, settings.stats_of = scanning.stats_text(result), f"{obj.name} at {settings.distance:g} m"
         self.report({"INFO"}, f"{obj.name}: {settings.stats}{learned}")
         return {"FINISHED"}
 
@@ -700,8 +716,11 @@ class SCENE_OT_pgt_export_bank(_BackgroundSteps, bpy.types.Operator):
         return {"CANCELLED"}
 
     def failed(self, context):
-        if getattr(self, "bank_run", None) is not None:
-            context.scene.pgt_bank.status = "failed: the written chunks stay; 'Resume' continues"
+        run = getattr(self, "bank_run", None)
+        if run is not None:  # a bank that kept no entry is removed: nothing is left to resume
+            resumable = (run.out / WORK).is_dir()
+            context.scene.pgt_bank.status = ("failed: the written chunks stay; 'Resume' continues" if resumable
+                                             else "failed: nothing written stays (the error says why)")
         return {"CANCELLED"}
 
 

@@ -80,7 +80,8 @@ class PGT_PG_object(bpy.types.PropertyGroup):
     object_from_source: FloatVectorProperty(name="Object from source", size=(4, 4),
                                             subtype="MATRIX", default=_IDENTITY,
                                             description="4x4 from the source file's frame to the object "
-                                                        "frame: the product of the authoring steps")
+                                                        "frame: the product of the authoring steps (float32; "
+                                                        "each step's float64 transform is in Steps)")
     dims: FloatVectorProperty(name="Box", size=3, subtype="XYZ", unit="LENGTH",
                               description="Box length, width, height in the object frame")
     steps_json: StringProperty(name="Steps", description="JSON list of the authoring steps applied; "
@@ -148,6 +149,7 @@ class PGT_PG_scan(bpy.types.PropertyGroup):
     surfel_scale: FloatProperty(name="Surfel scale", default=1.0, min=0.01, soft_max=5.0,
                                 description="Point clouds: surfel radius in units of the point spacing")
     stats: StringProperty(name="Statistics", description="Points, rays and time of the last scan")
+    stats_of: StringProperty(name="Statistics of", description="The object and distance of the last scan")
 
 
 _BANK_DEFAULTS = BankConfig()

@@ -55,18 +55,20 @@ def sensor_of(settings) -> Sensor:
     return load_sensor_toml(bpy.path.abspath(settings.sensor_file))
 
 
-def scan(obj: bpy.types.Object, settings) -> tuple[Scan, Sensor, np.ndarray]:
+def scan(obj: bpy.types.Object, settings, box=None) -> tuple[Scan, Sensor, np.ndarray]:
     """One sweep of ``obj`` standing ``settings.distance`` m from the sensor towards
     ``settings.azimuth`` (rad, from +x counter-clockwise), turned to ``settings.heading``
-    (rad). Returns the scan (sensor frame), the sensor and the (4, 4) float64
-    sensor_from_object. Bad input raises InputError before any Blender data is made."""
+    (rad), its box ``box`` (2, 3) object frame (authoring.authored_bounds; None: the
+    geometry's bounds) on the ground. Returns the scan (sensor frame), the sensor and the
+    (4, 4) float64 sensor_from_object. Bad input raises InputError before any Blender
+    data is made."""
     not_finite = [name for name in ("distance", "azimuth", "heading") if not math.isfinite(getattr(settings, name))]
     if not_finite:  # min/max do not hold NaN off a property that a script or driver set
         raise InputError("Scan", f"{not_finite[0]} must be a finite number, got {getattr(settings, not_finite[0])}")
     sensor, options = sensor_of(settings), ScanOptions()
     target = scan_target(obj, settings.surfel_scale, options.engine)
     x, y = settings.distance * math.cos(settings.azimuth), settings.distance * math.sin(settings.azimuth)
-    sensor_from_object = placement(target.bounds, sensor, x, y, settings.heading)
+    sensor_from_object = placement(target.bounds if box is None else box, sensor, x, y, settings.heading)
     return cast_rays(target, sensor, sensor_from_object, options), sensor, sensor_from_object
 
 
@@ -135,12 +137,27 @@ def splat_attributes(mesh: bpy.types.Mesh) -> dict:
     (objects.add_attribute): ``opacity`` (N,), ``scale`` (N, 3) m and ``rotation``
     (N, 4) w x y z, float32; absent ones (or of another type or domain) are left out."""
     found = {}
+    for name, (attribute, field, width) in _splat_layers(mesh).items():
+        values = read(attribute.data, field, len(mesh.vertices) * width, np.float32)
+        found[name] = values if width == 1 else values.reshape(-1, width)
+    return found
+
+
+def is_splat(mesh: bpy.types.Mesh) -> bool:
+    """Whether a mesh without faces carries every splat attribute (it scans as Gaussians),
+    told without reading them: cheap enough for a panel's redraw."""
+    return not len(mesh.polygons) and len(_splat_layers(mesh)) == len(SPLAT_ATTRIBUTES)
+
+
+def _splat_layers(mesh: bpy.types.Mesh) -> dict:
+    """name -> (attribute, field, values per point) of the splat attributes ``mesh``
+    carries with the importer's type and domain."""
+    layers = {}
     for name, (data_type, field, width) in SPLAT_ATTRIBUTES.items():
         attribute = mesh.attributes.get(name)
         if attribute is not None and attribute.data_type == data_type and attribute.domain == "POINT":
-            values = read(attribute.data, field, len(mesh.vertices) * width, np.float32)
-            found[name] = values if width == 1 else values.reshape(-1, width)
-    return found
+            layers[name] = attribute, field, width
+    return layers
 
 
 def _fingerprint(inputs: tuple) -> tuple:

@@ -2,7 +2,7 @@
 
 import bpy
 
-from . import authoring, properties
+from . import authoring, properties, scanning
 from .operators import IMPORTERS
 
 
@@ -75,11 +75,16 @@ def status_icon(obj, not_done: str) -> str:
 
 
 def refinement_text(obj) -> str:
-    """What the last alignment's refinement did: the tilt it removed and the noise."""
+    """What the last alignment's refinement did: the tilt it removed from the starting up
+    (a prior, or without one the PCA minor axis; over 45 degrees that axis was not up at
+    all, a bus's width, and the planes gave up) and the surface noise (source units)."""
     align = next((step for step in reversed(authoring.steps(obj)) if step["step"] == "align"), {})
     if not align.get("refined"):
         return "Not refined to the surface"
-    return f"Refined: tilt removed {align['tilt_deg']:.2f}°, noise {align['noise']:.3g}"
+    tilt = align["tilt_deg"]
+    turned = (f"up from the surface planes (the PCA minor axis lay {tilt:.1f}° off)"
+              if align["up_from"] == "planes" and tilt > 45 else f"tilt removed {tilt:.2f}°")
+    return f"Refined: {turned}, noise {align['noise']:.3g} (source units)"
 
 
 class _AuthoringPanel(_PGTPanel):
@@ -165,11 +170,11 @@ class VIEW3D_PT_pgt_scan(_PGTPanel, bpy.types.Panel):
             column.prop(settings, name)
         layout.prop(settings, "color_by", expand=True)
         obj = context.active_object
-        if obj is not None and obj.type == "MESH" and not obj.data.polygons:
-            layout.prop(settings, "surfel_scale")
+        if obj is not None and obj.type == "MESH" and not obj.data.polygons and not scanning.is_splat(obj.data):
+            layout.prop(settings, "surfel_scale")  # a splat scans as Gaussians of its own scales
         layout.operator("object.pgt_scan", icon="LIGHT_SPOT")
-        if settings.stats:
-            layout.label(text=settings.stats, icon="INFO")
+        if settings.stats:  # named: a later scan without returns leaves it, and it shows beside any object
+            layout.label(text=f"{settings.stats_of}: {settings.stats}", icon="INFO")
         layout.operator("object.pgt_apply_intensity", icon="SHADING_TEXTURE")
 
 

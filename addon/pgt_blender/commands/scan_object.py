@@ -33,6 +33,7 @@ import numpy as np
 from .. import cli
 from ..core.authoring.prepare import read_sidecar
 from ..core.bank.config import MAX_SWEEPS
+from ..core.boxes import centred_bounds
 from ..core.errors import InputError
 from ..core.files import apart_from_inputs
 from ..core.importing import load_reconstruction
@@ -55,7 +56,7 @@ def authored_box(record: dict):
     """(2, 3) the authored box of a prepared object (its sidecar's dims, centred on the
     object-frame origin, as the bank takes it), or None without a sidecar."""
     dims = record.get("dims")
-    return None if dims is None else np.outer([-0.5, 0.5], dims)
+    return None if dims is None else centred_bounds(dims)
 
 
 def scan(args):

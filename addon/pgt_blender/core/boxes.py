@@ -5,6 +5,13 @@ x y z (centre, m), dx dy dz (length along the heading, width, height, m), headin
 import numpy as np
 
 
+def centred_bounds(dims) -> np.ndarray:
+    """(2, 3) float64 min and max corners of a box of ``dims`` (3,) m centred on the
+    origin: an authored object's box in its object frame."""
+    dims = np.asarray(dims, np.float64)
+    return np.stack([-dims / 2, dims / 2])
+
+
 def box_frame(points: np.ndarray, centre: np.ndarray, heading: float) -> np.ndarray:
     """(N, 3) sensor-frame points into the frame of a box at ``centre`` turned by ``heading``."""
     cos, sin = np.cos(heading), np.sin(heading)

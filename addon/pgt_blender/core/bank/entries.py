@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..boxes import centred_bounds
 from ..scan.raycast import Ground, ScanOptions
 from ..scan.sensors import BIN_COLUMNS
 from ..scan.sweeps import Motion, scan_many
@@ -69,7 +70,7 @@ class TargetCache:
     def _make(self, object_index: int, variant: int) -> Variant:
         obj: BankObject = self.objects[object_index]
         dims = size_variants(self.config, object_index, obj.dims)[variant]
-        bounds = np.stack([-dims / 2, dims / 2])
+        bounds = centred_bounds(dims)
         if not has_gaussians(obj.geometry.attributes):
             if self._shared is None:
                 self._shared = self._target(obj.geometry)

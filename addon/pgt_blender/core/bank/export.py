@@ -293,8 +293,8 @@ def assemble(out: Path, data_root=None, existed: bool | None = None) -> dict:
         if existed is not None:
             _discard_bank(out, keep_folder=existed)
         raise InputError(out, f"no entry kept: all {sum(dropped.values()):,} poses had fewer than "
-                              f"{config['min_points']} points in their box; lower bank.min_points or bring the "
-                              f"grid closer")
+                              f"{config['min_points']} points in their box; lower bank.min_points (a config file's) "
+                              f"or bring the grid closer")
     pickle_name = f"{config['dataset']}_dbinfos_pgt.pkl"
     for fmt, by_class in infos.items():
         relative = f"{fmt}/{pickle_name}"

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..boxes import centred_bounds
 from ..errors import InputError
 from ..reconstruction import Reconstruction
 from ..scan.targets import require_scannable
@@ -34,7 +35,7 @@ class BankObject:
     @property
     def bounds(self) -> np.ndarray:
         """(2, 3) float64: the box's min and max corners, object frame."""
-        return np.stack([-self.dims / 2, self.dims / 2])
+        return centred_bounds(self.dims)
 
     def summary(self) -> dict:
         """What the bank depends on; ``sha256`` is of the geometry itself (positions,

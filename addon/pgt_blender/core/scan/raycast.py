@@ -1,7 +1,7 @@
 """Ray-cast scans of placed objects with Embree or Blender's BVH (mathutils), in Blender
 and headless.
 
-Frames: the object frame of ScanTarget (box on the ground = its lowest point at z = 0
+Frames: the object frame of ScanTarget (the bottom of the object's box on the ground
 after placement) and the sensor frame of sensors.py. ``sensor_from_object`` (4, 4)
 float64 places the object; the geometry never moves: every pose transforms the rays
 into the object frame instead, so one target serves all poses (and, stretched, all size
@@ -97,8 +97,8 @@ class Ground:
 
 def placement(bounds: np.ndarray, sensor: Sensor, x, y, heading, ground: Ground = Ground()) -> np.ndarray:
     """(4, 4) sensor_from_object: the object-frame origin at (x, y) (m, sensor frame),
-    turned by ``heading`` (rad, counter-clockwise from +x), its lowest point on the
-    ground z = -mounting_height (+ ``ground.height``); on sloped ground the object is
+    turned by ``heading`` (rad, counter-clockwise from +x), the bottom of ``bounds``
+    (2, 3) on the ground z = -mounting_height (+ ``ground.height``); on sloped ground the object is
     tilted by pitch and roll about the bottom centre of ``bounds``' z axis. Arrays of
     x, y, heading (and of the ground's fields, and (..., 2, 3) bounds) give (..., 4, 4),
     one per element."""
