@@ -615,3 +615,14 @@ def test_a_training_mesh_no_scan_can_use_is_named(tmp_path, obj, problem):
     (tmp_path / "car.obj").write_text(obj)
     with pytest.raises(InputError, match=f"^{tmp_path / 'car.obj'}: {problem}"):
         mesh_folder_meshes(tmp_path)
+
+
+def test_a_legal_long_output_name_is_written(tmp_path):
+    """A file name of 250 bytes is legal (NAME_MAX 255) though '.<name>.partial' is not:
+    the temporary takes a shorter name, and nothing of it is left."""
+    from pgt_blender.core.files import atomic_output
+
+    path = tmp_path / ("c" * 245 + ".toml")
+    with atomic_output(path) as stream:
+        stream.write(b"[bank]\n")
+    assert path.read_bytes() == b"[bank]\n" and [p.name for p in tmp_path.iterdir()] == [path.name]

@@ -534,6 +534,11 @@ def test_output_folder_rules(reference, prepared, tmp_path):
     assert mismatch.returncode == 1 and "other objects or settings" in mismatch.stderr
     run_export("--objects", prepared, "--config", other, "--out", copy, "--overwrite")
     assert json.loads((copy / "manifest.json").read_text())["seed"] == 5
+    (copy / "mine").mkdir()  # an input anywhere in the bank folder: --overwrite would delete it
+    inside = write_config(copy / "mine" / "other.toml", {**SMALL, "bank": {"chunk_size": 4, "seed": 5}})
+    refused = run_export("--objects", prepared, "--config", inside, "--out", copy, "--overwrite", check=False)
+    assert refused.returncode == 1 and f"holds the input {inside}, which overwriting" in last_line(refused)
+    assert inside.is_file() and (copy / "manifest.json").is_file()
 
 
 def test_damaged_or_crafted_chunk_records_and_lost_files_are_redone_never_run(reference, prepared, tmp_path):
@@ -822,6 +827,10 @@ def test_learned_intensity_paints_the_bank(objects, tmp_path):
     np.testing.assert_array_equal(learned_points[:, [0, 1, 2, 4]], physical_points[:, [0, 1, 2, 4]])
     assert not np.array_equal(learned_points[:, 3], physical_points[:, 3])
     assert np.array_equal(learned_points[:, 3], np.round(learned_points[:, 3])) and learned_points[:, 3].max() <= 255
+    # a class the checkpoint lacks is named before the folder is made, not in the first chunk
+    with pytest.raises(InputError, match=r"has no class 'bus' \(trained for truck, bicycle\)"):
+        export.export_bank([replace(two_objects[0], class_name="bus")], learned, tmp_path / "refused")
+    assert not (tmp_path / "refused").exists()
 
 
 def test_the_embree_engine_gives_the_same_bank_but_for_shared_edges(reference, objects, tmp_path):

@@ -158,6 +158,20 @@ def test_an_export_that_keeps_no_entry_says_nothing_is_left(scene, sources, tmp_
     assert settings.status == "failed: nothing written stays (the error says why)"
 
 
+def test_overwrite_refuses_a_bank_folder_holding_the_blend_or_the_config(scene, sources, tmp_path):
+    """Overwrite empties the bank folder: a .blend saved there, or the config file it reads,
+    is named and kept, not deleted under the export."""
+    author_in_blender(scene, sources)
+    settings = scene.pgt_bank
+    settings.output, settings.grid_step, settings.existing = str(tmp_path / "bank"), 50.0, "OVERWRITE"
+    assert bpy.ops.scene.pgt_export_bank() == {"FINISHED"}
+    blend = tmp_path / "bank" / "scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    with pytest.raises(RuntimeError, match=f"holds the input {blend}, which overwriting the bank would delete"):
+        bpy.ops.scene.pgt_export_bank()
+    assert blend.is_file() and (tmp_path / "bank" / "manifest.json").is_file()
+
+
 def test_the_bank_fields_hold_the_config_file_bounds(scene, tmp_path):
     """Sweeps beyond a config file's 100 are clamped by the field, and what the fields
     make is checked as a file is (bank.bank_config through config_from_table)."""

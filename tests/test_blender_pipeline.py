@@ -4,6 +4,7 @@ modal export's step), stopped and resumed, its config saved for the command line
 previewed; every bad input leaves the scene and the disk as they were."""
 
 import json
+import pickle
 import math
 from pathlib import Path
 
@@ -112,6 +113,17 @@ def test_folder_to_exported_and_previewed_bank(scene, folder, tmp_path):
     manifest.write_text(json.dumps(record))
     refused(bpy.ops.scene.pgt_preview_bank, f"{manifest}: bank.formats = \\['coco'\\]: expected a non-empty list")
     assert list(bpy.data.collections[bank.PREVIEW_COLLECTION].objects) == shown
+    # so is a pickle whose entry path leads out of the bank: nothing outside is read
+    record["config"]["formats"] = ["openpcdet", "mmdet3d"]
+    manifest.write_text(json.dumps(record))
+    pickle_path = tmp_path / "bank" / record["info_pickles"]["openpcdet"]
+    by_class = pickle.loads(pickle_path.read_bytes())
+    for entries in by_class.values():
+        for info in entries:
+            info["path"] = "../../outside.bin"
+    pickle_path.write_bytes(pickle.dumps(by_class))
+    refused(bpy.ops.scene.pgt_preview_bank, "entry path '../../outside.bin' leads outside the bank")
+    assert list(bpy.data.collections[bank.PREVIEW_COLLECTION].objects) == shown
 
 
 def test_a_stopped_export_resumes_to_the_same_bank(scene, folder, tmp_path):
@@ -173,3 +185,9 @@ def test_bad_inputs_leave_scene_and_disk_as_they_were(scene, folder, tmp_path):
             filepath=str(tmp_path / "saved.toml"))  # the config file named, once
     refused(bpy.ops.scene.pgt_save_bank_config, "Save Config: no file chosen", filepath="")
     assert not (tmp_path / "saved.toml").exists()
+    bank_settings.config_file = ""
+    sensor = tmp_path / "sensor.toml"  # a file the scene reads is not written over
+    sensor.write_text("base = \"nuscenes\"\n")
+    scene.pgt_scan.sensor_file = str(sensor)
+    refused(bpy.ops.scene.pgt_save_bank_config, f"{sensor}: is or holds the input {sensor}", filepath=str(sensor))
+    assert sensor.read_text() == "base = \"nuscenes\"\n"

@@ -133,6 +133,19 @@ def test_what_the_user_copied_from_a_placement_stays(scene, placed):
     assert bpy.data.collections.get("My placement") == mine and len(mine.objects) == count
 
 
+def test_the_users_own_objects_linked_into_a_placement_stay(scene, placed):
+    """An object the user made and linked into the placement's collection (alone, or also
+    in the scene's own) is theirs: the next load keeps it."""
+    assert bpy.ops.import_scene.pgt_placed_scene(directory=str(placed)) == {"FINISHED"}
+    loaded = bpy.data.collections["PGT Placed Scene"]
+    marker, car = bpy.data.objects.new("my marker", None), bpy.data.objects.new("my car", None)
+    loaded.objects.link(marker)
+    scene.collection.objects.link(car)
+    loaded.objects.link(car)
+    assert bpy.ops.import_scene.pgt_placed_scene(directory=str(placed)) == {"FINISHED"}
+    assert {"my marker", "my car"} <= set(scene.collection.objects.keys())
+
+
 def test_an_inserted_object_with_no_points_loads_empty(scene, placed, tmp_path):
     folder = shutil.copytree(placed, tmp_path / "placed")
     box_changed(lambda box: box.update(rows=[box["rows"][0], box["rows"][0]]))(folder)

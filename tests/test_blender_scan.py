@@ -266,6 +266,16 @@ def test_point_cloud_scans_as_surfels(scene):
     assert "surfel_scale" in drawn_scan_panel()
 
 
+def author_as_prepare_does(scene, class_name: str, seed: int) -> None:
+    """Align (PCA), Detect Front (baseline) and Set Size (nuScenes class) on the active
+    object: what prepare(..., up="pca", heading_method="baseline", seed=seed) does."""
+    authoring = scene.pgt_authoring
+    authoring.up, authoring.heading_method, authoring.size_mode = "pca", "baseline", "class"
+    authoring.dataset, authoring.class_name, authoring.seed = "nuscenes", class_name, seed
+    for operator in (bpy.ops.object.pgt_align, bpy.ops.object.pgt_auto_heading, bpy.ops.object.pgt_set_size):
+        assert operator() == {"FINISHED"}
+
+
 def test_an_authored_point_cloud_scans_as_scan_object_scans_it_prepared(scene, tmp_path):
     """Authored in the panels, a sample with floaters stands on its authored box, as
     scan_object.py stands the same object prepared (its sidecar's box) and as the bank
@@ -278,11 +288,7 @@ def test_an_authored_point_cloud_scans_as_scan_object_scans_it_prepared(scene, t
     path = write_sample(tmp_path, "bus", seed=3, points=6000)["reconstruction.ply"]
     assert bpy.ops.import_scene.pgt_point_cloud(filepath=str(path)) == {"FINISHED"}
     cloud = bpy.context.view_layer.objects.active
-    authoring = scene.pgt_authoring
-    authoring.up, authoring.heading_method, authoring.size_mode = "pca", "baseline", "class"
-    authoring.dataset, authoring.class_name, authoring.seed = "nuscenes", "bus", 3
-    for operator in (bpy.ops.object.pgt_align, bpy.ops.object.pgt_auto_heading, bpy.ops.object.pgt_set_size):
-        assert operator() == {"FINISHED"}
+    author_as_prepare_does(scene, "bus", 3)
     settings = scene.pgt_scan
     settings.distance, settings.azimuth, settings.heading = 15.0, 0.0, 0.0
     assert bpy.ops.object.pgt_scan() == {"FINISHED"}
@@ -303,11 +309,7 @@ def test_an_authored_splat_scans_as_gaussians(scene, donut):
 
     assert bpy.ops.import_scene.pgt_gaussian_splat(filepath=str(donut)) == {"FINISHED"}
     splat = bpy.context.view_layer.objects.active
-    authoring = scene.pgt_authoring
-    authoring.up, authoring.heading_method, authoring.size_mode = "pca", "baseline", "class"
-    authoring.dataset, authoring.class_name, authoring.seed = "nuscenes", "car", 4
-    for operator in (bpy.ops.object.pgt_align, bpy.ops.object.pgt_auto_heading, bpy.ops.object.pgt_set_size):
-        assert operator() == {"FINISHED"}
+    author_as_prepare_does(scene, "car", 4)
     authored = prepare(load_reconstruction(donut), "car", up="pca", heading_method="baseline", seed=4)
     shapes = scanning.splat_attributes(splat.data)
     np.testing.assert_array_equal(positions(splat), authored.positions)

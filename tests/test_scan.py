@@ -431,6 +431,21 @@ def test_floaters_are_left_out_of_surfels(class_name):
     assert abs(scan.hits / cast_rays(clean, NUSCENES, matrix, ScanOptions()).hits - 1) < 0.1
 
 
+def test_repeated_points_scan_as_the_points_once():
+    """A cloud given 12 times (a merge of captures, a writer's duplicates): each copy's
+    nearest points were its own copies at 0 m, so its surfels shrank to nothing and the
+    scan came back empty. Copies now count once: the same returns as the cloud alone."""
+    sample = synthetic_reconstruction("truck", seed=3, points=4000, outlier_share=0.0)
+    once = surfel_target(sample.positions, "once", sample.colors)
+    repeated = surfel_target(np.tile(sample.positions, (12, 1)), "repeated", np.tile(sample.colors, (12, 1)))
+    matrix = placement(once.bounds, NUSCENES, 12.0, 0.0, 0.6)
+    expected, scan = (cast_rays(target, NUSCENES, matrix, ScanOptions()) for target in (once, repeated))
+    assert expected.hits > 100 and scan.hits == expected.hits
+    for column in ("x", "y", "z", "intensity"):
+        np.testing.assert_array_equal(scan.returns[column], expected.returns[column])
+    assert (scan.returns["face"] % len(sample.positions) == expected.returns["face"]).all()
+
+
 def test_gaussian_splats_scan_as_ellipses(donut):
     from pgt_blender.core.importing import load_reconstruction
 

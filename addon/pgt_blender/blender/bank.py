@@ -19,7 +19,7 @@ import numpy as np
 from ..core.bank import export
 from ..core.bank.config import (DATASET_CONSTANT_INTENSITY, DATASET_GRIDS, FORMATS, BankConfig, config_from_table,
                                 config_table, load_config)
-from ..core.bank.folder import read_manifest
+from ..core.bank.folder import info_path_root, read_manifest
 from ..core.bank.inputs import BankObject, checked_objects, incomplete_reason
 from ..core.bank.report import real_reference, write_report
 from ..core.errors import InputError
@@ -119,8 +119,10 @@ class BankRun:
         self.reference = real_reference(self.real[0], config.to_dict()) if self.real else None
         self.out = Path(bpy.path.abspath(settings.output))
         self.existed = self.out.exists()
+        read = [bpy.data.filepath or None, settings.config_file and bpy.path.abspath(settings.config_file),
+                self.real and self.real[0]]
         self.plan = export.plan_bank(checked, config, self.out, resume=settings.existing == "RESUME",
-                                     overwrite=settings.existing == "OVERWRITE")
+                                     overwrite=settings.existing == "OVERWRITE", inputs=read)
         self.total, self.done = self.plan.pending_entries, 0
         self._chunks = export.run_plan(self.plan, workers=1)
 
@@ -159,12 +161,19 @@ def preview_bank(scene: bpy.types.Scene, folder, count: int) -> tuple:
     folder = Path(folder)
     manifest = read_manifest(folder)
     fmt = manifest["config"]["formats"][0]
-    infos = [info for entries in load_infos(folder / manifest["info_pickles"][fmt]).values() for info in entries]
+    pickle = folder / manifest["info_pickles"][fmt]
+    infos = [info for entries in load_infos(pickle).values() for info in entries]
     if not infos:
         raise InputError(folder, "the bank has no entries")
     chosen = [infos[i] for i in np.unique(np.linspace(0, len(infos) - 1, min(count, len(infos))).round().astype(int))]
     dataset = manifest["config"]["dataset"]
-    entries = [(info, read_float32_rows(folder / fmt / info["path"], len(BIN_COLUMNS[dataset]))) for info in chosen]
+    root, paths = info_path_root(pickle), []
+    for info in chosen:  # relative to the data root when the bank has one; never outside the bank
+        path = (root / info["path"]).resolve()
+        if not path.is_relative_to(folder.resolve()):
+            raise InputError(pickle, f"entry path {info['path']!r} leads outside the bank: the pickle is damaged")
+        paths.append(path)
+    entries = [(info, read_float32_rows(path, len(BIN_COLUMNS[dataset]))) for info, path in zip(chosen, paths)]
     made = []
     try:
         for info, rows in entries:

@@ -72,11 +72,13 @@ def mark_made(block) -> None:
     block[MADE_TAG] = block.name
 
 
-def made_here(block) -> bool:
+def made_here(block, untagged: bool = False) -> bool:
     """Whether ``block`` is still what the add-on made, to replace at will: a copy of it
     (Shift+D, Duplicate Collection) or a renamed one has another name and is the user's.
-    A block saved before blocks carried the tag counts as made here."""
-    return block.get(MADE_TAG, block.name) == block.name
+    A block without the tag is the user's (an object they linked into the add-on's
+    collection), unless ``untagged``: the caller knows it by another tag of the add-on's,
+    saved before blocks carried this one (a scan result's source)."""
+    return block.get(MADE_TAG, block.name if untagged else None) == block.name
 
 
 def replace_collection(scene: bpy.types.Scene, role: str, objects: list) -> bpy.types.Collection:

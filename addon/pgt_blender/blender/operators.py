@@ -15,8 +15,8 @@ from ..core.bank.config import config_toml
 from ..core.bank.folder import WORK
 from ..core.capture import CaptureOptions
 from ..core.classes import MINORITY_CLASSES
-from ..core.errors import InputError, printable
-from ..core.files import atomic_output
+from ..core.errors import InputError, one_line, printable
+from ..core.files import apart_from_inputs, atomic_output
 from ..core.importing import SUPPORTED, find_reconstructions, load_reconstruction
 from . import authoring, bank, intensity, objects, placement, properties, scanning
 
@@ -370,8 +370,9 @@ class _AuthoringStep:
                 return {"CANCELLED"}
             authoring.apply_step(obj, step)
         unit = " m" if authoring.status(obj)["size"] else " (source units)"  # metres once sized
-        self.report({"INFO"}, f"{obj.name}: {self.bl_label.lower()}{self.outcome(step, context.scene.pgt_authoring)}"
-                              ", box " + " x ".join(f"{d:.4g}" for d in obj.pgt.dims) + unit)
+        self.report({"INFO"}, one_line(f"{obj.name}: {self.bl_label.lower()}"
+                                        f"{self.outcome(step, context.scene.pgt_authoring)}, box "
+                                        + " x ".join(f"{d:.4g}" for d in obj.pgt.dims) + unit))
         return {"FINISHED"}
 
     def outcome(self, step, settings) -> str:
@@ -490,7 +491,7 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
             learned = self.learned_intensity(context, obj, result, settings)
         scanning.show_scan(context.scene, obj, result, sensor, sensor_from_object, settings)
         settings.stats, settings.stats_of = scanning.stats_text(result), f"{obj.name} at {settings.distance:g} m"
-        self.report({"INFO"}, f"{obj.name}: {settings.stats}{learned}")
+        self.report({"INFO"}, one_line(f"{obj.name}: {settings.stats}{learned}"))
         return {"FINISHED"}
 
     def learned_intensity(self, context, source, result, settings) -> str:
@@ -746,9 +747,12 @@ class SCENE_OT_pgt_save_bank_config(bpy.types.Operator, ExportHelper):
     def execute(self, context):
         if _nothing_chosen(self, self.filepath, "file"):
             return {"CANCELLED"}
-        try:
-            config = bank.bank_config(context.scene.pgt_bank, _checkpoint(context))
-            with atomic_output(Path(bpy.path.abspath(self.filepath))) as stream:
+        scene, out = context.scene, Path(bpy.path.abspath(self.filepath))
+        try:  # not over a file the scene reads (its own config file is written back the same)
+            apart_from_inputs(out, [bpy.data.filepath or None, _checkpoint(context) or None] + [
+                bpy.path.abspath(path) for path in (scene.pgt_scan.sensor_file, scene.pgt_bank.real_database) if path])
+            config = bank.bank_config(scene.pgt_bank, _checkpoint(context))
+            with atomic_output(out) as stream:
                 stream.write(config_toml(config).encode())
         except InputError as error:  # names the config file or field at fault
             self.report({"ERROR"}, str(error))

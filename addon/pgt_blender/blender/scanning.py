@@ -341,7 +341,7 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
 def remove_results(source_name: str) -> None:
     """Remove the result objects of ``source_name``'s last scan and their own meshes; a
     copy of one (Shift+D) or one renamed is the user's and stays (objects.made_here)."""
-    old = [obj for obj in bpy.data.objects if obj.get(SOURCE_TAG) == source_name and made_here(obj)]
+    old = [obj for obj in bpy.data.objects if obj.get(SOURCE_TAG) == source_name and made_here(obj, untagged=True)]
     meshes = [obj.data for obj in old if obj.type == "MESH" and obj.data.users == 1]
     remove_datablocks(old + meshes)
 

@@ -105,7 +105,8 @@ def export_bank(args) -> int:
     reference = real_reference(args, config.to_dict())
     objects, source = gather(args)
     existed = args.out.exists()
-    plan = export.plan_bank(objects, config, args.out, args.resume, args.overwrite, args.shard)
+    plan = export.plan_bank(objects, config, args.out, args.resume, args.overwrite, args.shard,
+                            inputs=[*args.objects, args.blend, args.config, args.real])
     print(f"{len(plan.job.objects)} object(s) from {source}: {sum(map(len, plan.chunks)):,} poses in "
           f"{len(plan.chunks)} chunks, {len(plan.pending)} to do ({config.dataset}, {', '.join(config.formats)})")
     started = time.perf_counter()

@@ -22,6 +22,12 @@ def printable(text: str) -> str:
     return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
+def one_line(text: str) -> str:
+    """``printable(text)`` with its line breaks written as escapes: a report or error
+    that names a file or object stays one line whatever the name holds."""
+    return printable(text.replace("\r", "\\r").replace("\n", "\\n"))
+
+
 class InputError(ValueError):
     """Bad input: ``str(error)`` is one line, ``"<path>: <problem>"``.
 
@@ -32,6 +38,4 @@ class InputError(ValueError):
     def __init__(self, path, problem: str):
         self.path = Path(path)
         self.problem = " ".join(str(problem).split())  # keep it on one line
-        # a line break in a file name is written as its escape: the message stays one line
-        where = str(self.path).replace("\r", "\\r").replace("\n", "\\n")
-        super().__init__(printable(f"{where}: {self.problem}"))
+        super().__init__(one_line(str(self.path)) + ": " + printable(self.problem))

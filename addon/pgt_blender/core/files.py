@@ -1,11 +1,14 @@
 """Output files that appear complete or not at all, and the checks of input files."""
 
+import hashlib
 import os
 import stat
 from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import InputError
+
+NAME_MAX = 255  # bytes in a file name on Linux, macOS and Windows file systems
 
 
 @contextmanager
@@ -15,7 +18,10 @@ def atomic_output(path, writer: str = ""):
     permission) raises OSError naming ``path``, not the temporary file. ``writer`` names
     the temporary for processes that may write the same ``path`` at once (each its own)."""
     path = Path(path)
-    temporary = path.with_name(f".{path.name}{writer}.partial")
+    name = f".{path.name}{writer}.partial"
+    if len(os.fsencode(name)) > NAME_MAX:  # a legal name of 247-255 bytes: a shorter temporary
+        name = f".{hashlib.sha256(os.fsencode(path.name)).hexdigest()[:32]}{writer}.partial"
+    temporary = path.with_name(name)
     try:
         with open(temporary, "wb") as stream:
             yield stream

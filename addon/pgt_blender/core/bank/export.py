@@ -78,8 +78,8 @@ def new_job(objects: list, config: BankConfig, out) -> BankJob:
                               f"map it to a class of {', '.join(DATABASE_CLASSES[config.dataset])} in [classes]")
     if job.sensor.dataset != config.dataset:
         raise InputError(config.sensor, f"is a {job.sensor.dataset} sensor, the bank is {config.dataset}")
-    if config.intensity_checkpoint:
-        _estimator(config)  # fails now, not in a worker
+    if config.intensity_checkpoint:  # fails now, not in a worker's first chunk
+        _estimator(config).require_classes(obj.class_name for obj in job.objects)
     if config.engine == "embree":
         try:
             import embreex  # noqa: F401  (only whether it imports)
@@ -108,16 +108,20 @@ class Plan:
 
 
 def plan_bank(objects: list, config: BankConfig, out, resume: bool = False, overwrite: bool = False,
-              shard=None) -> Plan:
-    """Check the inputs, ready the output folder (see ``prepare_folder``) and list the
-    chunks to do; ``shard`` (i, n) keeps chunk ids = i mod n."""
+              shard=None, inputs=()) -> Plan:
+    """Check the inputs, ready the output folder (see ``prepare_folder``; ``inputs``: the
+    files the caller read, which an overwrite must not delete, beside the config's own
+    sensor and checkpoint) and list the chunks to do; ``shard`` (i, n) keeps chunk ids =
+    i mod n."""
     job = new_job(objects, config, out)
     entries = job.entries()
     if not len(entries):
         raise InputError(out, "the grid leaves no pose: every position is beyond max_distance or within "
                               "ego_clearance of the sensor; widen [grid] or relax those")
     chunks = job.chunks(entries)
-    prepare_folder(job.out, identity(job, len(chunks)), resume, overwrite, shared=shard is not None)
+    config_files = [config.sensor if config.sensor.endswith(".toml") else None, config.intensity_checkpoint or None]
+    prepare_folder(job.out, identity(job, len(chunks)), resume, overwrite, shared=shard is not None,
+                   inputs=[*inputs, *config_files])
     return Plan(job, chunks, pending_chunks(job.out, len(chunks), shard or (0, 1)))
 
 

@@ -33,10 +33,13 @@ STATS_DTYPE = np.dtype([("object", "i4"), ("index", "i4"), ("x", "f4"), ("y", "f
                         ("points", "i4"), ("kept", "?")])
 
 
-def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared: bool = False) -> None:
+def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared: bool = False,
+                   inputs=()) -> None:
     """Make ``out`` ready: new or empty; with ``overwrite`` an earlier bank there is
-    removed; with ``resume`` (or ``shared``, for shards) an unfinished bank of the same
-    identity is continued. Anything else is refused with InputError."""
+    removed, unless one of ``inputs`` (paths, None skipped: the .blend, config, sensor,
+    checkpoint, real database) lies in it; with ``resume`` (or ``shared``, for shards) an
+    unfinished bank of the same identity is continued. Anything else is refused with
+    InputError."""
     marker = out / WORK / "identity.json"
     output_path(out, folder=True)
     if shared and not marker.is_file() and _unstarted(out):
@@ -49,6 +52,11 @@ def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared
         if overwrite:
             if not is_bank:
                 raise InputError(out, "is not empty and holds no bank: refusing to delete it; choose another --out")
+            inside = [given for given in inputs if given is not None and Path(given).resolve().is_relative_to(
+                out.resolve())]
+            if inside:
+                raise InputError(out, f"holds the input {inside[0]}, which overwriting the bank would delete; "
+                                      "move it or write the bank elsewhere")
             for child in out.iterdir():
                 shutil.rmtree(child) if child.is_dir() else child.unlink()
         elif resume or shared:

@@ -68,6 +68,12 @@ class IntensityEstimator:
         """The class names it was trained for."""
         return tuple(self.config["classes"])
 
+    def require_classes(self, names) -> None:
+        """InputError naming the checkpoint for a class in ``names`` it was not trained for."""
+        missing = sorted(set(names) - set(self.classes))
+        if missing:
+            raise InputError(self.path, f"has no class '{missing[0]}' (trained for {', '.join(self.classes)})")
+
     @property
     def dataset(self) -> str:
         """The dataset (and so sensor and intensity scale) its real objects came from."""
@@ -100,8 +106,7 @@ class IntensityEstimator:
         for bad arrays or a class the checkpoint does not know."""
         xyz, dims, rgb, class_name = obj
         xyz, dims, rgb = checked_object(xyz, dims, rgb, name)
-        if class_name not in self.classes:
-            raise InputError(self.path, f"has no class '{class_name}' (trained for {', '.join(self.classes)})")
+        self.require_classes([class_name])
         return (xyz / (dims / 2)).astype(np.float32), rgb.astype(np.float32), self.classes.index(class_name)
 
     def _batch(self, torch, prepared: list) -> list:

@@ -308,13 +308,20 @@ def see_through_materials(names, alphas=None) -> np.ndarray:
 
 def local_frames(positions: np.ndarray, neighbours: int = 8):
     """Per point: (N, 3) normal (local PCA's smallest axis), (N, 3, 2) the two tangent
-    axes, and (N,) spacing = mean distance to the ``neighbours`` nearest points (m)."""
+    axes, and (N,) spacing = mean distance to the ``neighbours`` nearest distinct points
+    (m): a repeated point's copies count once, or its nearest would be its copies at 0 m
+    and its surfel shrink to nothing."""
     from scipy.spatial import cKDTree
 
     k = min(neighbours, len(positions) - 1)
     if k < 3:
-        raise ValueError(f"{len(positions)} points are too few for local surface frames")
+        raise ValueError(f"{len(positions)} distinct points are too few for local surface frames")
     distances, index = cKDTree(positions).query(positions, k=k + 1)
+    if (distances[:, 1] == 0).any():  # sorted only where a point repeats: other clouds cost nothing more
+        distinct, inverse = np.unique(positions, axis=0, return_inverse=True)
+        normals, tangents, spacing = local_frames(distinct, neighbours)
+        inverse = inverse.ravel()
+        return normals[inverse], tangents[inverse], spacing[inverse]
     around = positions[index[:, 1:]] - positions[:, None, :]
     around -= around.mean(axis=1, keepdims=True)
     _, axes = np.linalg.eigh(np.einsum("nki,nkj->nij", around, around))
