@@ -191,10 +191,11 @@ def test_chrono_mesh_operator(scene, chrono_meshes):
     assert len(bpy.context.active_object.data.polygons) == len(load_reconstruction(path).faces)
 
 
-def test_add_sample_operator(scene):
+def test_add_sample_operator(scene, capfd):
     assert bpy.ops.object.pgt_add_sample(class_name="trailer", seed=2, points=3000) == {"FINISHED"}
     obj = bpy.context.active_object
     assert obj.name == "sample_trailer_seed2" and len(obj.data.vertices) == 3000
+    assert "Added sample_trailer_seed2: 3,000 points of a sample trailer, " in capfd.readouterr().out
 
 
 # --- bad input: ERROR report, CANCELLED, scene untouched ----------------------------------

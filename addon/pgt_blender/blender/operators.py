@@ -300,6 +300,8 @@ class OBJECT_OT_pgt_add_sample(bpy.types.Operator):
         sample = synthetic_reconstruction(self.class_name, seed=self.seed, points=self.points)
         obj = objects.add_reconstruction(context.scene, sample.to_reconstruction(), collection=context.collection)
         _select_only(context, obj)
+        self.report({"INFO"}, f"Added {obj.name}: {self.points:,} points of a sample {self.class_name.replace('_', ' ')}, "
+                              f"{int(sample.is_outlier.sum()):,} of them floaters")
         return {"FINISHED"}
 
 
