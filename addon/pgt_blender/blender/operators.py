@@ -749,11 +749,11 @@ class SCENE_OT_pgt_save_bank_config(bpy.types.Operator, ExportHelper):
     def execute(self, context):
         if _nothing_chosen(self, self.filepath, "file"):
             return {"CANCELLED"}
-        scene, out = context.scene, Path(bpy.path.abspath(self.filepath))
+        scene, out, checkpoint = context.scene, Path(bpy.path.abspath(self.filepath)), _checkpoint(context)
         try:  # not over a file the scene reads (its own config file is written back the same)
-            apart_from_inputs(out, [bpy.data.filepath or None, _checkpoint(context) or None] + [
+            apart_from_inputs(out, [bpy.data.filepath or None, checkpoint or None] + [
                 bpy.path.abspath(path) for path in (scene.pgt_scan.sensor_file, scene.pgt_bank.real_database) if path])
-            config = bank.bank_config(scene.pgt_bank, _checkpoint(context))
+            config = bank.bank_config(scene.pgt_bank, checkpoint)
             with atomic_output(out) as stream:
                 stream.write(config_toml(config).encode())
         except InputError as error:  # names the config file or field at fault

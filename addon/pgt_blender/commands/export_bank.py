@@ -65,6 +65,12 @@ def gather(args) -> tuple[list, Path]:
     return checked_objects(objects, incomplete, args.skip_incomplete, sources[0]), sources[0]
 
 
+def _inputs(args) -> list:
+    """The files and folders the command reads (None where not given): the output must
+    not be or hold them, nor an overwrite delete them."""
+    return [*args.objects, args.blend, args.config, args.real]
+
+
 def _open_blend_file():
     """The .blend Blender was started with (blender -b FILE -P ...), if any."""
     if "bpy" not in sys.modules:
@@ -105,8 +111,7 @@ def export_bank(args) -> int:
     reference = real_reference(args, config.to_dict())
     objects, source = gather(args)
     existed = args.out.exists()
-    plan = export.plan_bank(objects, config, args.out, args.resume, args.overwrite, args.shard,
-                            inputs=[*args.objects, args.blend, args.config, args.real])
+    plan = export.plan_bank(objects, config, args.out, args.resume, args.overwrite, args.shard, inputs=_inputs(args))
     print(f"{len(plan.job.objects)} object(s) from {source}: {sum(map(len, plan.chunks)):,} poses in "
           f"{len(plan.chunks)} chunks, {len(plan.pending)} to do ({config.dataset}, {', '.join(config.formats)})")
     started = time.perf_counter()
@@ -191,7 +196,7 @@ def main(argv: list) -> int:
     parser.add_argument("--from", dest="shard_dirs", type=Path, nargs="+", default=[],
                         help="with --assemble: shard folders to copy into --out first")
     args = parser.parse_args(argv)
-    apart_from_inputs(args.out, [*args.objects, args.blend, args.config, args.real])
+    apart_from_inputs(args.out, _inputs(args))
     if args.resume and args.overwrite:
         parser.error("--resume and --overwrite exclude each other")
     if args.workers < 1:

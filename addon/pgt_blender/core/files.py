@@ -75,12 +75,12 @@ def output_path(path, folder: bool = False) -> Path:
     return path
 
 
-def read_toml(path) -> dict:
-    """The table of the TOML file ``path`` (a regular file); InputError naming it when it
-    cannot be read or parsed, or nests too deeply for the parser."""
+def read_toml(path: Path) -> dict:
+    """The table of the TOML file ``path`` (its caller checked it: regular_file);
+    InputError naming it when it cannot be read or parsed, or nests too deeply for the
+    parser."""
     import tomllib
 
-    path = regular_file(path)
     try:
         return tomllib.loads(path.read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
