@@ -557,6 +557,7 @@ OUTPUT_IS_INPUT = [  # (command with IN / OUT placeholders, the output): each wo
     ("prepare_objects.py --in IN --class truck --out IN", "IN"),
     ("train_heading.py --gt-database IN/real.pkl --out IN/real.pkl", "IN/real.pkl"),
     ("train_intensity.py --real IN --out IN", "IN"),
+    ("train_intensity.py --real IN/elsewhere/real.pkl --rgb car=IN/truck.ply --out IN", "IN"),
     ("export_bank.py --objects IN --out IN", "IN"),
 ]
 

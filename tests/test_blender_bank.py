@@ -3,7 +3,6 @@ same objects prepared headless (prepare_objects.py's folder); the Bank section's
 beside a real database, with the bank's quality score against it."""
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -108,6 +107,7 @@ def test_the_bank_report_scores_the_bank_against_the_real_database(scene, source
     text = report.read_text()
     assert "(kitti, entries: 1)" in text and "## Quality score against the real database" in text
     assert "| Pedestrian | real | 377 (1) |" in text
+    assert "No class in common with the real database (classes in only one of them: Cyclist, Pedestrian, " in text
 
     settings.real_database = str(tmp_path / "absent.pkl")
     with pytest.raises(RuntimeError, match="absent.pkl"):

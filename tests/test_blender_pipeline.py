@@ -165,7 +165,9 @@ def test_bad_inputs_leave_scene_and_disk_as_they_were(scene, folder, tmp_path):
 
     bank_settings = scene.pgt_bank
     refused(bpy.ops.scene.pgt_export_bank, "no output folder chosen")
-    refused(bpy.ops.scene.pgt_open_bank_report, "Open Report: no output folder chosen")  # not ./report.md
+    for reads_bank in (bpy.ops.scene.pgt_open_bank_report, bpy.ops.scene.pgt_preview_bank):  # not ./report.md
+        assert not reads_bank.poll()
+        refused(reads_bank, "Choose the bank's output folder first")
     bank_settings["dataset"] = 99  # a .blend of a version with more datasets: reads as ""
     refused(bpy.ops.scene.pgt_save_bank_config, "Bank: no dataset chosen", filepath=str(tmp_path / "stale.toml"))
     bank_settings.dataset = "nuscenes"

@@ -502,9 +502,22 @@ def test_a_scan_with_no_returns_is_a_warning_and_changes_nothing(scene):
     reports = []
     self = SimpleNamespace(report=lambda kind, text: reports.append((kind, text)))
     assert OBJECT_OT_pgt_scan.execute(self, bpy.context) == {"CANCELLED"}
-    assert reports == [({"WARNING"}, "Box: no returns at this pose, out of the nuscenes sensor's range or view; "
+    assert reports == [({"WARNING"}, "Box: no returns at this pose, out of the nuScenes sensor's range or view; "
                                      "no scan preview made")]
     assert datablock_counts(bpy) == counts and not result_objects("Box")
+
+
+def test_a_sensor_inside_the_object_is_a_warning(scene, capfd):
+    """Distance 0 puts the sensor inside a 3 m tall box: the scan is made, with a warning."""
+    vertices, faces = box_geometry()
+    mesh_object(scene, "Box", vertices * [1, 1, 2], faces)
+    scene.pgt_scan.distance = 0.0
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    assert "Warning: Box: the sensor lies inside the object's box (centre 0.00, 0.00 m)" in capfd.readouterr().out
+    assert len(result_objects("Box")) == 3
+    scene.pgt_scan.distance = 15.0
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    assert "inside the object's box" not in capfd.readouterr().out
 
 
 def test_zero_area_faces_are_a_warning(scene, capfd):

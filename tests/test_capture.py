@@ -468,3 +468,7 @@ def test_splatfacto_export_with_its_run_transform_sees_through_the_colmap_camera
     (tmp_path / "dataparser_transforms.json").write_text(json.dumps(overflowing))
     with pytest.raises(InputError, match="dataparser_transforms.json: moves camera .* beyond the floating-point range"):
         load_reconstruction(tmp_path / "splat.ply", cameras=statue)
+    vanishing = {"transform": np.eye(3, 4).tolist(), "scale": 1e-320}
+    (tmp_path / "dataparser_transforms.json").write_text(json.dumps(vanishing))
+    with pytest.raises(InputError, match="dataparser_transforms.json: moves every camera onto one point"):
+        load_reconstruction(tmp_path / "splat.ply", cameras=statue)

@@ -250,11 +250,21 @@ def test_scan_object_point_clouds(truck_sample, tmp_path, surface, suffix):
 
     out = tmp_path / f"scan{suffix}"
     result = run_script("scan_object.py", "--object", truck_sample["reconstruction.ply"], "--sensor", "kitti",
-                        "--x", 0.5, "--y", 0, "--surface", surface, "--out", out)
-    assert result.returncode == 0, result.stderr
+                        "--x", 12, "--y", 0, "--surface", surface, "--out", out)
+    assert result.returncode == 0 and not result.stderr, result.stderr
     assert out.stat().st_size > 0 and int(result.stdout.split(": ", 1)[1].split()[0]) > 0
     if suffix == ".npy":
         assert np.load(out)["intensity"].max() <= 1.0  # KITTI intensities
+
+
+def test_scan_object_warns_of_a_sensor_inside_the_object(truck_sample, tmp_path):
+    """x = 0 puts the sensor inside the truck: the scan is written, with a warning."""
+    out = tmp_path / "scan.bin"
+    result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"], "--x", 0, "--y", 0.5, "--out", out)
+    assert result.returncode == 0 and out.stat().st_size > 0
+    name = truck_sample["mesh.ply"].name
+    assert result.stderr.startswith(f"warning: {name}: the sensor lies inside the object's box (centre 0.00, 0.50 m)")
+    assert result.stderr.count("\n") == 1
 
 
 def test_scan_object_usage_errors_exit_2(truck_sample, tmp_path):

@@ -487,9 +487,12 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
                 if warning.category is UserWarning:
                     self.report({"WARNING"}, str(warning.message))
             if not result.hits:  # legal but empty: say why, and leave the scene as it was
-                self.report({"WARNING"}, f"{obj.name}: no returns at this pose, out of the {sensor.name} sensor's "
-                                         f"range or view; no scan preview made")
+                self.report({"WARNING"}, f"{obj.name}: no returns at this pose, out of the "
+                                         f"{properties.label(sensor.name)} sensor's range or view; no scan preview made")
                 return {"CANCELLED"}
+            inside = result.inside_warning(obj.name)
+            if inside:
+                self.report({"WARNING"}, one_line(inside))
             learned = self.learned_intensity(context, obj, result, settings)
         scanning.show_scan(context.scene, obj, result, sensor, sensor_from_object, settings)
         settings.stats, settings.stats_of = scanning.stats_text(result), f"{obj.name} at {settings.distance:g} m"
@@ -771,7 +774,18 @@ def _same_file(blender_path: str, path: Path) -> bool:
     return Path(bpy.path.abspath(blender_path)).resolve() == path.resolve()
 
 
-class SCENE_OT_pgt_open_bank_report(bpy.types.Operator):
+class _ReadsBank:
+    """An operator on the bank in the Bank section's output folder: greyed out until one is chosen."""
+
+    @classmethod
+    def poll(cls, context):
+        if not context.scene.pgt_bank.output:
+            cls.poll_message_set("Choose the bank's output folder first")
+            return False
+        return True
+
+
+class SCENE_OT_pgt_open_bank_report(_ReadsBank, bpy.types.Operator):
     """Open the bank's report.md as a text (shown in a Text Editor area when there is one); with a Real database set, the report is first written anew beside it, with the bank's quality score"""
 
     bl_idname = "scene.pgt_open_bank_report"
@@ -779,9 +793,6 @@ class SCENE_OT_pgt_open_bank_report(bpy.types.Operator):
 
     def execute(self, context):
         settings = context.scene.pgt_bank
-        if not settings.output:
-            self.report({"ERROR"}, "Open Report: no output folder chosen")
-            return {"CANCELLED"}
         out = Path(bpy.path.abspath(settings.output))
         path = out / "report.md"
         real = bank.real_database(settings)
@@ -805,7 +816,7 @@ class SCENE_OT_pgt_open_bank_report(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class SCENE_OT_pgt_preview_bank(bpy.types.Operator):
+class SCENE_OT_pgt_preview_bank(_ReadsBank, bpy.types.Operator):
     """Load entries of the bank in the output folder as point objects colored by intensity, with their boxes"""
 
     bl_idname = "scene.pgt_preview_bank"
@@ -814,9 +825,6 @@ class SCENE_OT_pgt_preview_bank(bpy.types.Operator):
 
     def execute(self, context):
         settings = context.scene.pgt_bank
-        if not settings.output:
-            self.report({"ERROR"}, "Preview Bank: no output folder chosen")
-            return {"CANCELLED"}
         try:
             collection, shown = bank.preview_bank(context.scene, bpy.path.abspath(settings.output),
                                                   settings.preview_count)

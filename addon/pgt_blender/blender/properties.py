@@ -25,11 +25,15 @@ _UP_LABELS = {"auto": ("Auto", "Cameras' mean up when the object has cameras, el
               "pca": ("PCA", "Minor principal axis: right for objects lower than they are wide"),
               "cursor": ("3D Cursor", "From the middle of the points towards the 3D cursor"),
               "face": ("Selected Faces", "Mean normal of the mesh's selected faces (pick them in Edit Mode)")}
-_SENSOR_LABELS = {"nuscenes": "nuScenes", "kitti": "KITTI", "lyft": "Lyft", "vlp16": "VLP-16"}
-_DATASET_LABELS = {"nuscenes": "nuScenes", "kitti": "KITTI", "lyft": "Lyft"}
+_LABELS = {"nuscenes": "nuScenes", "kitti": "KITTI", "lyft": "Lyft", "vlp16": "VLP-16"}
 # "//" (relative to the .blend) is a supported file-path form; 4.5 warns about it
 # unless the property says so, and 4.2 does not know the option.
 PATH_OPTIONS = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (4, 5, 0) else set()
+
+
+def label(name: str) -> str:
+    """How the UI writes a dataset or sensor preset (nuScenes for nuscenes); other names as they are."""
+    return _LABELS.get(name, name)
 
 
 def _class_search(settings, context, text):
@@ -41,11 +45,11 @@ def class_problem(settings) -> str:
     """Why ``settings.class_name`` cannot be used with ``settings.dataset``, or ""."""
     if settings.dataset not in CLASS_SIZES:  # "": a stored index this version has no item for
         return "no dataset chosen: choose one in the Size panel"
-    label = _DATASET_LABELS[settings.dataset]
+    dataset = label(settings.dataset)
     if not settings.class_name:
-        return f"no class chosen: choose a {label} class"
+        return f"no class chosen: choose a {dataset} class"
     if settings.class_name not in CLASS_SIZES[settings.dataset]:
-        return (f"'{settings.class_name}' is not a {label} class "
+        return (f"'{settings.class_name}' is not a {dataset} class "
                 f"(have: {', '.join(CLASS_SIZES[settings.dataset])})")
     return ""
 
@@ -107,7 +111,7 @@ class PGT_PG_authoring(bpy.types.PropertyGroup):
                                description="Heading classifier checkpoint; empty: the one shipped with pgt_blender")
     dataset: EnumProperty(name="Dataset", default="nuscenes", update=_check_class,
                           description="Dataset whose class mean sizes Set Size uses",
-                          items=[(d, _DATASET_LABELS[d], f"{_DATASET_LABELS[d]} classes and mean sizes")
+                          items=[(d, label(d), f"{label(d)} classes and mean sizes")
                                  for d in CLASS_SIZES])
     # A string searched in the dataset's classes, not an enum: an enum stores a position
     # in its list (a dataset switch turned truck into pedestrian), and an enum whose items
@@ -133,7 +137,7 @@ class PGT_PG_scan(bpy.types.PropertyGroup):
     Azimuth and heading are stored in radians (shown in degrees, as Blender angles are)."""
 
     sensor: EnumProperty(name="Sensor", default="nuscenes", description="LiDAR the Scan simulates", items=[
-        (name, _SENSOR_LABELS.get(name, name), sensor.note) for name, sensor in PRESETS.items()]
+        (name, label(name), sensor.note) for name, sensor in PRESETS.items()]
         + [("CUSTOM", "Custom", "A sensor TOML file: Sensor fields, or base = a preset and what differs")])
     sensor_file: StringProperty(name="Sensor file", subtype="FILE_PATH", options=PATH_OPTIONS,
                                 description="Custom sensor .toml")
@@ -165,10 +169,10 @@ class PGT_PG_bank(bpy.types.PropertyGroup):
                                             "instead of the fields below")
     dataset: EnumProperty(name="Dataset", default="nuscenes", description="Dataset the bank is made for: its grid, "
                           "sensor, sweeps, intensity scale and class names",
-                          items=[(d, _DATASET_LABELS[d], f"A {_DATASET_LABELS[d]} bank") for d in CLASS_SIZES])
+                          items=[(d, label(d), f"A {label(d)} bank") for d in CLASS_SIZES])
     sensor: EnumProperty(name="Sensor", default="DATASET", description="LiDAR the bank is scanned with", items=[
         ("DATASET", "Dataset's", "The chosen dataset's own LiDAR")]
-        + [(name, _SENSOR_LABELS.get(name, name), sensor.note) for name, sensor in PRESETS.items()])
+        + [(name, label(name), sensor.note) for name, sensor in PRESETS.items()])
     sweeps: IntProperty(name="Sweeps", default=0, min=0, max=MAX_SWEEPS, soft_max=20,
                         description="Sweeps merged per entry; 0: the dataset's (nuScenes, Lyft 10; KITTI 1)")
     heading_step: FloatProperty(name="Heading step", default=math.radians(_BANK_DEFAULTS.headings_deg[2]),

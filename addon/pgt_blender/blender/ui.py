@@ -43,7 +43,7 @@ class VIEW3D_PT_pgt_import(_PGTPanel, bpy.types.Panel):
         # (with the size the bank relies on), never typed here.
         box.label(text=settings.source_path, icon="FILE")
         box.label(text=f"sha256 {settings.source_sha256[:16]}")
-        box.label(text=f"Class: {settings.class_name} ({settings.dataset})" if settings.class_name
+        box.label(text=f"Class: {settings.class_name} ({properties.label(settings.dataset)})" if settings.class_name
                   else "Class: set in the Size panel")
 
 

@@ -26,6 +26,7 @@ color (the file's vertex or point colors) for the object's class. Bad input: a
 one-line error and exit code 1.
 """
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -151,6 +152,9 @@ def main(argv: list) -> int:
         raise InputError(args.object, f"no returns at x = {args.x:g} m, y = {args.y:g} m: the object is out of "
                                      f"the {sensor.name} sensor's range or view there; nothing written")
     write_scan(result, args.out)
+    inside = result.inside_warning(args.object.name)
+    if inside:
+        print(f"warning: {inside}", file=sys.stderr)
     stats = result.stats()
     box = ", ".join(f"{v:.3f}" for v in result.box)
     print(f"{sensor.name}: {stats['points']} points from {stats['rays']} rays "

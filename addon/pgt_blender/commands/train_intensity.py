@@ -82,7 +82,7 @@ def parse(argv: list):
                         help="torch CPU threads (part of what makes the bytes repeat)")
     parser.add_argument("--resume", action="store_true", help="go on from DIR/checkpoint.pt")
     args = parser.parse_args(argv)
-    apart_from_inputs(args.out, [*args.real, *(path for kind, path in map(rgb_source, args.rgb) if kind is None)])
+    apart_from_inputs(args.out, [*args.real, *(path for _, path in map(rgb_source, args.rgb))])
     config = TrainConfig(points=args.points, steps=args.steps, checkpoint_every=args.checkpoint_every,
                          seed=args.seed, threads=args.threads)
     try:

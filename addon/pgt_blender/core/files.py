@@ -95,15 +95,23 @@ def apart_from_inputs(out, inputs) -> None:
     an input file: writing it would destroy what the command reads. Inputs deeper down
     (a KITTI folder's velodyne/ under ``--out .``) are left alone. No output (None):
     nothing to check."""
-    if out is None:
-        return
+    given = None if out is None else held_input(out, inputs)
+    if given is not None:
+        raise InputError(out, f"is or holds the input {given}; write the output elsewhere")
+
+
+def held_input(out, inputs, anywhere: bool = False):
+    """The first of ``inputs`` (paths; None skipped) that is ``out`` or lies in it as a
+    folder: as a file directly in it, or with ``anywhere`` at any depth; None if none."""
     target = Path(out).resolve()
     for given in inputs:
         if given is None:
             continue
         source = Path(given).resolve()
-        if source == target or (source.parent == target and source.is_file()):
-            raise InputError(out, f"is or holds the input {given}; write the output elsewhere")
+        if source == target or (source.parent == target and source.is_file()) or (
+                anywhere and source.is_relative_to(target)):
+            return given
+    return None
 
 
 def npy_header(stream, path, where: str = "") -> tuple:

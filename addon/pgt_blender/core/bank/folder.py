@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..files import atomic_output, output_path
+from ..files import atomic_output, held_input, output_path
 from .records import read_record
 
 WORK = ".work"
@@ -52,10 +52,9 @@ def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared
         if overwrite:
             if not is_bank:
                 raise InputError(out, "is not empty and holds no bank: refusing to delete it; choose another --out")
-            inside = [given for given in inputs if given is not None and Path(given).resolve().is_relative_to(
-                out.resolve())]
-            if inside:
-                raise InputError(out, f"holds the input {inside[0]}, which overwriting the bank would delete; "
+            inside = held_input(out, inputs, anywhere=True)
+            if inside is not None:
+                raise InputError(out, f"holds the input {inside}, which overwriting the bank would delete; "
                                       "move it or write the bank elsewhere")
             for child in out.iterdir():
                 shutil.rmtree(child) if child.is_dir() else child.unlink()

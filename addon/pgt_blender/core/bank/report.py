@@ -295,8 +295,15 @@ def _markdown(bank: dict, real, quality=None, figure: bool = True) -> str:
     if quality is not None:
         from ..quality.score import table_rows
 
-        lines += ["", "## Quality score against the real database", ""] + _table(*table_rows(quality))
-        lines += ["", _QUALITY_NOTE]
+        lines += ["", "## Quality score against the real database", ""]
+        only = ", ".join(quality["unmatched"]) or "none"
+        if quality["classes"]:
+            lines += _table(*table_rows(quality)) + ["", _QUALITY_NOTE]
+            if quality["unmatched"]:
+                lines += ["", f"Classes in only one database (not scored): {only}."]
+        else:
+            lines += [f"No class in common with the real database (classes in only one of them: {only}): "
+                      "nothing to score."]
     lines += ["", "## Columns", "", *_COLUMN_NOTES, ""]
     return "\n".join(lines)
 

@@ -54,4 +54,9 @@ def to_model_frame(cameras: list, path) -> list:
             raise InputError(path, f"moves camera {view.name!r} beyond the floating-point range: "
                                    f"scale and translation are not this run's")
         moved.append(replace(view, world_from_camera=world_from_camera))
+    # Blender keeps float32 matrices: a scale that small leaves every camera at one point
+    before, after = (np.array([view.world_from_camera[:3, 3] for view in views], np.float32)
+                     for views in (cameras, moved))
+    if len(cameras) > 1 and np.ptp(before, axis=0).any() and not np.ptp(after, axis=0).any():
+        raise InputError(path, f"moves every camera onto one point (scale {scale:g}): scale is not this run's")
     return moved

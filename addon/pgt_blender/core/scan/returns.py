@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..boxes import inside_box
 from ..files import atomic_output
 from .sensors import BIN_COLUMNS
 
@@ -103,6 +104,14 @@ class Scan:
             mine = self.returns["sweep"] == sweep
             local[mine] = (self.xyz[mine] - pose[:3, 3]) @ pose[:3, :3]
         return local - bounds.mean(axis=0)
+
+    def inside_warning(self, name: str) -> str | None:
+        """A warning for a sensor (the key frame's origin) within the object's current
+        box: its rays start inside the object, which no real scan does; None otherwise."""
+        if not inside_box(np.zeros((1, 3)), self.box)[0]:
+            return None
+        return (f"{name}: the sensor lies inside the object's box (centre {self.box[0]:.2f}, {self.box[1]:.2f} m): "
+                f"the rays start inside the object; place it farther away")
 
     def stats(self) -> dict:
         return {"points": self.hits, "rays": self.rays, "efficiency": round(self.efficiency, 4),
