@@ -102,9 +102,10 @@ def test_folder_to_exported_and_previewed_bank(scene, folder, tmp_path):
         local[:, :2] = local[:, :2] @ np.array([[cos, -sin], [sin, cos]])
         assert (np.abs(local) <= box[3:6] / 2 + 0.2).all()  # the entry's points lie in its box
         assert "intensity" in obj.data.attributes and len(obj.data.vertices) == infos[obj.name]["num_points_in_gt"]
-    assert bpy.ops.scene.pgt_preview_bank() == {"FINISHED"}  # a second preview replaces the first
+    names = sorted(o.name for o in collection.objects)
+    assert bpy.ops.scene.pgt_preview_bank() == {"FINISHED"}  # a second preview replaces the first, names and all
     shown = list(bpy.data.collections[bank.PREVIEW_COLLECTION].objects)
-    assert len(shown) == 10
+    assert sorted(o.name for o in shown) == names
 
     # a damaged manifest is named and the preview shown stays
     manifest = tmp_path / "bank" / "manifest.json"
@@ -182,6 +183,9 @@ def test_bad_inputs_leave_scene_and_disk_as_they_were(scene, folder, tmp_path):
     (tmp_path / "bank").mkdir()
     refused(bpy.ops.scene.pgt_preview_bank, "is not a finished bank")
     refused(bpy.ops.scene.pgt_open_bank_report, "no report yet")
+    (tmp_path / "bank" / "report.md").mkdir()
+    refused(bpy.ops.scene.pgt_open_bank_report, "report.md: is a folder; expected a file")
+    (tmp_path / "bank" / "report.md").rmdir()
     bank_settings.config_file = str(tmp_path / "missing.toml")
     refused(bpy.ops.scene.pgt_save_bank_config, f"^Error: {tmp_path / 'missing.toml'}: cannot read the file",
             filepath=str(tmp_path / "saved.toml"))  # the config file named, once

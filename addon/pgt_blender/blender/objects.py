@@ -102,6 +102,10 @@ def replace_collection(scene: bpy.types.Scene, role: str, objects: list) -> bpy.
     for obj in objects:
         collection.objects.link(obj)
         mark_made(obj)
+        # made while the old ones held their names: "entry.001" takes back "entry" once it is free
+        base, dot, number = obj.name.rpartition(".")
+        if dot and number.isdigit() and base not in bpy.data.objects:
+            obj.name = base
     return collection
 
 

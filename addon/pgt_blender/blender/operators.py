@@ -16,7 +16,7 @@ from ..core.bank.folder import WORK
 from ..core.capture import CaptureOptions
 from ..core.classes import MINORITY_CLASSES
 from ..core.errors import InputError, one_line, printable
-from ..core.files import apart_from_inputs, atomic_output
+from ..core.files import apart_from_inputs, atomic_output, regular_file
 from ..core.importing import SUPPORTED, find_reconstructions, load_reconstruction
 from . import authoring, bank, intensity, objects, placement, properties, scanning
 
@@ -797,8 +797,9 @@ class SCENE_OT_pgt_open_bank_report(_ReadsBank, bpy.types.Operator):
         path = out / "report.md"
         real = bank.real_database(settings)
         try:
-            if not path.is_file():
+            if not (path.exists() or path.is_symlink()):  # a dangling link is named as such below
                 raise InputError(path, "no report yet: export the bank first")
+            regular_file(path)
             if real is not None:  # set after the export, or changed since: the report follows it
                 bank.write_bank_report(out, real)
         except REPORTED as error:
