@@ -12,7 +12,9 @@ Markers are set here from what a test uses, so ``pytest -m "not blender and not 
 """
 
 import os
+import resource
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -22,6 +24,15 @@ import pytest
 from pgt_blender.dev import SHARED_DATA  # noqa: F401  (the one setting: $PGT_SHARED_DATA or ../shared/data)
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def file_size_limit(limit: int):
+    """A child-process setup that makes writes past ``limit`` bytes fail (EFBIG), as a
+    full disk makes them fail (ENOSPC): the same OSError path."""
+    def limited():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return limited
 
 
 def run_script(name: str, *args, check: bool = False, blender_style: bool = False, timeout: float = 600, **kwargs):

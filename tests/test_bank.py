@@ -7,7 +7,6 @@ import mmap
 import os
 import pickle
 import re
-import resource
 import secrets
 import signal
 import subprocess
@@ -33,7 +32,7 @@ from pgt_blender.core.importing import load_reconstruction
 from pgt_blender.core.samples import write_sample
 from pgt_blender.core.scan.sensors import PRESETS
 
-from .conftest import CodeOnLoad, run_script
+from .conftest import CodeOnLoad, file_size_limit, run_script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "headless_scripts" / "export_bank.py"
@@ -706,15 +705,6 @@ def read_only_folder(path: Path):
             subprocess.run(["chattr", "-i", str(path)])
     else:
         yield path
-
-
-def file_size_limit(limit: int):
-    """A child-process setup that makes writes past ``limit`` bytes fail (EFBIG), as a
-    full disk makes them fail (ENOSPC): the same OSError path."""
-    def limited():
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-    return limited
 
 
 def last_line(result) -> str:

@@ -143,25 +143,26 @@ def test_a_bank_assembled_for_a_data_root_resolves_through_its_manifest(real, tm
     """export_bank.py --data-root writes paths relative to the dataset root and records
     it in OUT/manifest.json (relative to OUT); the mix resolves bank paths through it."""
     out = tmp_path / "data" / "banks" / "pgt"
-    (out / "openpcdet").mkdir(parents=True)
-    bank = write_database(out / "openpcdet" / "kitti_dbinfos_pgt.pkl", BANK_COUNTS, "pgt_gt_database",
-                          bank=True)
+    (out / "mmdet3d").mkdir(parents=True)
+    bank = write_database(out / "mmdet3d" / "kitti_dbinfos_pgt.pkl", BANK_COUNTS, "pgt_gt_database",
+                          group_ids=True, bank=True)
     infos = load(bank)
     for entries in infos.values():
         for info in entries:
-            info["path"] = f"banks/pgt/openpcdet/{info['path']}"
+            info["path"] = f"banks/pgt/mmdet3d/{info['path']}"
     bank.write_bytes(pickle.dumps(infos | {"Van": []}))  # an empty class, as banks list every class
     (out / "manifest.json").write_text('{"data_root": "../.."}')
     summary = mix_databases(real, bank, tmp_path / "mixed.pkl")
     assert summary["skipped"] == ["Bus"]  # a class the bank has no entry for is not "skipped"
     for info in load(tmp_path / "mixed.pkl")["Car"][5:]:
-        assert info["path"].startswith("banks/pgt/openpcdet/pgt_gt_database/Car_")
+        assert info["path"].startswith("banks/pgt/mmdet3d/pgt_gt_database/Car_")
         assert (real.parent / info["path"]).is_file()
 
 
 def test_bank_outside_root_gets_absolute_paths(real, tmp_path):
     (tmp_path / "elsewhere").mkdir()
-    bank = write_database(tmp_path / "elsewhere" / "bank.pkl", BANK_COUNTS, "pgt_gt_database", bank=True)
+    bank = write_database(tmp_path / "elsewhere" / "bank.pkl", BANK_COUNTS, "pgt_gt_database", group_ids=True,
+                          bank=True)
     mix_databases(real, bank, tmp_path / "mixed.pkl")
     for info in load(tmp_path / "mixed.pkl")["Cyclist"][2:]:
         assert Path(info["path"]).is_absolute() and Path(info["path"]).is_file()
@@ -178,12 +179,15 @@ def test_group_ids_fresh_and_unique(real, bank, tmp_path):
     assert len(set(all_ids)) == len(all_ids)
 
 
-def test_no_group_id_when_the_real_database_has_none(bank, tmp_path):
-    """OpenPCDet's format has no group_id: the bank's own ids are not carried over."""
-    (tmp_path / "data").mkdir(exist_ok=True)
+def test_openpcdet_databases_mix_without_group_ids(tmp_path):
+    """OpenPCDet's format has no group_id, and the merge adds none."""
+    (tmp_path / "data" / "pgt").mkdir(parents=True)
     real = write_database(tmp_path / "data" / "pcdet_dbinfos.pkl", REAL_COUNTS, "gt_database")
+    bank = write_database(tmp_path / "data" / "pgt" / "kitti_dbinfos_pgt.pkl", BANK_COUNTS, "pgt_gt_database",
+                          bank=True)
     mix_databases(real, bank, tmp_path / "mixed.pkl")
-    assert not any("group_id" in info for infos in load(tmp_path / "mixed.pkl").values() for info in infos)
+    mixed = load(tmp_path / "mixed.pkl")
+    assert len(mixed["Car"]) == 10 and not any("group_id" in info for infos in mixed.values() for info in infos)
 
 
 def garbage(path):
@@ -195,7 +199,12 @@ def not_a_dict(path):
 
 
 def nuscenes_boxes(path):
-    write_database(path, {"Car": 3}, "pgt_gt_database", box_values=9, bank=True)
+    write_database(path, {"Car": 3}, "pgt_gt_database", box_values=9, group_ids=True, bank=True)
+
+
+def openpcdet_bank(path):
+    """The bank's openpcdet/ pickle (points about the box centre) for an mmdet3d database."""
+    write_database(path, BANK_COUNTS, "pgt_gt_database", bank=True)
 
 
 def missing_box(path):
@@ -216,6 +225,9 @@ def missing_difficulty(path):
     ("real", garbage, "not a readable pickle"),
     ("bank", not_a_dict, "not an info database"),
     ("bank", nuscenes_boxes, r"9 values \(nuScenes layout\) .* 7 values \(KITTI layout\)"),
+    ("bank", openpcdet_bank, r"holds OpenPCDet infos \(points about the box centre, no group_id\) but the real "
+                             r"database \(kitti_dbinfos_train.pkl\) holds mmdetection3d infos .*; mix the bank's "
+                             r"mmdet3d/ pickle"),
     ("real", missing_box, "info 1 of 'Car' lacks box3d_lidar"),
     ("bank", missing_difficulty, "info 0 of 'Cyclist' lacks difficulty"),
 ])
@@ -227,6 +239,17 @@ def test_bad_input_names_the_file_and_writes_nothing(real, bank, tmp_path, which
         mix_databases(real, bank, out)
     assert str(caught.value).startswith(f"{bad}: ") and "\n" not in str(caught.value)
     assert_nothing_written(out)
+
+
+def test_a_bank_with_no_real_class_is_refused(real, tmp_path):
+    """Nothing of the bank would be used: refused, unless the ratio asks for no bank entry."""
+    bank = write_database(tmp_path / "data" / "buses.pkl", {"Bus": 3, "Car": 0}, "pgt_gt_database", group_ids=True,
+                          bank=True)
+    with pytest.raises(InputError, match=r"buses.pkl: has no entry of a class kitti_dbinfos_train.pkl has "
+                                         r"\(bank classes: Bus\): nothing to mix"):
+        mix_databases(real, bank, tmp_path / "mixed.pkl")
+    assert_nothing_written(tmp_path / "mixed.pkl")
+    assert mix_databases(real, bank, tmp_path / "mixed.pkl", (1, 0))["total"]["bank_used"] == 0
 
 
 def test_output_must_not_be_an_input(real, bank):
@@ -268,7 +291,8 @@ def test_real_mmdet3d_kitti_database(shared_data, tmp_path):
         assert len(points) == info["num_points_in_gt"] and info["box3d_lidar"].shape == (7,)
     assert real.read_bytes() == real_bytes
 
-    nuscenes = write_database(data_root / "pgt" / "nus.pkl", {"Pedestrian": 2}, "nus", box_values=9, bank=True)
+    nuscenes = write_database(data_root / "pgt" / "nus.pkl", {"Pedestrian": 2}, "nus", box_values=9, group_ids=True,
+                              bank=True)
     with pytest.raises(InputError, match="nuScenes layout"):
         mix_databases(real, nuscenes, tmp_path / "never.pkl")
 

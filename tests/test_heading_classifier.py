@@ -127,6 +127,12 @@ def test_missing_and_corrupt_checkpoints_name_the_file(tmp_path):
     with pytest.raises(InputError, match="not a readable heading-classifier checkpoint") as error:
         hc.load_checkpoint(corrupt)
     assert str(error.value).startswith(f"{corrupt}: ") and "\n" not in str(error.value)
+    text = tmp_path / "report.md"
+    text.write_text("# not a checkpoint\n")
+    with pytest.raises(InputError) as error:  # torch's own text advises weights_only=False: not passed on
+        hc.load_checkpoint(text)
+    assert str(error.value) == (f"{text}: not a readable heading-classifier checkpoint (not a torch file of tensors "
+                                "and plain values, the only kind read)")
     import torch
 
     foreign = tmp_path / "foreign.pt"

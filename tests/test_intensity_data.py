@@ -9,7 +9,7 @@ import pytest
 from pgt_blender.core.errors import InputError
 from pgt_blender.core.intensity.objects import (LidarObject, builtin_rgb_objects, farthest_point_sample,
                                                 gt_database_objects, kitti_label_boxes, kitti_scan_objects,
-                                                object_set, paired_classes, training_sets)
+                                                object_set, paired_classes, real_objects, training_sets)
 from pgt_blender.core.scan.sensors import PRESETS
 
 
@@ -179,3 +179,12 @@ def test_material_colors_of_a_real_mesh(chrono_meshes):
     near = objects[0]
     assert near.class_name == "car" and len(near.points) > 500
     assert np.isclose(near.values, body, atol=1e-6).all(axis=1).mean() > 0.3  # mostly red paint
+
+
+@pytest.mark.parametrize("dataset", ["nuscenes", "lyft"])
+def test_a_kitti_folder_trains_only_a_kitti_model(kitti, dataset):
+    """KITTI's 0..1 intensities would be read as 0..255 ones (every painted point then
+    came out near 130 of 255): named, not trained on."""
+    with pytest.raises(InputError, match=f"is a KITTI folder .*: train a {dataset} model on a {dataset} database"):
+        real_objects(kitti, dataset)
+    assert real_objects(kitti, "kitti")

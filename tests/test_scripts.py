@@ -10,7 +10,7 @@ import pytest
 
 from pgt_blender.core.bank.export import CHUNK_STAGES
 
-from .conftest import run_script
+from .conftest import file_size_limit, run_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -267,6 +267,18 @@ def test_scan_object_warns_of_a_sensor_inside_the_object(truck_sample, tmp_path)
     assert result.stderr.count("\n") == 1
 
 
+@pytest.mark.parametrize("suffix", [".bin", ".npy", ".ply"])
+def test_scan_object_names_why_a_write_failed(truck_sample, tmp_path, suffix):
+    """A write that fails in numpy (a full disk, here a file-size limit) says why, in one
+    line naming the output, and leaves no file."""
+    out = tmp_path / f"scan{suffix}"
+    result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"], "--x", 12, "--y", 0, "--out", out,
+                        preexec_fn=file_size_limit(1000))
+    assert result.returncode == 1 and result.stderr.count("\n") == 1, result.stderr
+    assert result.stderr.startswith(f"error: {out}: ") and "None" not in result.stderr, result.stderr
+    assert not list(tmp_path.iterdir())
+
+
 def test_scan_object_usage_errors_exit_2(truck_sample, tmp_path):
     result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"], "--x", 1, "--y", 1,
                         "--out", tmp_path / "scan.txt")
@@ -343,7 +355,7 @@ def test_every_command_is_a_console_script_with_a_shim():
 
 def test_help_states_each_default():
     """cli.parser's --help gives an option's default unless its text already does or
-    there is none (None, False, empty): a user need not read the code for it."""
+    there is none (None, False, empty, a switch): a user need not read the code for it."""
     from pgt_blender import cli
 
     parser = cli.parser("x.py", "What x does.\n\nDetails.")
@@ -351,6 +363,7 @@ def test_help_states_each_default():
     parser.add_argument("--workers", type=int, default=8, help="processes (default: all cores)")
     parser.add_argument("--checkpoint", help="a checkpoint")
     parser.add_argument("--quiet", action="store_true", help="print less")
+    parser.add_argument("--no-refine", dest="refine", action="store_false", help="skip the refinement")
     parser.add_argument("--names", nargs="*", default=[], help="names")
     text = " ".join(parser.format_help().split())
     assert "What x does. options:" in text and "Details" not in text

@@ -87,11 +87,12 @@ def command(main):
 
 class _DefaultsShown(argparse.HelpFormatter):
     """--help that states each option's default, unless its text already does or there
-    is none to state (None, False, empty)."""
+    is none to state (None, False, empty, or a switch: "--no-refine (default: True)"
+    would read as refinement off)."""
 
     def _get_help_string(self, action) -> str:
         default, text = action.default, action.help
-        stated = default is None or default is False or default is argparse.SUPPRESS \
+        stated = default is None or default is False or default is argparse.SUPPRESS or action.nargs == 0 \
             or (isinstance(default, (str, list, tuple)) and not default) or "default" in text.lower()
         return text if stated or not action.option_strings else text + " (default: %(default)s)"
 

@@ -69,7 +69,7 @@ def main(argv: list) -> int:
     parser.add_argument("--map-pose", type=cli.finite, nargs="+", metavar="V",
                         help="X0 Y0 RESOLUTION [YAW_DEG]: the image's top-left corner in the world, m per pixel")
     parser.add_argument("--map-legend", type=Path, help="JSON {layer: label or [r, g, b]} of the map image")
-    parser.add_argument("--class-layers", type=Path, help="JSON {class: [layer, ...]} over the default layers")
+    parser.add_argument("--class-layers", type=Path, help="a JSON file {class: [layer, ...]} over the default layers")
     parser.add_argument("--thompson", type=Path, help="Thompson cells state (JSON) to draw cells from")
     parser.add_argument("--max-distance", type=cli.within(0, 1000), default=54.0,
                         help="farthest entry placed, m (default 54)")

@@ -48,7 +48,8 @@ def main(argv: list) -> int:
     parser.add_argument("--max-features", type=cli.whole(1, 10**6), default=8192, help="SIFT features per image")
     parser.add_argument("--max-image-size", type=cli.whole(1, MAX_IMAGE_SIDE), default=1600,
                         help="px: larger images are scaled down for SIFT")
-    parser.add_argument("--threads", type=cli.whole(0, 64), default=0, help="CPU threads (0: all)")
+    parser.add_argument("--threads", type=cli.whole(0, 64), default=0,
+                        help="CPU threads (0: all; only 1 gives the same bytes every run)")
     parser.add_argument("--seed", type=cli.SEED, default=0, help="RANSAC's and the mapper's random seed")
     parser.add_argument("--quiet", action="store_true", help="no progress bars and no COLMAP log")
     args = parser.parse_args(argv)

@@ -30,7 +30,8 @@ def atomic_output(path, writer: str = ""):
         _discard(temporary)
         if error.filename is not None and os.fspath(error.filename) != os.fspath(temporary):
             raise
-        raise OSError(error.errno, error.strerror, str(path)) from error
+        # numpy's tofile raises an OSError of no errno: its own text is the reason then
+        raise OSError(error.errno, error.strerror or f"write failed ({error})", str(path)) from error
     except BaseException:
         _discard(temporary)
         raise

@@ -9,6 +9,7 @@ runs), a wrong or damaged file being an InputError naming it.
 """
 
 import io
+import pickle
 import sys
 from pathlib import Path
 
@@ -54,6 +55,9 @@ def load_checkpoint(torch, path, format_tag: str, kind: str, missing: str, build
             raise ValueError(f"format {found!r}, expected {format_tag!r}")
         return payload if build is None else build(payload)
     except Exception as error:  # torch raises many types for a damaged archive
+        if isinstance(error, pickle.UnpicklingError):  # torch's text would advise the unsafe load
+            raise InputError(path, f"not a readable {kind} checkpoint (not a torch file of tensors and plain "
+                                   f"values, the only kind read)") from None
         reason = str(error).split("\n")[0][:200]  # torch's messages run to paragraphs
         raise InputError(path, f"not a readable {kind} checkpoint ({type(error).__name__}: {reason})") from None
 

@@ -32,6 +32,8 @@ from ..gt_database import load_infos
 from .folder import info_path_root
 
 BOX_LAYOUTS = {7: "KITTI layout", 9: "nuScenes layout"}
+CONVENTIONS = {"openpcdet": "OpenPCDet infos (points about the box centre, no group_id)",
+               "mmdet3d": "mmdetection3d infos (points about the box bottom, a group_id each)"}
 MAX_PGT_PER_GT = 1000.0  # a bank entry per real one is the paper's 1:1; beyond this, a typo
 
 
@@ -72,7 +74,8 @@ def mix_databases(real_path, bank_path, out_path, ratio=(1.0, 1.0), seed=0, root
     "bank_used", "effective_ratio"}}, "total": {same keys}, "skipped": [bank classes
     not in the real database], "ratio": [gt, pgt], "seed", "out"}``; effective_ratio
     is bank_used / real (PGT per GT; None for an empty class). Bad input raises
-    InputError naming the file, and nothing is written then.
+    InputError naming the file, and nothing is written then; so does a bank with no
+    entry of a real class (unless ``pgt`` is 0).
     """
     real_path, bank_path, out_path = Path(real_path), Path(bank_path), Path(out_path)
     gt, pgt = _checked_ratio(ratio, ratio)
@@ -85,6 +88,10 @@ def mix_databases(real_path, bank_path, out_path, ratio=(1.0, 1.0), seed=0, root
 
     real, bank = load_infos(real_path), load_infos(bank_path)
     _check_compatible(real_path, real, bank_path, bank)
+    if pgt > 0 and not any(real.get(name) and infos for name, infos in bank.items()):
+        have = ", ".join(sorted(name for name, infos in bank.items() if infos)) or "none"
+        raise InputError(bank_path, f"has no entry of a class {real_path.name} has (bank classes: {have}): "
+                                    f"nothing to mix")
 
     rng = np.random.default_rng(seed)
     chosen, classes = {}, {}
@@ -142,9 +149,15 @@ def _output_path(path, bank_root: Path, root: Path) -> str:
 
 
 def _check_compatible(real_path: Path, real: dict, bank_path: Path, bank: dict) -> None:
-    """The bank's infos must fit the real database's format: the same box length and
-    every key all real infos carry (the samplers read them: difficulty, bbox, ...),
-    except group_id, which the merge assigns."""
+    """The bank's infos must fit the real database's format: the same framework's
+    points (_convention), the same box length and every key all real infos carry (the
+    samplers read them: difficulty, bbox, ...), except group_id, which the merge assigns."""
+    real_convention, bank_convention = _convention(real), _convention(bank)
+    if None not in (real_convention, bank_convention) and real_convention != bank_convention:
+        raise InputError(bank_path, f"holds {CONVENTIONS[bank_convention]} but the real database "
+                                    f"({real_path.name}) holds {CONVENTIONS[real_convention]}: the sampler would "
+                                    f"shift every bank object by half its height; mix the bank's "
+                                    f"{real_convention}/ pickle")
     real_length, bank_length = _box_length(real_path, real), _box_length(bank_path, bank)
     if None not in (real_length, bank_length) and real_length != bank_length:
         raise InputError(bank_path, f"boxes have {_layout(bank_length)} but the real database's "
@@ -157,6 +170,15 @@ def _check_compatible(real_path: Path, real: dict, bank_path: Path, bank: dict) 
             if missing:
                 raise InputError(bank_path, f"info {index} of '{name}' lacks {', '.join(missing)}, "
                                             f"which every info of {real_path.name} has")
+
+
+def _convention(infos: dict):
+    """Whose ground-truth database ``infos`` is: "mmdet3d" when every info carries a
+    group_id (mmdet3d's create_groundtruth_database always writes one; its points are
+    about the box bottom), "openpcdet" when none does (points about the box centre),
+    None when empty or mixed."""
+    tagged = {"group_id" in info for entries in infos.values() for info in entries}
+    return {frozenset({True}): "mmdet3d", frozenset({False}): "openpcdet"}.get(frozenset(tagged))
 
 
 def _box_length(path: Path, infos: dict):

@@ -301,6 +301,9 @@ def real_objects(source, dataset: str, convention: str = "openpcdet") -> list:
     if source.suffix == ".pkl":
         return gt_database_objects(source, convention, dataset)
     if source.is_dir():
+        if dataset != "kitti":  # its 0..1 intensities would train a 0..255 model
+            raise InputError(source, f"is a KITTI folder (KITTI's LiDAR and intensity scale): train a {dataset} "
+                                     f"model on a {dataset} database .pkl, or this folder with the dataset kitti")
         return kitti_scan_objects(source)
     raise InputError(source, "not a ground-truth database .pkl or a KITTI folder")
 
