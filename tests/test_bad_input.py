@@ -590,6 +590,16 @@ def test_an_output_folder_above_its_inputs_is_allowed(tmp_path):
         apart_from_inputs(scan.parent, [scan])
 
 
+def test_an_empty_input_setting_is_no_input(tmp_path, monkeypatch):
+    """A setting left empty ("", Blender's unset path) names no file: it must not stand for
+    the working folder, which may be the output or lie in it."""
+    from pgt_blender.core.files import held_input
+
+    monkeypatch.chdir(tmp_path)
+    assert held_input(tmp_path, ["", None], anywhere=True) is None
+    assert held_input(tmp_path, ["", "."], anywhere=True) == "."
+
+
 @pytest.mark.parametrize("reader", ["sensor", "bank config"])
 def test_a_toml_file_nested_too_deeply_is_named(tmp_path, reader):
     """5,000 nested arrays exhaust the TOML parser's recursion: one line, not a traceback."""

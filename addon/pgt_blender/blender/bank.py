@@ -119,7 +119,7 @@ class BankRun:
         self.reference = real_reference(self.real[0], config.to_dict()) if self.real else None
         self.out = Path(bpy.path.abspath(settings.output))
         self.existed = self.out.exists()
-        read = [bpy.data.filepath or None, settings.config_file and bpy.path.abspath(settings.config_file),
+        read = [bpy.data.filepath, settings.config_file and bpy.path.abspath(settings.config_file),
                 self.real and self.real[0]]
         self.plan = export.plan_bank(checked, config, self.out, resume=settings.existing == "RESUME",
                                      overwrite=settings.existing == "OVERWRITE", inputs=read)

@@ -754,7 +754,7 @@ class SCENE_OT_pgt_save_bank_config(bpy.types.Operator, ExportHelper):
             return {"CANCELLED"}
         scene, out, checkpoint = context.scene, Path(bpy.path.abspath(self.filepath)), _checkpoint(context)
         try:  # not over a file the scene reads (its own config file is written back the same)
-            apart_from_inputs(out, [bpy.data.filepath or None, checkpoint or None] + [
+            apart_from_inputs(out, [bpy.data.filepath, checkpoint] + [
                 bpy.path.abspath(path) for path in (scene.pgt_scan.sensor_file, scene.pgt_bank.real_database) if path])
             config = bank.bank_config(scene.pgt_bank, checkpoint)
             with atomic_output(out) as stream:

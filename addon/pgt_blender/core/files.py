@@ -92,7 +92,7 @@ def read_toml(path: Path) -> dict:
 
 def apart_from_inputs(out, inputs) -> None:
     """InputError naming the output ``out`` (a file, or a folder the command writes into)
-    when it is one of ``inputs`` (paths; None skipped) or, as a folder, directly holds
+    when it is one of ``inputs`` (paths; None or "" skipped) or, as a folder, directly holds
     an input file: writing it would destroy what the command reads. Inputs deeper down
     (a KITTI folder's velodyne/ under ``--out .``) are left alone. No output (None):
     nothing to check."""
@@ -102,11 +102,12 @@ def apart_from_inputs(out, inputs) -> None:
 
 
 def held_input(out, inputs, anywhere: bool = False):
-    """The first of ``inputs`` (paths; None skipped) that is ``out`` or lies in it as a
-    folder: as a file directly in it, or with ``anywhere`` at any depth; None if none."""
+    """The first of ``inputs`` (paths; None or "", a setting left empty, skipped: "" would
+    resolve to the working folder) that is ``out`` or lies in it as a folder: as a file
+    directly in it, or with ``anywhere`` at any depth; None if none."""
     target = Path(out).resolve()
     for given in inputs:
-        if given is None:
+        if given is None or given == "":
             continue
         source = Path(given).resolve()
         if source == target or (source.parent == target and source.is_file()) or (

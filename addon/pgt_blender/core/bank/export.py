@@ -119,7 +119,7 @@ def plan_bank(objects: list, config: BankConfig, out, resume: bool = False, over
         raise InputError(out, "the grid leaves no pose: every position is beyond max_distance or within "
                               "ego_clearance of the sensor; widen [grid] or relax those")
     chunks = job.chunks(entries)
-    config_files = [config.sensor if config.sensor.endswith(".toml") else None, config.intensity_checkpoint or None]
+    config_files = [config.sensor if config.sensor.endswith(".toml") else None, config.intensity_checkpoint]
     prepare_folder(job.out, identity(job, len(chunks)), resume, overwrite, shared=shard is not None,
                    inputs=[*inputs, *config_files])
     return Plan(job, chunks, pending_chunks(job.out, len(chunks), shard or (0, 1)))
@@ -275,16 +275,15 @@ def assemble(out: Path, data_root=None, existed: bool | None = None) -> dict:
     if missing:
         raise InputError(out, f"{len(missing)} of {ident['chunks']} chunks not exported yet "
                               f"(first: {missing[0]}); run the missing shards or --resume")
-    damaged = [i for i in range(ident["chunks"]) if done_chunk(out, i) is None]
-    if damaged:
-        raise InputError(chunk_record_path(out, damaged[0]), f"damaged or an entry file it lists is missing "
-                                                             f"({len(damaged)} chunk(s)); --resume redoes them")
     # A list for every class of the dataset: the samplers index the pickle by each class they sample.
     infos = {fmt: {name: [] for name in DATABASE_CLASSES[config["dataset"]]} for fmt in config["formats"]}
     prefixes = {fmt: _path_prefix(out / fmt, data_root) for fmt in config["formats"]}
-    files, counts, dropped = {}, {}, {}
-    for chunk_id in range(ident["chunks"]):
+    files, counts, dropped, damaged = {}, {}, {}, []
+    for chunk_id in range(ident["chunks"]):  # each record read, and its files checked, once
         record = done_chunk(out, chunk_id)
+        if record is None:
+            damaged.append(chunk_id)
+            continue
         for fmt, entries in record["infos"].items():
             for info in entries:
                 infos[fmt].setdefault(info["name"], []).append(dict(info, path=prefixes[fmt] + info["path"]))
@@ -293,6 +292,9 @@ def assemble(out: Path, data_root=None, existed: bool | None = None) -> dict:
             name = ident["class_names"][row["object"]]
             bucket = counts if row["kept"] else dropped
             bucket[name] = bucket.get(name, 0) + 1
+    if damaged:
+        raise InputError(chunk_record_path(out, damaged[0]), f"damaged or an entry file it lists is missing "
+                                                             f"({len(damaged)} chunk(s)); --resume redoes them")
     if not counts:
         if existed is not None:
             _discard_bank(out, keep_folder=existed)

@@ -36,7 +36,7 @@ STATS_DTYPE = np.dtype([("object", "i4"), ("index", "i4"), ("x", "f4"), ("y", "f
 def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared: bool = False,
                    inputs=()) -> None:
     """Make ``out`` ready: new or empty; with ``overwrite`` an earlier bank there is
-    removed, unless one of ``inputs`` (paths, None skipped: the .blend, config, sensor,
+    removed, unless one of ``inputs`` (paths, None or "" skipped: the .blend, config, sensor,
     checkpoint, real database) lies in it; with ``resume`` (or ``shared``, for shards) an
     unfinished bank of the same identity is continued. Anything else is refused with
     InputError."""

@@ -178,7 +178,9 @@ def _convention(infos: dict):
     about the box bottom), "openpcdet" when none does (points about the box centre),
     None when empty or mixed."""
     tagged = {"group_id" in info for entries in infos.values() for info in entries}
-    return {frozenset({True}): "mmdet3d", frozenset({False}): "openpcdet"}.get(frozenset(tagged))
+    if len(tagged) != 1:
+        return None
+    return "mmdet3d" if tagged.pop() else "openpcdet"
 
 
 def _box_length(path: Path, infos: dict):
