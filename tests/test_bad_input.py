@@ -170,14 +170,14 @@ def sidecar_scan(content: bytes, problem):
     return build
 
 
-def crafted_pickle(script, flag, extra=()):
+def crafted_pickle(script, flag, extra=(), out="out"):
     """An otherwise valid info pickle with a payload that would run a shell command."""
     def build(folder, inputs):
         infos = pickle.loads(inputs["infos"].read_bytes())
         infos["Pedestrian"][0]["score"] = CodeOnLoad(folder / "code_ran")
         crafted = folder / "crafted.pkl"
         crafted.write_bytes(pickle.dumps(infos))
-        command = [script, flag, crafted, *[inputs.get(arg, arg) for arg in extra], "--out", folder / "out"]
+        command = [script, flag, crafted, *[inputs.get(arg, arg) for arg in extra], "--out", folder / out]
         return command, crafted, "refused to load posix.system"
     return build
 
@@ -337,12 +337,14 @@ CASES = {
     "sidecar not UTF-8": sidecar_scan(b"\xe9{}", "UnicodeDecodeError"),
     "sidecar class without a motion model": sidecar_scan(b'{"class": "semi"}', "class 'semi' has no motion model"),
     # pickles that would run code, garbage inside databases
-    "mix_bank --real crafted": crafted_pickle("mix_bank.py", "--real", ("--bank", "infos")),
-    "mix_bank --bank crafted": crafted_pickle("mix_bank.py", "--bank", ("--real", "infos")),
+    "mix_bank --real crafted": crafted_pickle("mix_bank.py", "--real", ("--bank", "infos"), "out.pkl"),
+    "mix_bank --bank crafted": crafted_pickle("mix_bank.py", "--bank", ("--real", "infos"), "out.pkl"),
     "train_intensity --real crafted": crafted_pickle("train_intensity.py", "--real"),
     "mix_bank NaN box": spoiled_bank("box3d_lidar", np.array([0, 0, np.nan, 1, 1, 1, 0], np.float32),
                                      "box3d_lidar must be 7 or more finite numbers"),
     "mix_bank negative point count": spoiled_bank("num_points_in_gt", -3, "num_points_in_gt must be a count >= 0"),
+    "score_bank of a bank folder that is not there": lambda folder, inputs: (
+        ["score_bank.py", "--bank", folder / "bank", "--real", inputs["infos"]], folder / "bank", "no such folder"),
     # banks
     "class name leading out of the bank": bank({"classes": {"truck": "../../../../elsewhere/anywhere"}},
                                                "classes.truck = '../../../../elsewhere/anywhere'"),
@@ -445,30 +447,36 @@ def test_out_of_range_arguments_are_usage_errors(tmp_path, command, problem):
     assert not any(tmp_path.iterdir())
 
 
-OUTPUTS = [("demo.py", "--out", True), ("export_bank.py", "--out", True), ("place_objects.py", "--out", True),
-           ("prepare_objects.py", "--out", True), ("reconstruct_frames.py", "--out", True),
-           ("train_intensity.py", "--out", True), ("fit_returns.py", "--out", False), ("fit_sensor.py", "--out", False),
-           ("import_reconstruction.py", "--out", False), ("mix_bank.py", "--out", False),
-           ("scan_object.py", "--out", False), ("train_heading.py", "--out", False), ("score_bank.py", "--json", False)]
+OUTPUTS = [("demo.py", "--out", None), ("export_bank.py", "--out", None), ("place_objects.py", "--out", None),
+           ("prepare_objects.py", "--out", None), ("reconstruct_frames.py", "--out", None),
+           ("train_intensity.py", "--out", None), ("fit_returns.py", "--out", ".toml"),
+           ("fit_sensor.py", "--out", ".toml"), ("import_reconstruction.py", "--out", ".blend"),
+           ("mix_bank.py", "--out", ".pkl"), ("scan_object.py", "--out", ".bin"), ("train_heading.py", "--out", ".pt"),
+           ("score_bank.py", "--json", ".json")]
 
 
-@pytest.mark.parametrize("script, flag, folder", OUTPUTS)
-def test_an_output_that_cannot_be_made_is_a_usage_error(tmp_path, script, flag, folder):
-    """An output under a file, a file where the output folder goes or a folder where the
-    output file goes: exit 2 and one line naming the path and what is in the way, found
-    while the arguments are read (cli.OUTPUT_FILE, cli.OUTPUT_FOLDER), before any input
-    is read or any training run; nothing written."""
+@pytest.mark.parametrize("script, flag, suffix", OUTPUTS)
+def test_an_output_that_cannot_be_made_is_a_usage_error(tmp_path, script, flag, suffix):
+    """An output under a file, a file where the output folder (``suffix`` None) goes, a
+    folder where the output file goes, an output file named with another suffix than
+    its format's, or one in a folder that takes no new file (/proc): exit 2 and one line
+    naming the path and the problem, found while the arguments are read
+    (cli.OUTPUT_FOLDER, cli.output_file), before any input is read or any training run;
+    nothing written."""
     (tmp_path / "a_file").write_text("x")
     (tmp_path / "a_folder").mkdir()
     cases = {tmp_path / "a_file" / "out": f"cannot be made: it lies under the file {tmp_path / 'a_file'}",
-             tmp_path / "a_file": "is a file, not an output folder"} if folder else {
-             tmp_path / "a_file" / "out.bin": f"cannot be made: it lies under the file {tmp_path / 'a_file'}",
-             tmp_path / "a_folder": "is a folder; expected a file name"}
+             tmp_path / "a_file": "is a file, not an output folder",
+             Path("/proc/out"): "cannot be written: /proc takes no new file"} if suffix is None else {
+             tmp_path / "a_file" / f"out{suffix}": f"cannot be made: it lies under the file {tmp_path / 'a_file'}",
+             tmp_path / "a_folder": "is a folder; expected a file name",
+             tmp_path / "out.txt": f"expected a file name ending in {suffix}",
+             Path(f"/proc/out{suffix}"): "cannot be written: /proc takes no new file"}
     before = contents(tmp_path)
     for out, problem in cases.items():
         result = run_script(script, flag, out, cwd=tmp_path)
         assert result.returncode == 2, result.stderr
-        assert result.stderr.splitlines()[-1].endswith(f"argument {flag}: {out}: {problem}"), result.stderr
+        assert f"argument {flag}: {out}: {problem}" in result.stderr.splitlines()[-1], result.stderr
     assert contents(tmp_path) == before
 
 
@@ -487,6 +495,32 @@ def test_memory_running_out_is_one_line_exit_1(capsys, allocate, problem):
     assert len(lines) == 1 and lines[0].startswith(f"error: {problem}"), lines
     with pytest.raises(RuntimeError, match="a bug"):
         run_main(lambda argv: (_ for _ in ()).throw(RuntimeError("a bug")), [])
+
+
+def test_ctrl_c_is_one_line_exit_130(capsys):
+    from pgt_blender.cli import run_main
+
+    def main(argv):
+        raise KeyboardInterrupt
+
+    assert run_main(main, []) == 130 and capsys.readouterr().err == "error: interrupted\n"
+
+
+def test_a_warning_is_one_line(capsys):
+    """A warning raised inside a command, ours or numpy's: one line ``warning: <message>``,
+    not Python's two (``file:line: Category: message``, then the source line)."""
+    import warnings
+
+    from pgt_blender.cli import run_main
+
+    def main(argv):
+        warnings.warn("mesh.obj: dropped 3 zero-area faces\nof 10", stacklevel=1)
+        np.log(np.zeros(1))
+        return 0
+
+    assert run_main(main, []) == 0
+    assert capsys.readouterr().err.splitlines() == ["warning: mesh.obj: dropped 3 zero-area faces of 10",
+                                                    "warning: divide by zero encountered in log (RuntimeWarning)"]
 
 
 def _intensity_label(path):
@@ -549,13 +583,12 @@ def test_a_pipe_or_device_named_as_a_file_is_refused_unread(tmp_path, reader, sp
 
 
 OUTPUT_IS_INPUT = [  # (command with IN / OUT placeholders, the output): each would overwrite what it reads
+    # (an output file of another suffix than its inputs' is refused by its name first: test above)
     ("scan_object.py --object IN/truck.ply --x 10 --y 0 --out IN/truck.ply", "IN/truck.ply"),
-    ("import_reconstruction.py IN/truck.ply --out IN/truck.ply", "IN/truck.ply"),
-    ("fit_sensor.py IN/scan.bin --out IN/scan.bin", "IN/scan.bin"),
-    ("score_bank.py --bank IN --real IN/real.pkl --json IN/real.pkl", "IN/real.pkl"),
+    ("fit_returns.py IN --meshes samples --sensor IN/sensor.toml --out IN/sensor.toml", "IN/sensor.toml"),
+    ("score_bank.py --bank IN --real IN/real.pkl --json IN/manifest.json", "IN/manifest.json"),
     ("place_objects.py --scan IN/scan.bin --info IN/label.txt --bank IN/real.pkl --out IN", "IN"),
     ("prepare_objects.py --in IN --class truck --out IN", "IN"),
-    ("train_heading.py --gt-database IN/real.pkl --out IN/real.pkl", "IN/real.pkl"),
     ("train_intensity.py --real IN --out IN", "IN"),
     ("train_intensity.py --real IN/elsewhere/real.pkl --rgb car=IN/truck.ply --out IN", "IN"),
     ("export_bank.py --objects IN --out IN", "IN"),
@@ -568,7 +601,7 @@ def test_an_output_that_is_or_holds_an_input_is_refused(tmp_path, command, outpu
     as it was (the inputs here are placeholders: no reader gets to them)."""
     inputs = tmp_path / "in"
     inputs.mkdir()
-    for name in ("truck.ply", "scan.bin", "real.pkl", "label.txt"):
+    for name in ("truck.ply", "scan.bin", "real.pkl", "label.txt", "sensor.toml", "manifest.json"):
         (inputs / name).write_bytes(b"input " + name.encode())
     before = {path.name: path.read_bytes() for path in inputs.iterdir()}
     result = run_script(*command.replace("IN", str(inputs)).split())

@@ -8,6 +8,7 @@ import os
 import pickle
 import re
 import secrets
+import shutil
 import signal
 import subprocess
 import sys
@@ -480,6 +481,21 @@ def test_shards_assemble_to_the_same_bank(reference, prepared, tmp_path):
     assert bank_bytes(tmp_path / "shard0") == bank_bytes(out)
 
 
+def test_a_bank_outside_the_data_root_gets_paths_that_lead_out_of_it(reference, tmp_path):
+    """--assemble --data-root ROOT with the bank kept elsewhere: the info paths start
+    with ../ and the frameworks' joins (os.path.join(root, path)) reach the files."""
+    out = Path(shutil.copytree(reference[0], tmp_path / "banks" / "bank"))
+    root = tmp_path / "data" / "nuscenes"
+    root.mkdir(parents=True)
+    manifest = export.assemble(out, root)
+    assert manifest["data_root"] == "../../data/nuscenes"
+    for fmt, name in manifest["info_pickles"].items():
+        infos = pickle.loads((out / name).read_bytes())
+        paths = [info["path"] for entries in infos.values() for info in entries]
+        assert paths and all(path.startswith(f"../../banks/bank/{fmt}/") for path in paths)
+        assert all(os.path.isfile(os.path.join(root, path)) for path in paths)
+
+
 def test_a_killed_run_resumes_to_the_same_bank(reference, prepared, tmp_path):
     out, config = reference
     target = tmp_path / "bank"
@@ -554,9 +570,14 @@ def test_damaged_or_crafted_chunk_records_and_lost_files_are_redone_never_run(re
     crafted["stats"] = {"numpy": "|O", "shape": [1], "bytes": "AAAAAAAAAAA="}  # an object array
     records[3].write_text(json.dumps(crafted))
     (copy / next(iter(json.loads(records[4].read_text())["files"]))).unlink()  # a lost entry file
+    leading_out = json.loads(records[5].read_text())  # a file outside the bank, which exists
+    (tmp_path / "leak.bin").write_bytes(b"")
+    leading_out["files"]["../leak.bin"] = "0" * 64
+    records[5].write_text(json.dumps(leading_out))
+    records[6].write_text("[" * 100_000 + "]" * 100_000)  # deeper than the parser goes
     result = run_export("--assemble", "--out", copy, check=False)
     assert result.returncode == 1 and not marker.exists()
-    assert last_line(result) == (f"error: {records[1]}: damaged or an entry file it lists is missing (4 chunk(s)); "
+    assert last_line(result) == (f"error: {records[1]}: damaged or an entry file it lists is missing (6 chunk(s)); "
                                  f"--resume redoes them")
     run_export("--objects", prepared, "--config", config, "--out", copy, "--resume")
     assert not marker.exists() and bank_bytes(copy) == bank_bytes(out)
@@ -569,14 +590,36 @@ def test_a_damaged_identity_names_the_fix_and_overwrite_replaces_it(reference, p
 
     shutil.copytree(out, copy)
     identity = copy / ".work" / "identity.json"
-    identity.write_text(identity.read_text()[:40])
-    for args in (("--assemble",), ("--objects", prepared, "--config", config, "--resume")):
-        result = run_export(*args, "--out", copy, check=False)
-        assert result.returncode == 1
-        assert last_line(result).startswith(f"error: {identity}: damaged (JSONDecodeError")
-        assert last_line(result).endswith("--overwrite starts the bank anew")
+    for damaged, problem in ((identity.read_text()[:40], "JSONDecodeError"), ("[" * 100_000, "RecursionError")):
+        identity.write_text(damaged)
+        for args in (("--assemble",), ("--objects", prepared, "--config", config, "--resume")):
+            result = run_export(*args, "--out", copy, check=False)
+            assert result.returncode == 1
+            assert last_line(result).startswith(f"error: {identity}: damaged ({problem}")
+            assert last_line(result).endswith("--overwrite starts the bank anew")
     run_export("--objects", prepared, "--config", config, "--out", copy, "--overwrite")
     assert bank_bytes(copy) == bank_bytes(out)
+
+
+def test_overwrite_removes_a_link_in_the_bank_not_what_it_points_to(reference, prepared, tmp_path):
+    out, config = reference
+    copy = Path(shutil.copytree(out, tmp_path / "bank"))
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("mine")
+    (copy / "linked").symlink_to(kept, target_is_directory=True)
+    run_export("--objects", prepared, "--config", config, "--out", copy, "--overwrite")
+    assert bank_bytes(copy) == bank_bytes(out) and not (copy / "linked").exists()
+    assert (kept / "notes.txt").read_text() == "mine"
+
+
+def test_a_bank_folder_named_in_another_encoding_gets_its_report(reference, prepared, tmp_path):
+    """A folder name that is not UTF-8 (bytes from another system): the whole bank and
+    its report, which names the folder with those bytes."""
+    out, config = reference
+    odd = tmp_path / os.fsdecode(b"bank\xff")
+    run_export("--objects", prepared, "--config", config, "--out", odd, errors="surrogateescape")
+    assert bank_bytes(odd) == bank_bytes(out) and b"bank\xff" in (odd / "report.md").read_bytes()
 
 
 @pytest.mark.parametrize("table, problem", [
@@ -713,8 +756,9 @@ def last_line(result) -> str:
 
 def test_write_errors_end_cleanly(reference, prepared, tmp_path):
     """A full disk (writes past a file-size limit fail), while scanning and while
-    assembling, and a folder the user may not write: a one-line error naming the file,
-    exit 1, no manifest, no partial file and no broken pickle."""
+    assembling: a one-line error naming the file, exit 1, no manifest, no partial file
+    and no broken pickle. A folder the user may not write is found as the arguments are
+    read (exit 2)."""
     out, config = reference
     full = tmp_path / "full"
     result = run_export("--objects", prepared, "--config", config, "--out", full, "--workers", "1", check=False,
@@ -735,7 +779,7 @@ def test_write_errors_end_cleanly(reference, prepared, tmp_path):
     assert bank_bytes(full) == bank_bytes(out)
     with read_only_folder(tmp_path / "locked") as locked:
         result = run_export("--objects", prepared, "--config", config, "--out", locked / "bank", check=False)
-        assert result.returncode == 1 and str(locked) in last_line(result)
+        assert result.returncode == 2 and f"{locked} takes no new file" in last_line(result)
         assert "Permission denied" in last_line(result) or "Operation not permitted" in last_line(result)
         assert not (locked / "bank").exists()
 

@@ -3,6 +3,7 @@ at a GT:PGT ratio, on synthetic pickles and on the real mmdet3d KITTI database."
 
 import os
 import pickle
+import re
 import shutil
 from pathlib import Path
 
@@ -157,6 +158,13 @@ def test_a_bank_assembled_for_a_data_root_resolves_through_its_manifest(real, tm
     for info in load(tmp_path / "mixed.pkl")["Car"][5:]:
         assert info["path"].startswith("banks/pgt/mmdet3d/pgt_gt_database/Car_")
         assert (real.parent / info["path"]).is_file()
+    for manifest, problem in (('{"data_root": 5}', "data_root must be a folder path or null"),
+                              ('{"data_root": "../../moved"}', "data_root '../../moved' is no folder from here"),
+                              ("[" * 100_000, "damaged (RecursionError")):
+        (out / "manifest.json").write_text(manifest)  # damaged, or the bank moved away from its root
+        with pytest.raises(InputError, match=re.escape(f"{out / 'manifest.json'}: {problem}")):
+            mix_databases(real, bank, tmp_path / "again.pkl")
+    assert not (tmp_path / "again.pkl").exists()
 
 
 def test_bank_outside_root_gets_absolute_paths(real, tmp_path):

@@ -299,6 +299,12 @@ def test_resume_refuses_another_run_and_a_corrupt_checkpoint(sets, trained, tmp_
     with pytest.raises(InputError, match=r"checkpoint.pt: was written by a different run \(seed: 0 there, 1 now\)"):
         train(*sets, TrainConfig(**{**SMALL, "steps": 40, "checkpoint_every": 10, "seed": 1}), folder,
               resume=True, progress=False)
+    other_objects = synthetic_set(6, 1, 5)  # a setting is named before the objects it draws
+    with pytest.raises(InputError, match=r"run \(seed: 0 there, 1 now\)"):
+        train(other_objects, sets[1], TrainConfig(**{**SMALL, "steps": 40, "checkpoint_every": 10, "seed": 1}),
+              folder, resume=True, progress=False)
+    with pytest.raises(InputError, match=r"run \(the training objects differ\); train without --resume"):
+        train(other_objects, sets[1], config, folder, resume=True, progress=False)
     settings = (folder / "config.json").read_bytes()
     with pytest.raises(InputError, match=r"checkpoint.pt: is at step \d+, past the 5 steps asked for"):
         train(*sets, TrainConfig(**{**SMALL, "steps": 5, "checkpoint_every": 10}), folder, resume=True, progress=False)

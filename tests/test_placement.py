@@ -302,7 +302,9 @@ def test_thompson_cells_count_as_the_paper_defines_and_draw_towards_failures(tmp
     np.testing.assert_array_equal(again.failures, cells.failures)
     np.testing.assert_array_equal(ThompsonCells.from_state_dict(pickle.loads(pickle.dumps(cells.state_dict()))).successes,
                                   cells.successes)
-    for text in ('{"format": "something else"}', "[" * 100_000):
+    state = cells.state_dict()
+    for text in ('{"format": "something else"}', "[" * 100_000, json.dumps({**state, "max_range": float("inf")}),
+                 json.dumps({**state, "range_step": 1e-320})):  # no cell count to allocate
         path.write_text(text)
         with pytest.raises(InputError, match="cells.json: not a Thompson cells state"):
             ThompsonCells.load(path)
@@ -477,7 +479,7 @@ def test_place_objects_command_writes_the_scene_boxes_and_picture(shared_data, b
     args = ["--scan", frame / "velodyne" / "000001.bin", "--info", frame / "label_2" / "000001.txt",
             "--bank", banks["kitti"], "--objects", "Cyclist=3", "--objects", "Truck=1"]
     result = run_script("place_objects.py", *args, "--out", tmp_path / "a", check=True)
-    assert "| Cyclist | 3 | 3 | 0 |" in result.stdout
+    assert "| Cyclist | 3 | 3 | 0 |" in result.stdout and not result.stderr
     run_script("place_objects.py", *args, "--out", tmp_path / "b", blender_style=True, check=True)
     for name in ("scan.bin", "boxes.json", "birdseye.png"):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
@@ -489,6 +491,17 @@ def test_place_objects_command_writes_the_scene_boxes_and_picture(shared_data, b
         assert inside_box(points[start:stop, :3].astype(np.float64), np.array(box["box"]), 0.12).all()
         assert box["entry"].startswith("pgt_gt_database/") and box["object"]
     assert (tmp_path / "a" / "birdseye.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_label_file_of_another_frame_is_a_warning(shared_data, banks, tmp_path):
+    """Frame 000002's labels on scan 000001: placed (a renamed scan is fine), with one
+    warning line naming the label file and both frames."""
+    frame = shared_data / "kitti_scans"
+    label = frame / "label_2" / "000002.txt"
+    result = run_script("place_objects.py", "--scan", frame / "velodyne" / "000001.bin", "--info", label,
+                        "--bank", banks["kitti"], "--objects", "Cyclist=1", "--out", tmp_path, check=True)
+    assert result.stderr == (f"warning: {label}: the labels and calibration of frame 000002 are used for the scan "
+                             f"000001.bin; give label_2/000001.txt unless the scan was renamed\n")
 
 
 def test_without_matplotlib_the_placement_has_no_picture(shared_data, banks, tmp_path):

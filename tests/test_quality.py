@@ -284,6 +284,15 @@ def test_bad_input_is_one_line_and_exit_1(banks, real, tmp_path, capsys, case):
     assert not (tmp_path / "code_ran").exists()
 
 
+def test_an_error_under_the_progress_bar_gets_its_own_line(banks, tmp_path):
+    """With the progress bar on, a real pickle that cannot be read: the bar is cleared
+    before the error is printed (it was printed on the bar's line)."""
+    result = run_script("score_bank.py", "--bank", banks[MATCHED], "--real", tmp_path / "absent.pkl")
+    assert result.returncode == 1
+    assert result.stderr.splitlines()[-1] == \
+        f"error: {tmp_path / 'absent.pkl'}: cannot read the file (No such file or directory)", result.stderr
+
+
 def test_the_bank_report_shows_the_scores_with_intervals(banks, real, encoder, tmp_path):
     from pgt_blender.core.bank.report import real_reference, write_report
 

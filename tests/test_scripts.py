@@ -29,6 +29,17 @@ def test_import_colmap_json_and_blend(statue, tmp_path):
     assert blend.stat().st_size > 0
 
 
+def test_import_reconstruction_names_a_failed_save_in_one_line(statue, tmp_path):
+    """A .blend that cannot be written (a full disk, here a file-size limit): exit 1 and
+    one line naming it (Blender's own line, naming its temporary, is held back); no file
+    left."""
+    blend = tmp_path / "scene.blend"
+    result = run_script("import_reconstruction.py", statue, "--out", blend, preexec_fn=file_size_limit(100_000))
+    assert result.returncode == 1 and result.stderr.count("\n") == 1, result.stderr
+    assert result.stderr.startswith(f"error: {blend}: cannot write the .blend"), result.stderr
+    assert not list(tmp_path.iterdir())
+
+
 def test_import_splat_json(donut):
     result = run_script("import_reconstruction.py", donut, "--json")
     summary = last_json_line(result.stdout)
@@ -282,7 +293,7 @@ def test_scan_object_names_why_a_write_failed(truck_sample, tmp_path, suffix):
 def test_scan_object_usage_errors_exit_2(truck_sample, tmp_path):
     result = run_script("scan_object.py", "--object", truck_sample["mesh.ply"], "--x", 1, "--y", 1,
                         "--out", tmp_path / "scan.txt")
-    assert result.returncode == 2 and "--out must end in" in result.stderr
+    assert result.returncode == 2 and "scan.txt: expected a file name ending in .bin or .ply or .npy" in result.stderr
 
 
 def test_fit_ground_prints_the_banks_ground_model(shared_data, tmp_path):

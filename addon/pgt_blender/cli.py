@@ -37,21 +37,35 @@ def run_main(main, argv: list) -> int:
     """``main(argv)``'s exit code, with a bad input (InputError) or a failed read or write
     (OSError: a folder where a file should be, a full disk, no permission) printed as the
     one line ``error: <file>: <problem>`` and exit code 1 instead of a traceback; memory
-    running out, as ``error: out of memory: <what>``."""
+    running out, as ``error: out of memory: <what>``; Ctrl-C as ``error: interrupted`` and
+    exit code 130. A warning is one line too,
+    ``warning: <message>`` (Python's own form adds the source line that raised it)."""
+    import warnings
+
     from .core.errors import InputError
 
     try:
-        return main(argv)
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line_warning
+            return main(argv)
     except InputError as error:
         print(f"error: {error}", file=sys.stderr)
     except OSError as error:
         print(f"error: {error.filename or '-'}: {error.strerror or error}", file=sys.stderr)
+    except KeyboardInterrupt:  # Ctrl-C: every output is written whole or not at all, so no traceback
+        print("error: interrupted", file=sys.stderr)
+        return 130
     except (MemoryError, RuntimeError) as error:
         problem = _memory_problem(error)
         if problem is None:
             raise
         print(f"error: out of memory: {problem}", file=sys.stderr)
     return 1
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    suffix = "" if category is UserWarning else f" ({category.__name__})"
+    print(f"warning: {' '.join(str(message).split())}{suffix}", file=file or sys.stderr)
 
 
 def _memory_problem(error: BaseException):
@@ -146,19 +160,24 @@ STEPS = whole(1, 10**7)  # optimiser steps
 CLOUD_POINTS = whole(1, MAX_CLOUD_POINTS)  # points per cloud a network sees
 
 
-def output(folder: bool):
-    """An argparse type: a path where the command can write its output file (``folder``:
-    its output folder), checked before any work (files.output_path)."""
+def output(folder: bool, suffixes: tuple = ()):
+    """An argparse type: a path where the command can write its output file, named with
+    one of ``suffixes`` (``folder``: its output folder), checked before any work
+    (files.output_path)."""
     def parse(text: str):
         from .core.errors import InputError
         from .core.files import output_path
 
         try:
-            return output_path(text, folder)
+            return output_path(text, folder, suffixes)
         except InputError as error:
             raise argparse.ArgumentTypeError(str(error)) from None
     return parse
 
 
-OUTPUT_FILE = output(folder=False)
+def output_file(*suffixes: str):
+    """An argparse type: an output file named with one of ``suffixes`` (see ``output``)."""
+    return output(False, suffixes)
+
+
 OUTPUT_FOLDER = output(folder=True)

@@ -4,6 +4,7 @@ process as Blender would register it (arguments and exit codes: ../cli.py)."""
 import atexit
 import os
 import sys
+import tempfile
 
 import bpy
 
@@ -29,20 +30,28 @@ def start_scene() -> None:
 
 def save_blend(path) -> None:
     """Save the open file as ``path`` (its folder made first); InputError when Blender
-    cannot write it. Blender prints "Info: Saved as ..." on the process's standard
-    output, which would break a command's --json output: it goes to standard error."""
+    cannot write it. Blender's own lines are held back while it saves: "Info: Saved as
+    ..." would break a command's --json output on standard output, so it goes to standard
+    error; a failure's line names Blender's ``path@`` temporary, so the InputError alone
+    reports it."""
     path = os.path.abspath(path)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     sys.stdout.flush()
-    stdout = os.dup(1)
-    os.dup2(2, 1)
-    try:
-        bpy.ops.wm.save_as_mainfile(filepath=path)
-    except RuntimeError as error:  # Blender reports a failed write as a RuntimeError
-        raise InputError(path, f"cannot write the .blend: {str(error).strip().splitlines()[-1]}") from None
-    finally:
-        os.dup2(stdout, 1)
-        os.close(stdout)
+    sys.stderr.flush()
+    originals = os.dup(1), os.dup(2)
+    with tempfile.TemporaryFile() as said:
+        os.dup2(said.fileno(), 1)
+        os.dup2(said.fileno(), 2)
+        try:
+            bpy.ops.wm.save_as_mainfile(filepath=path)
+        except RuntimeError as error:  # Blender reports a failed write as a RuntimeError
+            raise InputError(path, f"cannot write the .blend: {str(error).strip().splitlines()[-1]}") from None
+        finally:
+            for stream, original in zip((1, 2), originals):
+                os.dup2(original, stream)
+                os.close(original)
+        said.seek(0)
+        sys.stderr.write(said.read().decode(errors="replace"))
 
 
 def object_summary(obj: bpy.types.Object) -> dict:

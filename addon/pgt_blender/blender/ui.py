@@ -117,7 +117,7 @@ def _class_field(layout, settings, needed: bool):
     if settings.class_note and not settings.class_name:
         layout.label(text=settings.class_note, icon="ERROR")
     elif problem and needed:
-        layout.label(text=problem.capitalize(), icon="ERROR")
+        layout.label(text=problem[:1].upper() + problem[1:], icon="ERROR")
 
 
 class VIEW3D_PT_pgt_heading(_AuthoringPanel, bpy.types.Panel):

@@ -106,10 +106,10 @@ def main(argv: list) -> int:
                         help="the sensor --intensity-points come from")
     parser.add_argument("--values-per-point", type=cli.whole(4, 64), default=5,
                         help="float32 values per --intensity-points row")
-    parser.add_argument("--out", type=cli.OUTPUT_FILE, help="write the fitted models as a sensor TOML here")
+    parser.add_argument("--out", type=cli.output_file(".toml"), help="write the fitted models as a sensor TOML here")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     args = parser.parse_args(argv)
-    apart_from_inputs(args.out, [args.folder, *(args.intensity_points or [])])
+    apart_from_inputs(args.out, [args.folder, args.sensor, *(args.intensity_points or [])])
     sensor = sensor_from_name(args.sensor)
     frames = replay.replay_frames(kitti_frames(args.folder), sensor, replay.class_meshes(args.meshes))
     if not frames:

@@ -78,7 +78,7 @@ def main(argv: list) -> int:
     parser = cli.parser("fit_sensor.py", __doc__)
     parser.add_argument("scans", type=Path, nargs="+", help="raw scans (.bin) or folders of them")
     parser.add_argument("--base", choices=sorted(PRESETS), default="kitti", help="the preset the fit refines")
-    parser.add_argument("--out", type=cli.OUTPUT_FILE, help="write the fitted sensor TOML here")
+    parser.add_argument("--out", type=cli.output_file(".toml"), help="write the fitted sensor TOML here")
     parser.add_argument("--values-per-point", type=cli.whole(3, 64), default=4,
                         help="float32 values per point (KITTI: 4)")
     parser.add_argument("--json", action="store_true", help="print the fit as one JSON object")

@@ -31,7 +31,7 @@ from ..core.importing import load_reconstruction
 def main(argv: list) -> int:
     parser = cli.parser("import_reconstruction.py", __doc__)
     parser.add_argument("input", type=Path, help="COLMAP model folder or reconstruction file")
-    parser.add_argument("--out", type=cli.OUTPUT_FILE, help="save the scene to this .blend")
+    parser.add_argument("--out", type=cli.output_file(".blend"), help="save the scene to this .blend")
     parser.add_argument("--json", action="store_true", help="print what arrived as one JSON object")
     parser.add_argument("--no-cameras", action="store_true", help="leave the cameras out of the scene")
     parser.add_argument("--cameras", type=Path,

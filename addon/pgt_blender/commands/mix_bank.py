@@ -31,7 +31,7 @@ def main(argv: list) -> int:
     parser = cli.parser("mix_bank.py", __doc__)
     parser.add_argument("--real", type=Path, required=True, help="real ground-truth info pickle (*_dbinfos_*.pkl)")
     parser.add_argument("--bank", type=Path, required=True, help="the bank's info pickle")
-    parser.add_argument("--out", type=cli.OUTPUT_FILE, required=True, help="the mixed info pickle to write")
+    parser.add_argument("--out", type=cli.output_file(".pkl"), required=True, help="the mixed info pickle to write")
     parser.add_argument("--ratio", type=ratio_argument, default=(1.0, 1.0),
                         help="GT:PGT, e.g. 1:1 (default), 2:1, 1:0.5; PGT 0 copies the real database")
     parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of the bank draw")

@@ -20,6 +20,7 @@ bad input; nothing is written then.
 
 import argparse
 import json
+import sys
 import warnings
 from pathlib import Path
 
@@ -34,7 +35,7 @@ from ..core.placement.entries import open_database
 from ..core.placement.folder import write_placement
 from ..core.placement.maps import ImagePose, checked_class_layers, map_from_image, map_from_polygons, read_polygons
 from ..core.placement.place import PlacementConfig, place_objects
-from ..core.placement.scenes import read_scene
+from ..core.placement.scenes import frame_warning, read_scene
 from ..core.scan.sensors import PRESETS, sensor_from_name
 
 DEFAULT_COUNT = 3  # objects per bank class when --objects is not given
@@ -85,6 +86,9 @@ def main(argv: list) -> int:
         parser.error("--map-pose takes X0 Y0 RESOLUTION [YAW_DEG]")
 
     scene = read_scene(args.scan, args.info, args.dataset)
+    mismatch = frame_warning(args.scan, args.info)
+    if mismatch:
+        print(f"warning: {mismatch}", file=sys.stderr)
     pool = open_database(args.bank, scene.dataset, args.convention, args.max_distance)
     counts = dict(args.objects or [(name, DEFAULT_COUNT) for name, entries in pool.classes.items()
                                    if len(entries.ranges)])

@@ -139,12 +139,10 @@ def main(argv: list) -> int:
     parser.add_argument("--ray-drop", action="store_true", help="drop returns with the sensor's fitted ray-drop "
                                                                  "model (kitti has one)")
     parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of the noise and drop draws")
-    parser.add_argument("--out", type=cli.OUTPUT_FILE, required=True,
+    parser.add_argument("--out", type=cli.output_file(*OUTPUT_SUFFIXES), required=True,
                         help=f"output file ({', '.join(OUTPUT_SUFFIXES)})")
     args = parser.parse_args(argv)
     apart_from_inputs(args.out, [args.object, args.intensity_checkpoint])
-    if args.out.suffix not in OUTPUT_SUFFIXES:
-        parser.error(f"--out must end in {', '.join(OUTPUT_SUFFIXES)}")
     if not 0 <= args.drop_rate < 1:
         parser.error("--drop-rate must lie in [0, 1)")
     result, sensor, intensity_note = scan(args)

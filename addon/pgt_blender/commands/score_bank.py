@@ -19,6 +19,7 @@ from pathlib import Path
 
 from .. import cli
 from ..core.errors import InputError
+from ..core.bank.folder import MANIFEST
 from ..core.files import apart_from_inputs, atomic_output
 from ..core.gt_database import CONVENTIONS
 from ..core.quality.score import quality_available, score_bank, table_rows
@@ -42,10 +43,10 @@ def main(argv: list) -> int:
     parser.add_argument("--limit", type=cli.whole(1, 10**7),
                         help="real objects per class at most (default: all: 600 drawn, dense: 593)")
     parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of every draw and of the encoder's training")
-    parser.add_argument("--json", type=cli.OUTPUT_FILE, help="write the scores to this JSON file")
+    parser.add_argument("--json", type=cli.output_file(".json"), help="write the scores to this JSON file")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
-    apart_from_inputs(args.json, [args.bank, args.real, args.encoder])
+    apart_from_inputs(args.json, [args.bank, args.bank / MANIFEST, args.real, args.encoder])
     learned = not args.no_learned and (args.encoder is not None or quality_available())
     scores = score_bank(args.bank, args.real, args.convention, args.real_root, args.encoder, learned,
                         args.reference, args.limit, args.seed, progress=not args.no_progress)

@@ -64,7 +64,7 @@ def accuracy_both_ways(classifier, sets: list, points: int = 512) -> float:
 
 def main(argv: list) -> int:
     parser = cli.parser("train_heading.py", __doc__)
-    parser.add_argument("--out", type=cli.OUTPUT_FILE, required=True, help="checkpoint to write (.pt)")
+    parser.add_argument("--out", type=cli.output_file(".pt"), required=True, help="checkpoint to write (.pt)")
     parser.add_argument("--seed", type=cli.SEED, default=0, help="seed of every draw")
     parser.add_argument("--steps", type=cli.STEPS, default=hc.STEPS, help="optimiser steps (batches of 32)")
     parser.add_argument("--points", type=cli.CLOUD_POINTS, default=512, help="points per cloud the network sees")
@@ -88,9 +88,9 @@ def main(argv: list) -> int:
           + (", ..." if len(sets) > 12 else ""))
     start = time.perf_counter()
     with tqdm(total=args.steps, unit="step", mininterval=1.0) as bar:
-        def progress(step, loss):
+        def progress(step, loss):  # step counts from 0; the last one's loss is the one reported
             bar.update()
-            if step % 50 == 0:
+            if step % 50 == 0 or step == args.steps - 1:
                 bar.set_postfix(loss=f"{loss:.3f}")
 
         classifier = hc.train(sets, seed=args.seed, steps=args.steps, points=args.points,

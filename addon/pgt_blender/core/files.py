@@ -62,17 +62,29 @@ def folders_made(folder):
         raise
 
 
-def output_path(path, folder: bool = False) -> Path:
+def output_path(path, folder: bool = False, suffixes: tuple = ()) -> Path:
     """``path`` when an output file (``folder``: an output folder) can be made there;
     InputError naming it when something is in the way: a folder where the file goes, a
-    file where the folder goes, or a file among its parents. Checked before the work, so
-    that a long run does not fail at its end."""
+    file where the folder goes, a file among its parents, a file name not ending in one
+    of ``suffixes`` (when given), or a nearest existing folder that takes no new file
+    (read-only, /proc; probed with a temporary file, removed at once). Checked before the
+    work, so that a long run does not fail at its end."""
+    import tempfile
+
     path = Path(path)
     if path.exists() and path.is_dir() != folder:
         raise InputError(path, "is a file, not an output folder" if folder else "is a folder; expected a file name")
-    in_the_way = next((parent for parent in path.absolute().parents if parent.exists()), None)
-    if in_the_way is not None and not in_the_way.is_dir():
-        raise InputError(path, f"cannot be made: it lies under the file {in_the_way}")
+    if suffixes and path.suffix not in suffixes:
+        raise InputError(path, f"expected a file name ending in {' or '.join(suffixes)}")
+    start = path.absolute() if folder else path.absolute().parent
+    nearest = next(parent for parent in (start, *start.parents) if parent.exists())
+    if not nearest.is_dir():
+        raise InputError(path, f"cannot be made: it lies under the file {nearest}")
+    try:
+        with tempfile.TemporaryFile(dir=nearest):
+            pass
+    except OSError as error:
+        raise InputError(path, f"cannot be written: {nearest} takes no new file ({error.strerror})") from None
     return path
 
 

@@ -56,8 +56,8 @@ def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared
             if inside is not None:
                 raise InputError(out, f"holds the input {inside}, which overwriting the bank would delete; "
                                       "move it or write the bank elsewhere")
-            for child in out.iterdir():
-                shutil.rmtree(child) if child.is_dir() else child.unlink()
+            for child in out.iterdir():  # a link is removed, not what it points to (rmtree refuses links)
+                shutil.rmtree(child) if child.is_dir() and not child.is_symlink() else child.unlink()
         elif resume or shared:
             if not marker.is_file():
                 raise InputError(out, "holds no unfinished bank to resume (no .work/identity.json)")
@@ -106,7 +106,7 @@ def read_identity(out: Path) -> dict:
         raise InputError(out, f"is not a bank folder: no {WORK}/identity.json")
     try:
         ident = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
         raise InputError(path, f"damaged ({type(error).__name__}: {error}); --overwrite starts the bank "
                                f"anew") from None
     if not (isinstance(ident, dict) and {"config", "objects", "class_names", "chunks"} <= ident.keys()):
@@ -117,18 +117,20 @@ def read_identity(out: Path) -> dict:
 
 def read_manifest(out: Path) -> dict:
     """OUT/manifest.json of a finished bank; InputError naming the folder when there is
-    none (not a bank, or an export not assembled yet) or naming the file when damaged:
+    none (no such folder, not a bank, or an export not assembled yet) or naming the file when damaged:
     not JSON, a key missing, a config that fails a config file's checks, or not one info
     pickle per format."""
     from .config import config_from_dict
 
     path = Path(out) / MANIFEST
+    if not Path(out).is_dir():
+        raise InputError(out, "no such folder" if not Path(out).exists() else "is not a folder (a bank is a folder)")
     if not path.is_file():
         raise InputError(out, f"is not a finished bank: no {MANIFEST} (an export still running or stopped is "
                               "finished by resuming it)")
     try:
         manifest = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
         raise InputError(path, f"damaged ({type(error).__name__}: {error})") from None
     if not (isinstance(manifest, dict) and {"config", "info_pickles", "entries"} <= manifest.keys()):
         raise InputError(path, "not a bank manifest (config, info_pickles, entries)")
@@ -154,15 +156,22 @@ def chunk_record(out: Path, chunk_id: int, path: Path | None = None) -> dict | N
         return None
     try:
         record = read_record(path)
-    except (OSError, ValueError, TypeError, KeyError):  # what damaged JSON or array fields raise
+    except (OSError, ValueError, TypeError, KeyError, RecursionError):  # what damaged JSON or array fields raise
         return None
     fields = {"chunk": int, "infos": dict, "files": dict, "stats": np.ndarray, "intensity": dict}
     whole = isinstance(record, dict) and all(isinstance(record.get(key), kind) for key, kind in fields.items()) \
         and record["chunk"] == chunk_id and record["stats"].dtype == STATS_DTYPE \
         and all(isinstance(infos, list) and all(isinstance(info, dict) for info in infos)
                 for infos in record["infos"].values()) \
-        and all(isinstance(name, str) and isinstance(digest, str) for name, digest in record["files"].items())
+        and all(_in_bank(name) and isinstance(digest, str) for name, digest in record["files"].items())
     return record if whole else None
+
+
+def _in_bank(name) -> bool:
+    """Whether a record's file ``name`` is a path inside the bank (relative, no ``..``):
+    a damaged or crafted record must not make a copy or a check reach outside it."""
+    return isinstance(name, str) and bool(name) and "\0" not in name and not os.path.isabs(name) \
+        and ".." not in Path(name).parts
 
 
 def done_chunk(out: Path, chunk_id: int, path: Path | None = None) -> dict | None:
@@ -203,13 +212,25 @@ def copy_shard(source: Path, out: Path) -> int:
 
 def info_path_root(info_pickle: Path) -> Path:
     """The folder a bank pickle's info paths are relative to: the data root its
-    manifest records (OUT/manifest.json beside OUT/<format>/), else the pickle's folder."""
+    manifest records (OUT/manifest.json beside OUT/<format>/), else the pickle's folder
+    (no manifest there: any other database). InputError naming the manifest when it
+    cannot be read or its data root is no folder (the bank moved away from it)."""
     manifest = Path(info_pickle).parent.parent / MANIFEST
+    if not manifest.is_file():
+        return Path(info_pickle).parent
     try:
         data_root = json.loads(manifest.read_text()).get("data_root")
-    except (OSError, ValueError, AttributeError):
-        data_root = None
-    return Path(info_pickle).parent if data_root is None else manifest.parent / data_root
+    except (OSError, ValueError, AttributeError, RecursionError) as error:
+        raise InputError(manifest, f"damaged ({type(error).__name__}: {error})") from None
+    if data_root is None:
+        return Path(info_pickle).parent
+    if not isinstance(data_root, str) or not data_root or "\0" in data_root:
+        raise InputError(manifest, "data_root must be a folder path or null")
+    root = manifest.parent / data_root
+    if not root.is_dir():
+        raise InputError(manifest, f"data_root '{data_root}' is no folder from here ({root}): move the bank back "
+                                   f"or re-target it with export_bank.py --assemble --data-root")
+    return root
 
 
 def write_entry_file(path: Path, data) -> str:

@@ -99,8 +99,8 @@ def checked_objects(objects: list, incomplete: list, skip_incomplete: bool, sour
     NaN points, faces all of zero area, splat fields edited to NaN)."""
     if incomplete and not skip_incomplete:
         listed = "; ".join(f"{Path(path).name}: {reason}" for path, reason in incomplete)
-        raise InputError(source, f"{len(incomplete)} incomplete object(s), set class and size "
-                                 f"or pass --skip-incomplete: {listed}")
+        raise InputError(source, f"{len(incomplete)} incomplete object(s), set class and size or skip them "
+                                 f"(--skip-incomplete, the Bank panel's Skip incomplete): {listed}")
     if not objects:
         raise InputError(source, "no complete object to put in the bank")
     names = [safe_name(obj.name) for obj in objects]

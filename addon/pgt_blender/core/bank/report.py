@@ -228,7 +228,8 @@ def write_report(out, reference: dict | None = None, quality: dict | None = None
         figure = _figure_png(bank, reference, quality)
     except ImportError:
         figure = None
-    outputs = {out / REPORT_MD: _markdown(bank, reference, quality, figure is not None).encode()}
+    markdown = _markdown(bank, reference, quality, figure is not None)
+    outputs = {out / REPORT_MD: markdown.encode(errors="surrogateescape")}  # a folder name not UTF-8: its bytes
     if figure is not None:
         outputs[out / REPORT_PNG] = figure
     for path, data in outputs.items():

@@ -107,14 +107,12 @@ def choose_images(folder, every: int = 1, pick: str = "every", progress: bool = 
     names = folder_images(folder)
     scores = None
     if pick == "sharpest" and every > 1:
-        bar = progress_bar(progress, len(names), "image")
         scores = []
-        for name in names:
-            scores.append(sharpness(read_grey(Path(folder) / name)))
-            if bar is not None:
-                bar.update()
-        if bar is not None:
-            bar.close()
+        with progress_bar(progress, len(names), "image") as bar:
+            for name in names:
+                scores.append(sharpness(read_grey(Path(folder) / name)))
+                if bar is not None:
+                    bar.update()
     return [names[index] for index in chosen_indices(len(names), every, "every" if scores is None else pick, scores)]
 
 
@@ -164,25 +162,23 @@ def _decode(av, path, every: int, pick: str, progress: bool, write) -> int:
                 raise InputError(path, "has no video stream")
             stream = container.streams.video[0]
             stream.thread_type = "AUTO"
-            bar = progress_bar(progress, stream.frames or None, "frame")
-            for index, frame in enumerate(container.decode(stream)):
-                if min(frame.width, frame.height) < MIN_IMAGE_SIDE:
-                    raise InputError(path, f"frames of {frame.width} x {frame.height} px: each side must be at "
-                                           f"least {MIN_IMAGE_SIDE} px")
-                if bar is not None:
-                    bar.update()
-                if pick == "every" or every == 1:
-                    if index % every == 0:
-                        write(index, frame.to_ndarray(format="rgb24"))
-                    continue
-                score = sharpness(frame.to_ndarray(format="gray"))
-                if best is None or score > best[1]:
-                    best = (index, score, frame.to_ndarray(format="rgb24"))
-                if index % every == every - 1:
-                    write(best[0], best[2])
-                    best = None
-            if bar is not None:
-                bar.close()
+            with progress_bar(progress, stream.frames or None, "frame") as bar:
+                for index, frame in enumerate(container.decode(stream)):
+                    if min(frame.width, frame.height) < MIN_IMAGE_SIDE:
+                        raise InputError(path, f"frames of {frame.width} x {frame.height} px: each side must be at "
+                                               f"least {MIN_IMAGE_SIDE} px")
+                    if bar is not None:
+                        bar.update()
+                    if pick == "every" or every == 1:
+                        if index % every == 0:
+                            write(index, frame.to_ndarray(format="rgb24"))
+                        continue
+                    score = sharpness(frame.to_ndarray(format="gray"))
+                    if best is None or score > best[1]:
+                        best = (index, score, frame.to_ndarray(format="rgb24"))
+                    if index % every == every - 1:
+                        write(best[0], best[2])
+                        best = None
     except av.FFmpegError as error:
         raise InputError(path, f"not a decodable video ({error.__class__.__name__}: {error})") from None
     if best is not None:  # the last, shorter run

@@ -134,16 +134,15 @@ def _reconstruct(image_folder: Path, names: list, out_folder: Path, database: Pa
     extraction.sift.max_num_features = options.max_features
     mode = pycolmap.CameraMode.SINGLE if options.single_camera else pycolmap.CameraMode.PER_IMAGE
     reader = pycolmap.ImageReaderOptions()
-    bar = progress_bar(progress, len(names), "image")
-    for block in range(0, len(names), 8):  # blocks of 8 images: the bar moves
-        pycolmap.extract_features(database, image_folder, image_names=names[block:block + 8], camera_mode=mode,
-                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
-        if options.single_camera:  # later blocks share the first block's camera
-            reader.existing_camera_id = 1
-        if bar is not None:
-            bar.update(len(names[block:block + 8]))
-    if bar is not None:
-        bar.close()
+    with progress_bar(progress, len(names), "image") as bar:
+        for block in range(0, len(names), 8):  # blocks of 8 images: the bar moves
+            pycolmap.extract_features(database, image_folder, image_names=names[block:block + 8], camera_mode=mode,
+                                      reader_options=reader, extraction_options=extraction,
+                                      device=pycolmap.Device.cpu)
+            if options.single_camera:  # later blocks share the first block's camera
+                reader.existing_camera_id = 1
+            if bar is not None:
+                bar.update(len(names[block:block + 8]))
     _require_all_read(database, image_folder, names)
     _drop_focal_priors(database)
     seconds["features"] = time.perf_counter() - start
@@ -154,35 +153,31 @@ def _reconstruct(image_folder: Path, names: list, out_folder: Path, database: Pa
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = options.seed
     pairs_file = out_folder / ".pairs.txt"
-    bar = progress_bar(progress, len(pairs), "pair")
     try:
-        for block in range(0, len(pairs), PAIRS_PER_BLOCK):
-            chosen = pairs[block:block + PAIRS_PER_BLOCK]
-            pairs_file.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in chosen))
-            pycolmap.match_image_pairs(database, matching, pycolmap.ImportedPairingOptions(
-                match_list_path=str(pairs_file)), verification, device=pycolmap.Device.cpu)
-            if bar is not None:
-                bar.update(len(chosen))
+        with progress_bar(progress, len(pairs), "pair") as bar:
+            for block in range(0, len(pairs), PAIRS_PER_BLOCK):
+                chosen = pairs[block:block + PAIRS_PER_BLOCK]
+                pairs_file.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in chosen))
+                pycolmap.match_image_pairs(database, matching, pycolmap.ImportedPairingOptions(
+                    match_list_path=str(pairs_file)), verification, device=pycolmap.Device.cpu)
+                if bar is not None:
+                    bar.update(len(chosen))
     finally:
         pairs_file.unlink(missing_ok=True)
-        if bar is not None:
-            bar.close()
     seconds["matching"] = time.perf_counter() - start
 
     start = time.perf_counter()
     mapping = pycolmap.IncrementalPipelineOptions(num_threads=threads, random_seed=options.seed)
     mapping.mapper.random_seed = options.seed
     mapping.triangulation.random_seed = options.seed
-    bar = progress_bar(progress, len(names), "registered")
     scratch = out_folder / ".mapping.partial"
     shutil.rmtree(scratch, ignore_errors=True)
     try:
-        models = pycolmap.incremental_mapping(database, image_folder, scratch, mapping,
-                                              next_image_callback=None if bar is None else lambda: bar.update())
+        with progress_bar(progress, len(names), "registered") as bar:
+            models = pycolmap.incremental_mapping(database, image_folder, scratch, mapping,
+                                                  next_image_callback=None if bar is None else lambda: bar.update())
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-        if bar is not None:
-            bar.close()
     seconds["mapping"] = time.perf_counter() - start
     if not models:
         raise InputError(image_folder, f"no model: the mapper found no initial pair among {len(names)} images "

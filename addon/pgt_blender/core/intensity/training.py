@@ -262,7 +262,8 @@ def _csv_text(rows: list) -> str:
 def _resume_state(torch, out_dir: Path, config: dict) -> tuple:
     """(training state dict, loss rows up to its step) of out_dir's checkpoint; InputError
     when it is unreadable or damaged, from a different run (any setting but ``steps``
-    differs) or past the ``steps`` asked for."""
+    differs, named before the training objects and versions, which follow from the
+    settings) or past the ``steps`` asked for."""
     path = out_dir / "checkpoint.pt"
     state = load_checkpoint(torch, path, TRAINING_FORMAT, "intensity training", "train without --resume")
     saved, step = state.get("config"), state.get("step")
@@ -272,11 +273,13 @@ def _resume_state(torch, out_dir: Path, config: dict) -> tuple:
                                "training writes); train without --resume")
     if step > config["steps"]:
         raise InputError(path, f"is at step {step}, past the {config['steps']} steps asked for")
-    changed = sorted(key for key in set(saved) | set(config) if key != "steps" and saved.get(key) != config.get(key))
+    changed = [key for key in set(saved) | set(config) if key != "steps" and saved.get(key) != config.get(key)]
     if changed:
-        key = changed[0]
-        raise InputError(path, f"was written by a different run ({key}: {saved.get(key)!r} there, "
-                               f"{config.get(key)!r} now); train without --resume or use another folder")
+        key = min(changed, key=lambda key: (key in ("data", "versions"), key))  # a setting before what follows
+        what = ("the training objects differ" if key == "data"
+                else f"{key}: {saved.get(key)!r} there, {config.get(key)!r} now")
+        raise InputError(path, f"was written by a different run ({what}); train without --resume or use another "
+                               f"folder")
     return state, _loss_rows(out_dir / "losses.csv", state["step"])
 
 
@@ -333,20 +336,18 @@ def train(real, rgb, config: TrainConfig, out_dir, resume: bool = False, progres
             start = state["step"]
         # written once a resume is accepted: a refused one leaves the folder as it was
         _write_text(out_dir / "config.json", json.dumps(record, indent=2, sort_keys=True) + "\n")
-        bar = progress_bar(progress, config.steps, "step", initial=start)
-        for step in range(start + 1, config.steps + 1):
-            rgb_rows, real_rows = draw_pairs(real, rgb, config.batch, config.seed, step)
-            values = train_step(torch, nets, rgb_domain, real_domain, rgb_rows, real_rows, config)
-            rows.append([step, *(f"{values[key]:.6g}" for key in LOSS_COLUMNS[1:])])
-            if bar is not None:
-                bar.update()
-                bar.set_postfix(generator=rows[-1][1], group=rows[-1][6], refresh=False)
-            if step % config.checkpoint_every == 0 or step == config.steps:
-                _write_text(out_dir / "losses.csv", _csv_text(rows))
-                save_checkpoint(torch, out_dir / "checkpoint.pt",
-                      {"format": TRAINING_FORMAT, "config": record, "step": step, **nets.state()})
-        if bar is not None:
-            bar.close()
+        with progress_bar(progress, config.steps, "step", initial=start) as bar:
+            for step in range(start + 1, config.steps + 1):
+                rgb_rows, real_rows = draw_pairs(real, rgb, config.batch, config.seed, step)
+                values = train_step(torch, nets, rgb_domain, real_domain, rgb_rows, real_rows, config)
+                rows.append([step, *(f"{values[key]:.6g}" for key in LOSS_COLUMNS[1:])])
+                if bar is not None:
+                    bar.update()
+                    bar.set_postfix(generator=rows[-1][1], group=rows[-1][6], refresh=False)
+                if step % config.checkpoint_every == 0 or step == config.steps:
+                    _write_text(out_dir / "losses.csv", _csv_text(rows))
+                    save_checkpoint(torch, out_dir / "checkpoint.pt",
+                                    {"format": TRAINING_FORMAT, "config": record, "step": step, **nets.state()})
     finally:
         torch.set_num_threads(previous[0])
         torch.use_deterministic_algorithms(previous[1])

@@ -27,6 +27,7 @@ from ..errors import InputError
 from ..files import atomic_output, regular_file
 
 STATE_FORMAT = "pgt-thompson-cells/1"
+MAX_CELLS = 10**7  # range rings x azimuth sectors: a state file of a few hundred MB at most
 
 
 @dataclass
@@ -40,9 +41,11 @@ class ThompsonCells:
     successes: np.ndarray = field(default=None, repr=False)
 
     def __post_init__(self):
-        if not (self.range_step > 0 and 0 < self.azimuth_step <= 2 * np.pi and self.max_range > 0):
-            raise ValueError(f"Thompson cells need range_step > 0, 0 < azimuth_step <= 2 pi and max_range > 0, got "
-                             f"{self.range_step}, {self.azimuth_step}, {self.max_range}")
+        if not (self.range_step > 0 and 0 < self.azimuth_step <= 2 * np.pi and 0 < self.max_range < np.inf
+                and self.max_range / self.range_step * 2 * np.pi / self.azimuth_step <= MAX_CELLS):
+            raise ValueError(f"Thompson cells need range_step > 0, 0 < azimuth_step <= 2 pi, a finite max_range > 0 "
+                             f"and at most {MAX_CELLS:,} cells, got {self.range_step}, {self.azimuth_step}, "
+                             f"{self.max_range}")
         shape = (self.rings, self.sectors)
         for name in ("failures", "successes"):
             value = np.zeros(shape) if getattr(self, name) is None else np.asarray(getattr(self, name), np.float64)

@@ -86,6 +86,17 @@ def read_scene(scan, info, dataset: str | None = None) -> Scene:
                  dataset, scan)
 
 
+def frame_warning(scan, info) -> str | None:
+    """A warning when ``info`` is a KITTI label file of another frame than ``scan``
+    (label_2/000002.txt for velodyne/000001.bin): its boxes and calibration are then
+    another scene's. An info pickle gives the scan's own sample, so it never warns."""
+    scan, info = Path(scan), Path(info)
+    if info.suffix != ".txt" or info.stem == scan.stem:
+        return None
+    return (f"{info}: the labels and calibration of frame {info.stem} are used for the scan {scan.name}; "
+            f"give label_2/{scan.stem}.txt unless the scan was renamed")
+
+
 def _kitti_label(label: Path) -> tuple:
     from ..intensity.objects import kitti_label_boxes
 

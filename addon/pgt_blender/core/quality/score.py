@@ -50,14 +50,13 @@ def score_bank(bank, real, convention: str = "openpcdet", real_root=None, encode
     are unchanged). ``learned`` False (or torch missing, see ``quality_available``)
     leaves the Fréchet values None."""
     info_pickle, bank_convention, dataset, bank_root = bank_database(bank)
-    bar = progress_bar(progress, None, " objects", leave=False)
-    step = bar.update if bar is not None else None
-    real_sets = database_sets(real, convention, dataset, real_root, reference, seed,
-                              limit or (PAPER_REFERENCE_SIZE if reference == "dense" else MAX_OBJECTS), progress=step)
-    bank_sets = database_sets(info_pickle, bank_convention, dataset, bank_root, seed=seed, limit=MAX_OBJECTS,
-                              progress=step)
-    if bar is not None:
-        bar.close()
+    with progress_bar(progress, None, " objects", leave=False) as bar:
+        step = bar.update if bar is not None else None
+        real_sets = database_sets(real, convention, dataset, real_root, reference, seed,
+                                  limit or (PAPER_REFERENCE_SIZE if reference == "dense" else MAX_OBJECTS),
+                                  progress=step)
+        bank_sets = database_sets(info_pickle, bank_convention, dataset, bank_root, seed=seed, limit=MAX_OBJECTS,
+                                  progress=step)
     matched = sorted(set(bank_sets) & set(real_sets))
     model = None  # no encoder is loaded or trained when no class can be compared
     if matched and encoder is not None:
@@ -65,12 +64,10 @@ def score_bank(bank, real, convention: str = "openpcdet", real_root=None, encode
         model = QualityEncoder.load(encoder)
     elif matched and learned:
         from .encoder import STEPS, cached_encoder
-        bar = progress_bar(progress, STEPS, " steps", leave=False)
-        model = cached_encoder(Path(bank) / WORK / ENCODER_CACHE, real_sets, dataset,
-                               encoder_key(real, convention, reference, limit, seed), seed,
-                               progress=bar.update if bar is not None else None)
-        if bar is not None:
-            bar.close()
+        with progress_bar(progress, STEPS, " steps", leave=False) as bar:
+            model = cached_encoder(Path(bank) / WORK / ENCODER_CACHE, real_sets, dataset,
+                                   encoder_key(real, convention, reference, limit, seed), seed,
+                                   progress=bar.update if bar is not None else None)
     classes = {name: class_scores(bank_sets[name], real_sets[name], model, seed) for name in matched}
     return {"dataset": dataset, "classes": classes, "unmatched": sorted(set(bank_sets) ^ set(real_sets)),
             "encoder": None if model is None else str(encoder or Path(bank) / WORK / ENCODER_CACHE)}
