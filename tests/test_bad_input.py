@@ -375,6 +375,9 @@ CASES = {
         and ["--class-layers", folder / "layers.json"],
         "class 'Pedestrian' has 'sidewalk': expected a list of layer names",
         lambda folder, kitti, inputs: folder / "layers.json"),
+    "place_objects into a folder with a folder where its picture goes": place(  # found before the placement
+        lambda folder, shared, kitti: (folder / "placed" / "birdseye.png").mkdir(parents=True) or [],
+        "is a folder; expected a file name", lambda folder, kitti, inputs: folder / "placed" / "birdseye.png"),
     "place_objects asking for a class the bank lacks": place(
         lambda folder, shared, kitti: ["--objects", "Car=2"], "no 'Car' entry within 54 m",
         lambda folder, kitti, inputs: inputs["infos"]),
@@ -495,6 +498,20 @@ def test_memory_running_out_is_one_line_exit_1(capsys, allocate, problem):
     assert len(lines) == 1 and lines[0].startswith(f"error: {problem}"), lines
     with pytest.raises(RuntimeError, match="a bug"):
         run_main(lambda argv: (_ for _ in ()).throw(RuntimeError("a bug")), [])
+
+
+def test_a_scan_larger_than_the_memory_is_named(tmp_path):
+    """An 8 GiB scan (sparse: no disk used) under a 4 GiB address-space limit."""
+    import resource
+
+    velodyne = tmp_path / "velodyne"
+    velodyne.mkdir()
+    scan = velodyne / "000000.bin"
+    with open(scan, "wb") as stream:
+        stream.truncate(8 * 2**30)
+    result = run_script("fit_sensor.py", velodyne,
+                        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_AS, (4 * 2**30, 4 * 2**30)))
+    assert result.returncode == 1 and result.stderr == f"error: {scan}: too large to read (8.0 GiB)\n", result.stderr
 
 
 def test_ctrl_c_is_one_line_exit_130(capsys):

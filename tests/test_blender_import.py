@@ -259,7 +259,7 @@ def broken_inputs(tmp_path, statue, donut):
         ("pgt_mesh", {"filepath": str(unsupported)}, unsupported, "unsupported format"),
         ("pgt_mesh", {"filepath": str(corrupt)}, corrupt, "mesh"),
         ("pgt_gaussian_splat", {"filepath": str(donut.with_name("color.ply"))}, donut.with_name("color.ply"),
-         "expected a gaussian splat"),
+         "expected Gaussian splats but this is a point cloud"),
     ]
 
 

@@ -165,7 +165,9 @@ def test_bad_inputs_leave_scene_and_disk_as_they_were(scene, folder, tmp_path):
     assert not any(authoring.status(obj)["aligned"] for obj in bpy.context.selected_objects)
 
     bank_settings = scene.pgt_bank
+    bank_settings.status = "179 entries; wrote an earlier bank"
     refused(bpy.ops.scene.pgt_export_bank, "no output folder chosen")
+    assert bank_settings.status == "refused, nothing written: Bank: no output folder chosen"
     for reads_bank in (bpy.ops.scene.pgt_open_bank_report, bpy.ops.scene.pgt_preview_bank):  # not ./report.md
         assert not reads_bank.poll()
         refused(reads_bank, "Choose the bank's output folder first")

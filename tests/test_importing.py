@@ -200,9 +200,9 @@ def test_ascii_colors_out_of_their_type_are_refused(tmp_path):
 
 
 def test_kind_mismatch(donut, tmp_path):
-    with pytest.raises(InputError, match="expected a gaussian splat input but this is a point ply"):
+    with pytest.raises(InputError, match="expected Gaussian splats but this is a point cloud"):
         load_reconstruction(donut.with_name("color.ply"), kind="gaussian_splat")
-    with pytest.raises(InputError, match="expected a point ply input but this is a folder$"):
+    with pytest.raises(InputError, match="expected a point cloud but this is a folder$"):
         load_reconstruction(tmp_path, kind="point_ply")  # not "a colmap": any folder would be one
 
 

@@ -282,6 +282,15 @@ def test_training_rejects_mismatched_columns_and_nan_intensities(sets, tmp_path)
     assert not (tmp_path / "checkpoint.pt").exists()
 
 
+def test_a_folder_in_the_way_of_an_output_is_found_before_training(sets, tmp_path):
+    from pgt_blender.core.intensity.training import TrainConfig, train
+
+    (tmp_path / "intensity.pt").mkdir()
+    with pytest.raises(InputError, match=f"{tmp_path / 'intensity.pt'}: is a folder; expected a file name"):
+        train(*sets, TrainConfig(**SMALL), tmp_path, progress=False)
+    assert [path.name for path in tmp_path.iterdir()] == ["intensity.pt"]
+
+
 def test_resume_refuses_another_run_and_a_corrupt_checkpoint(sets, trained, tmp_path):
     import shutil
 

@@ -223,6 +223,18 @@ def test_encoder_training_is_deterministic_and_round_trips(real, encoder, tmp_pa
     assert loaded.classes == sorted(sets) and loaded.dataset == "kitti"
 
 
+def test_an_encoder_cache_that_cannot_be_written_is_a_warning(real, tmp_path):
+    """A bank on a read-only share (here a file where the cache folder goes): the score
+    still gets its encoder."""
+    from pgt_blender.core.quality.encoder import cached_encoder
+
+    (tmp_path / "work").write_text("a file")
+    sets = database_sets(real, "openpcdet", "kitti")
+    with pytest.warns(UserWarning, match="the quality encoder is not cached"):
+        found = cached_encoder(tmp_path / "work" / "encoder.pt", sets, "kitti", "test")
+    assert found.classes == sorted(sets)
+
+
 def test_an_encoder_of_a_real_mmdet3d_database_saves(shared_data, tmp_path):
     """Its class names come from the pickle as numpy strings (they once broke the save)."""
     sets = database_sets(shared_data / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl", "mmdet3d", "kitti")

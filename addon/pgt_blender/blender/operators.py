@@ -565,7 +565,7 @@ class _BackgroundSteps:
                 pass
         except REPORTED as error:
             self.report({"ERROR"}, str(error))
-            return self.failed(context)
+            return self.failed(context, error)
         return self.finished(context)
 
     def invoke(self, context, event):
@@ -574,7 +574,7 @@ class _BackgroundSteps:
             next(self._run)
         except REPORTED as error:
             self.report({"ERROR"}, str(error))
-            return {"CANCELLED"}
+            return self.failed(context, error)
         manager = context.window_manager
         manager.progress_begin(0, 1)
         self._timer = manager.event_timer_add(0.01, window=context.window)
@@ -592,7 +592,7 @@ class _BackgroundSteps:
         except REPORTED as error:  # a full disk, a folder gone: what is done stays done
             self._end(context)
             self.report({"ERROR"}, str(error))
-            return self.failed(context)
+            return self.failed(context, error)
         if share is None:
             self._end(context)
             return self.finished(context)
@@ -610,7 +610,7 @@ class _BackgroundSteps:
     def stop_requested(self, context) -> bool:
         return False
 
-    def failed(self, context):
+    def failed(self, context, error):
         return {"CANCELLED"}
 
 
@@ -661,7 +661,7 @@ class OBJECT_OT_pgt_author_selected(_BackgroundSteps, bpy.types.Operator):
         self.report({"WARNING"}, f"Author Selected stopped: {self.applied} steps applied")
         return {"FINISHED"}  # what was applied stays, and undo reverts it
 
-    def failed(self, context):  # after some steps: keep them undoable
+    def failed(self, context, error):  # after some steps: keep them undoable
         return {"FINISHED"} if getattr(self, "applied", 0) else {"CANCELLED"}
 
 
@@ -721,12 +721,15 @@ class SCENE_OT_pgt_export_bank(_BackgroundSteps, bpy.types.Operator):
         self.report({"WARNING"}, settings.status)
         return {"CANCELLED"}
 
-    def failed(self, context):
+    def failed(self, context, error):
         run = getattr(self, "bank_run", None)
-        if run is not None:  # a bank that kept no entry is removed: nothing is left to resume
-            resumable = (run.out / WORK).is_dir()
-            context.scene.pgt_bank.status = ("failed: the written chunks stay; 'Resume' continues" if resumable
-                                             else "failed: nothing written stays (the error says why)")
+        if run is None:  # refused before it started: the status must not read as the last export's
+            status = f"refused, nothing written: {error}"
+        elif (run.out / WORK).is_dir():
+            status = "failed: the written chunks stay; 'Resume' continues"
+        else:  # a bank that kept no entry is removed: nothing is left to resume
+            status = "failed: nothing written stays (the error says why)"
+        context.scene.pgt_bank.status = printable(status)
         return {"CANCELLED"}
 
 

@@ -32,7 +32,7 @@ from ..core.files import apart_from_inputs, regular_file
 from ..core.placement.bandit import ThompsonCells
 from ..core.placement.birdseye import birdseye_png
 from ..core.placement.entries import open_database
-from ..core.placement.folder import write_placement
+from ..core.placement.folder import check_placement_folder, write_placement
 from ..core.placement.maps import ImagePose, checked_class_layers, map_from_image, map_from_polygons, read_polygons
 from ..core.placement.place import PlacementConfig, place_objects
 from ..core.placement.scenes import frame_warning, read_scene
@@ -80,6 +80,7 @@ def main(argv: list) -> int:
     apart_from_inputs(args.out,
                       [args.scan, args.info, args.bank, args.map_polygons, args.map, args.map_legend,
                        args.class_layers, args.thompson])
+    check_placement_folder(args.out)
     if args.map is not None and (args.map_pose is None or args.map_legend is None):
         parser.error("--map needs --map-pose and --map-legend")
     if args.map_pose is not None and len(args.map_pose) not in (3, 4):

@@ -148,7 +148,8 @@ def npy_header(stream, path, where: str = "") -> tuple:
 def read_float32_rows(path, columns: int = 1, what: str = "values"):
     """(N, columns) float32 rows of a raw little-endian float32 file (KITTI velodyne
     scans, ground-truth database .bin files); InputError naming ``path`` when it cannot
-    be read or its size is not a whole number of rows (a cut or padded file)."""
+    be read (also: larger than the memory) or its size is not a whole number of rows (a
+    cut or padded file)."""
     import numpy as np
 
     path = regular_file(path)
@@ -157,6 +158,8 @@ def read_float32_rows(path, columns: int = 1, what: str = "values"):
         size = path.stat().st_size
     except OSError as error:
         raise InputError(path, f"cannot read the file ({error.strerror or error})") from None
+    except MemoryError:  # a file larger than the memory: named, not just "out of memory"
+        raise InputError(path, f"too large to read ({path.stat().st_size / 2**30:.1f} GiB)") from None
     if size % (4 * columns):
         raise InputError(path, f"{size} bytes are not whole rows of {columns} float32 {what}")
     unusable = int(np.count_nonzero(~np.isfinite(data)))

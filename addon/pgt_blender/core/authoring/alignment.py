@@ -33,11 +33,14 @@ normals. :func:`surface_estimate` fits a plane to each point's ``NORMAL_NEIGHBOU
 nearest neighbours (normal, planarity, local noise); :func:`refine_to_planes` then
 rotates a starting frame until the planar normals line up with its axes (each normal
 assigned to the nearest axis inside a cone that narrows from 20 to 5 degrees, the
-rotation solved by weighted Kabsch/SVD, weights planarity squared). The start is the
-prior (up, then the footprint yaw as above), so a prior a few degrees off is corrected
-and the correction is reported as ``tilt_deg``; with no prior the start is
+rotation solved by weighted Kabsch/SVD, weights planarity squared). It starts from
 :func:`dominant_frame`, the most populated normal direction and the most populated one
-perpendicular to it, which needs no PCA and no source axis. Which refined axis is up
+perpendicular to it, which needs no PCA and no source axis, and, given a prior, also
+from the prior (up, then the footprint yaw as above); the result with more planar
+weight inside the last cone wins, its axis nearest the prior being up. So a prior a
+few degrees off is corrected, one far off (a 3D cursor placed roughly, 20 to 40
+degrees: from it alone the cones lock onto the wrong planes) is overruled, and the
+correction is reported as ``tilt_deg``. Which refined axis is up
 then: x is the longest extent, y the axis across which the object is mirror-symmetric
 (:func:`mirror_error`: left and right of a vehicle match, top and bottom do not), z the
 third, its sign from the third moment as without refinement (cabins and greenhouses
@@ -234,8 +237,10 @@ def align_axes(positions, weights=None, up=None, source="points", refine: bool =
     if refine and (is_mesh or len(kept) > 2 * NORMAL_NEIGHBOURS):
         surface = mesh_surface(kept, centred - mean, faces, source) if is_mesh else surface_estimate(kept)
         planar = surface.planarity**2 * (kept_weights if len(surface.planarity) == len(kept) else 1)
-        start = rotation if up is not None else dominant_frame(surface.normals, planar)
-        refined, share = refine_to_planes(start, surface.normals, planar)
+        free, free_share = refine_to_planes(dominant_frame(surface.normals, planar), surface.normals, planar)
+        refined, share = (free, free_share) if up is None else refine_to_planes(rotation, surface.normals, planar)
+        if up is not None and free_share > share:  # the prior was too far off: it locked onto the wrong planes
+            refined, share = _relabelled(free, rotation), free_share
         if share >= MIN_PLANAR_SHARE:
             if up is None:
                 # a mesh's vertices crowd where it has detail: its moments are its surface's
@@ -442,6 +447,19 @@ def dominant_frame(normals: np.ndarray, weights: np.ndarray, cone_deg: float = 1
         return _completed(first, np.eye(3)[int(np.argmin(np.abs(first)))])
     second = most_populated(across[perpendicular] / length[perpendicular, None])
     return _completed(first, second)
+
+
+def _relabelled(frame, like) -> np.ndarray:
+    """``frame``'s rows reordered and signed as ``like``'s (both (3, 3) rotations, rows
+    the axes): z the row nearest ``like``'s z, x the other row nearest its x."""
+    along = frame @ like[2]
+    z_row = int(np.argmax(np.abs(along)))
+    z = np.copysign(1.0, along[z_row]) * frame[z_row]
+    others = [row for row in range(3) if row != z_row]
+    across = frame[others] @ like[0]
+    nearest = int(np.argmax(np.abs(across)))
+    x = np.copysign(1.0, across[nearest]) * frame[others[nearest]]
+    return np.stack([x, np.cross(z, x), z])
 
 
 def _completed(first, second) -> np.ndarray:

@@ -31,6 +31,10 @@ SUPPORTED = ("a COLMAP model folder, a 3D Gaussian Splatting output folder, .ply
              "meshes), .npz (Plenoxels), .obj, .glb, .gltf, .stl")
 
 
+KIND_NAMES = {"colmap": "a COLMAP model folder", "gaussian_splat": "Gaussian splats", "point_ply": "a point cloud",
+              "mesh": "a mesh", "plenoxels": "a Plenoxels grid"}  # as the importers' menu names them
+
+
 def detect_kind(path) -> str:
     """The source kind of ``path`` (see the table above), or InputError."""
     path = Path(path)
@@ -69,8 +73,8 @@ def load_reconstruction(path, kind: str = "auto", with_cameras: bool = True, cam
     path = Path(path)
     detected = detect_kind(path)
     if kind not in ("auto", detected):
-        found = "a folder" if detected == "colmap" else f"a {detected.replace('_', ' ')}"  # colmap: any folder
-        raise InputError(path, f"expected a {kind.replace('_', ' ')} input but this is {found}")
+        found = "a folder" if detected == "colmap" else KIND_NAMES[detected]  # colmap: any folder
+        raise InputError(path, f"expected {KIND_NAMES.get(kind, kind)} but this is {found}")
     needs_cameras = with_cameras or (capture is not None and capture.needs_cameras)
     recon = _read(path, detected, needs_cameras and cameras is None)
     if cameras is not None:

@@ -42,10 +42,12 @@ import numpy as np
 
 from ..classes import DATASETS
 from ..errors import InputError
-from ..files import atomic_output
+from ..files import atomic_output, output_path
 from ..learning import load_checkpoint, save_checkpoint
 from ..progress import progress_bar
 from . import losses, model
+
+OUTPUT_FILES = ("config.json", "losses.csv", "checkpoint.pt", "intensity.pt")  # module docstring
 
 TRAINING_FORMAT = "pgt_blender.intensity_training/1"
 LOSS_COLUMNS = (
@@ -309,6 +311,8 @@ def train(real, rgb, config: TrainConfig, out_dir, resume: bool = False, progres
     in ``out_dir`` (same run, ``steps`` may be raised) training goes on from its step;
     without one it starts at step 0. InputError for bad sets or a foreign checkpoint."""
     out_dir = Path(out_dir)
+    for name in OUTPUT_FILES:  # a folder in the way is found before the training, not after it
+        output_path(out_dir / name)
     torch = model.require_torch(out_dir)
     config.check()
     check_sets(real, rgb, config)

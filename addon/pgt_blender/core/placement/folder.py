@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, finite_number
-from ..files import atomic_output, read_float32_rows
+from ..files import atomic_output, output_path, read_float32_rows
 from ..scan.sensors import BIN_COLUMNS
 
 FRAME = "the scan's LiDAR frame: metres, z up, the sensor at the origin (KITTI x forward y left, nuScenes x right " \
@@ -54,6 +54,14 @@ def boxes_record(placement, scene, seed: int) -> dict:
             "scene_points_removed": {"inside_boxes": int(placement.scene_in_boxes.sum()),
                                      "shadowed": int(placement.scene_shadowed.sum())},
             "boxes": boxes}
+
+
+def check_placement_folder(out) -> None:
+    """InputError naming a file of the folder ``out`` that cannot be written (a folder in
+    its place, one that takes no new file): checked before the placement, so that a
+    re-run that fails leaves the earlier three files as they were."""
+    for name in (SCAN, BOXES, BIRDSEYE):
+        output_path(Path(out) / name)
 
 
 def write_placement(out, placement, scene, seed: int, birdseye_png: bytes | None) -> dict:

@@ -141,7 +141,11 @@ def train_encoder(real_sets: dict, dataset: str, key: str, seed: int = 0, steps:
 
 def cached_encoder(path: Path, real_sets: dict, dataset: str, key: str, seed: int = 0, progress=None):
     """The encoder at ``path`` when it was trained with ``key``, else a new one trained
-    (train_encoder) and saved there. A file that is not a readable encoder is replaced."""
+    (train_encoder) and saved there. A file that is not a readable encoder is replaced;
+    a cache that cannot be written (a bank on a read-only share) is a warning: the
+    encoder is still returned."""
+    import warnings
+
     from ..errors import InputError
 
     if Path(path).is_file():
@@ -152,5 +156,9 @@ def cached_encoder(path: Path, real_sets: dict, dataset: str, key: str, seed: in
         except InputError:
             pass
     encoder = train_encoder(real_sets, dataset, key, seed, progress=progress)
-    encoder.save(path)
+    try:
+        encoder.save(path)
+    except OSError as error:
+        warnings.warn(f"{path}: the quality encoder is not cached ({error.strerror or error}); the next score "
+                      f"trains it again", stacklevel=2)
     return encoder
