@@ -20,7 +20,6 @@ bad input; nothing is written then.
 
 import argparse
 import json
-import sys
 import warnings
 from pathlib import Path
 
@@ -89,7 +88,7 @@ def main(argv: list) -> int:
     scene = read_scene(args.scan, args.info, args.dataset)
     mismatch = frame_warning(args.scan, args.info)
     if mismatch:
-        print(f"warning: {mismatch}", file=sys.stderr)
+        warnings.warn(mismatch, stacklevel=1)
     pool = open_database(args.bank, scene.dataset, args.convention, args.max_distance)
     counts = dict(args.objects or [(name, DEFAULT_COUNT) for name, entries in pool.classes.items()
                                    if len(entries.ranges)])

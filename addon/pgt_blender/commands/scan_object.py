@@ -26,7 +26,7 @@ color (the file's vertex or point colors) for the object's class. Bad input: a
 one-line error and exit code 1.
 """
 
-import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -152,7 +152,7 @@ def main(argv: list) -> int:
     write_scan(result, args.out)
     inside = result.inside_warning(args.object.name)
     if inside:
-        print(f"warning: {inside}", file=sys.stderr)
+        warnings.warn(inside, stacklevel=1)
     stats = result.stats()
     box = ", ".join(f"{v:.3f}" for v in result.box)
     print(f"{sensor.name}: {stats['points']} points from {stats['rays']} rays "

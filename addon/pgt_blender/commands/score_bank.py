@@ -18,8 +18,8 @@ import json
 from pathlib import Path
 
 from .. import cli
-from ..core.errors import InputError
 from ..core.bank.folder import MANIFEST
+from ..core.errors import InputError
 from ..core.files import apart_from_inputs, atomic_output
 from ..core.gt_database import CONVENTIONS
 from ..core.quality.score import quality_available, score_bank, table_rows

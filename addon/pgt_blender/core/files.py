@@ -3,6 +3,7 @@
 import hashlib
 import os
 import stat
+import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -69,8 +70,6 @@ def output_path(path, folder: bool = False, suffixes: tuple = ()) -> Path:
     of ``suffixes`` (when given), or a nearest existing folder that takes no new file
     (read-only, /proc; probed with a temporary file, removed at once). Checked before the
     work, so that a long run does not fail at its end."""
-    import tempfile
-
     path = Path(path)
     if path.exists() and path.is_dir() != folder:
         raise InputError(path, "is a file, not an output folder" if folder else "is a folder; expected a file name")

@@ -139,8 +139,7 @@ def read_manifest(out: Path) -> dict:
     if not (isinstance(pickles, dict) and set(pickles) == set(formats)
             and all(isinstance(name, str) and name and "\0" not in name for name in pickles.values())):
         raise InputError(path, f"info_pickles must name one pickle file per format ({', '.join(formats)})")
-    if not isinstance(manifest.get("data_root") or "", str):
-        raise InputError(path, "data_root must be a folder path or null")
+    _data_root(path, manifest.get("data_root"))
     return manifest
 
 
@@ -222,15 +221,21 @@ def info_path_root(info_pickle: Path) -> Path:
         data_root = json.loads(manifest.read_text()).get("data_root")
     except (OSError, ValueError, AttributeError, RecursionError) as error:
         raise InputError(manifest, f"damaged ({type(error).__name__}: {error})") from None
-    if data_root is None:
+    if _data_root(manifest, data_root) is None:
         return Path(info_pickle).parent
-    if not isinstance(data_root, str) or not data_root or "\0" in data_root:
-        raise InputError(manifest, "data_root must be a folder path or null")
     root = manifest.parent / data_root
     if not root.is_dir():
         raise InputError(manifest, f"data_root '{data_root}' is no folder from here ({root}): move the bank back "
                                    f"or re-target it with export_bank.py --assemble --data-root")
     return root
+
+
+def _data_root(manifest: Path, value):
+    """A manifest's ``data_root`` (relative to OUT): None or a folder path; InputError
+    naming ``manifest`` otherwise."""
+    if value is not None and not (isinstance(value, str) and value and "\0" not in value):
+        raise InputError(manifest, "data_root must be a folder path or null")
+    return value
 
 
 def write_entry_file(path: Path, data) -> str:
