@@ -19,6 +19,8 @@ import os
 import pickle
 import shutil
 import struct
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -26,11 +28,12 @@ import pytest
 
 from pgt_blender.core.authoring.prepare import prepare, write_prepared
 from pgt_blender.core.errors import InputError
+from pgt_blender.core.files import TEXT_LIMIT
 from pgt_blender.core.importing import load_reconstruction
 from pgt_blender.core.importing.ply import read_vertices, write_ply
 from pgt_blender.core.samples import write_sample
 
-from .conftest import CodeOnLoad, run_script
+from .conftest import ROOT, CodeOnLoad, run_script
 
 
 
@@ -227,6 +230,40 @@ def cut_velodyne(folder, inputs):
     return ["fit_ground.py", kitti], scan_file, "bytes are not whole rows of 4 float32 values"
 
 
+def looping_label(folder, inputs):
+    """A KITTI label that is a link to itself: named as such, not as missing."""
+    kitti = Path(shutil.copytree(inputs["kitti"], folder / "kitti"))
+    label = kitti / "label_2" / "000001.txt"
+    label.unlink()
+    label.symlink_to(label.name)
+    return ["fit_ground.py", kitti], label, "a link that leads nowhere (its target is missing, or the links loop)"
+
+
+def looping_ply(script):
+    """A folder whose one .ply is a link to itself, given to ``script``."""
+    def build(folder, inputs):
+        objects = folder / "objects"
+        objects.mkdir()
+        (objects / "loop.ply").symlink_to("loop.ply")
+        command = {"prepare_objects.py": ["--in", objects, "--class", "truck", "--out", folder / "out"],
+                   "export_bank.py": ["--objects", objects, "--out", folder / "bank"]}[script]
+        return [script, *command], objects / "loop.ply", "a link that leads nowhere"
+    return build
+
+
+def oversized(path: Path) -> Path:
+    """``path`` made a sparse file one byte over the limit of a text input."""
+    with open(path, "wb") as stream:
+        stream.truncate(TEXT_LIMIT + 1)
+    return path
+
+
+def oversized_label(folder, inputs):
+    kitti = Path(shutil.copytree(inputs["kitti"], folder / "kitti"))
+    label = oversized(kitti / "label_2" / "000001.txt")
+    return ["fit_ground.py", kitti], label, "too large for what is read from it (268,435,457 bytes, more than 256 MB)"
+
+
 def shuffled_velodyne(folder, inputs):
     """A KITTI scan whose rows are shuffled: no longer stored laser by laser, as the ring fit needs."""
     kitti = Path(shutil.copytree(inputs["kitti"], folder / "kitti"))
@@ -354,6 +391,10 @@ CASES = {
                                lambda record: json.dumps({**record, "dims": "big"}).encode()),
     "sidecar step without its transform": bank(SMALL_GRID, "steps[0]: transform must be a 4 x 4 list", "sidecar",
                                                lambda record: json.dumps({**record, "steps": [{"step": "size"}]}).encode()),
+    "sidecar alignment with refine 'yes'": bank(SMALL_GRID, "steps[0]: refine must be true or false, got 'yes'",
+                                               "sidecar", lambda record: json.dumps({**record, "steps": [
+                                                   {**record["steps"][0], "refine": "yes"}, *record["steps"][1:]]
+                                               }).encode()),
     "class mapped to a name without a motion model": bank(
         {**SMALL_GRID, "classes": {"semi": "Semi"}}, "no motion model for semi", "out",
         lambda record: json.dumps({**record, "class": "semi"}).encode()),
@@ -386,6 +427,18 @@ CASES = {
     "fit_sensor on a folder without scans": lambda folder, inputs: (["fit_sensor.py", folder], folder,
                                                                     "holds no *.bin scans"),
     "fit_returns on a scan not stored laser by laser": shuffled_velodyne,
+    "a KITTI label that is a looping link": looping_label,
+    "a KITTI label of 256 MB": oversized_label,
+    "a bank config of 256 MB": lambda folder, inputs: (
+        ["export_bank.py", "--objects", inputs["prepared"], "--config", oversized(folder / "bank.toml"), "--out",
+         folder / "bank"], folder / "bank.toml", "too large for what is read from it"),
+    "a sensor file of 256 MB": scan(lambda folder, inputs: ["--sensor", oversized(folder / "sensor.toml")],
+                                    "too large for what is read from it", in_folder("sensor.toml")),
+    "place_objects with a class layer table of 256 MB": place(
+        lambda folder, shared, kitti: ["--class-layers", oversized(folder / "layers.json")],
+        "too large for what is read from it", lambda folder, kitti, inputs: folder / "layers.json"),
+    "prepare_objects on a looping link": looping_ply("prepare_objects.py"),
+    "export_bank on a prepared object that is a looping link": looping_ply("export_bank.py"),
     "fit_returns with a meshes folder that is not there": lambda folder, inputs: (
         ["fit_returns.py", inputs["kitti"], "--meshes", folder / "meshes"], folder / "meshes", "no such folder"),
     "fit_returns on a folder without scans": lambda folder, inputs: (["fit_returns.py", folder, "--meshes", "samples"], folder,
@@ -407,6 +460,26 @@ def test_bad_input_is_one_line_exit_1_and_writes_nothing(inputs, tmp_path, case)
     assert errors[0].startswith(f"error: {named}") and problem in errors[0], errors[0]
     assert contents(tmp_path) == before  # nothing written, nothing left half-written, no code ran
     assert not (tmp_path.parent / "elsewhere").exists()
+
+
+def test_a_folder_that_cannot_be_read_is_named_not_taken_for_empty(inputs, tmp_path):
+    """fit_sensor on a folder of scans it may not read: the folder and why, not 'holds no
+    scans'. Run as root (whom no mode stops), the command runs without the capability to
+    override file modes (setpriv)."""
+    scans = tmp_path / "velodyne"
+    scans.mkdir()
+    shutil.copy(inputs["kitti"] / "velodyne" / "000001.bin", scans)
+    scans.chmod(0)
+    unprivileged = ["setpriv", "--bounding-set=-dac_override,-dac_read_search",
+                    "--inh-caps=-dac_override,-dac_read_search"] if os.geteuid() == 0 else []
+    try:
+        result = subprocess.run([*unprivileged, sys.executable, ROOT / "headless_scripts" / "fit_sensor.py", scans,
+                                 "--out", tmp_path / "sensor.toml"], capture_output=True, text=True)
+    finally:
+        scans.chmod(0o755)
+    assert result.returncode == 1, result.stderr
+    assert result.stderr.splitlines()[-1] == f"error: {scans}: cannot be read (Permission denied)"
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["velodyne"]
 
 
 @pytest.mark.parametrize("flag, value", [("--x", "nan"), ("--heading", "inf"), ("--y", "-inf")])

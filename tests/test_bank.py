@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from pgt_blender.core.authoring.prepare import prepare, write_prepared
-from pgt_blender.core.bank import export
+from pgt_blender.core.bank import export, folder
 from pgt_blender.core.bank.config import BankConfig, config_from_table, grid_values, load_config
 from pgt_blender.core.boxes import inside_box
 from pgt_blender.core.bank.formats import BOX_VALUES, DATABASE_CLASSES
@@ -168,7 +168,8 @@ def test_the_sample_config_lists_every_key_at_its_default(tmp_path):
     ("[grid]\nx = [0, 10]\n", "grid.x"),
     ("[jitter]\nsize = 0.9\n", "jitter.size"),
     ("[scan]\nrange_noise = 1\n", "scan.range_noise"),
-    ("[sensors]\nx = 1\n", "[sensors]"),
+    ("[sensors]\nx = 1\n", "unknown section [sensors]: a bank config has only the sections [bank], "),
+    ("base = \"nuscenes\"\n[beams]\n", "unknown top-level key 'base'"),  # a sensor file given as the config
     ("[classes]\nbus = 3\n", "classes.bus"),
     ("[bank\n", "not a readable TOML"),
     ("[bank]\nintensity = \"bright\"\n", "bank.intensity"),
@@ -481,6 +482,26 @@ def test_shards_assemble_to_the_same_bank(reference, prepared, tmp_path):
     assert bank_bytes(tmp_path / "shard0") == bank_bytes(out)
 
 
+def test_a_folder_another_export_holds_is_refused_and_left_alone(reference, prepared, tmp_path):
+    """An export holds its folder until it ends (folder.exporting, as in the export
+    process): an export, resume, overwrite or assembly into it from another process is
+    refused and writes nothing; shards of one array job hold it together."""
+    out, config = reference
+    busy, refusal = tmp_path / "busy", "another export is using this folder right now"
+    with folder.exporting(busy):
+        for args in ((), ("--resume",), ("--overwrite",), ("--shard", "0/1")):
+            result = run_export("--objects", prepared, "--config", config, "--out", busy, *args, check=False)
+            assert result.returncode == 1 and refusal in last_line(result)
+        assert not any(busy.iterdir())
+    with folder.exporting(busy, shared=True):  # another shard of the same array job is running
+        run_export("--objects", prepared, "--config", config, "--out", busy, "--shard", "0/1")
+        result = run_export("--assemble", "--out", busy, check=False)
+        assert result.returncode == 1 and refusal in last_line(result)
+        assert not (busy / "manifest.json").exists()
+    run_export("--assemble", "--out", busy)
+    assert bank_bytes(busy) == bank_bytes(out)
+
+
 def test_a_bank_outside_the_data_root_gets_paths_that_lead_out_of_it(reference, tmp_path):
     """--assemble --data-root ROOT with the bank kept elsewhere: the info paths start
     with ../ and the frameworks' joins (os.path.join(root, path)) reach the files."""
@@ -533,7 +554,7 @@ def test_ray_executor_on_a_local_cluster(reference, prepared, tmp_path):
 # --- bad input ------------------------------------------------------------------------
 
 
-def test_output_folder_rules(reference, prepared, tmp_path):
+def test_output_folder_rules(reference, prepared, tmp_path, shared_data):
     out, config = reference
     stranger = tmp_path / "photos"
     stranger.mkdir()
@@ -554,6 +575,20 @@ def test_output_folder_rules(reference, prepared, tmp_path):
     refused = run_export("--objects", prepared, "--config", inside, "--out", copy, "--overwrite", check=False)
     assert refused.returncode == 1 and f"holds the input {inside}, which overwriting" in last_line(refused)
     assert inside.is_file() and (copy / "manifest.json").is_file()
+    shutil.copy(shared_data / "velodyne_calibrations" / "32db.yaml", copy / "mine")  # read through a sensor file
+    sensor = copy / "mine" / "sensor.toml"
+    sensor.write_text('base = "nuscenes"\ncalibration = "32db.yaml"\n')
+    beside = write_config(tmp_path / "beside.toml", {**SMALL, "bank": {"chunk_size": 4, "sensor": str(sensor)}})
+    refused = run_export("--objects", prepared, "--config", beside, "--out", copy, "--overwrite", check=False)
+    assert refused.returncode == 1 and f"holds the input {sensor}, which overwriting" in last_line(refused)
+    (copy / "mine" / "32db.yaml").rename(copy / "32db.yaml")
+    sensor.rename(tmp_path / "sensor.toml")
+    (tmp_path / "sensor.toml").write_text(f'base = "nuscenes"\ncalibration = "{copy / "32db.yaml"}"\n')
+    beside = write_config(tmp_path / "beside.toml", {**SMALL, "bank": {"chunk_size": 4,
+                                                                       "sensor": str(tmp_path / "sensor.toml")}})
+    refused = run_export("--objects", prepared, "--config", beside, "--out", copy, "--overwrite", check=False)
+    assert refused.returncode == 1 and f"holds the input {copy / '32db.yaml'}, which overwriting" in last_line(refused)
+    assert (copy / "32db.yaml").is_file()
 
 
 def test_damaged_or_crafted_chunk_records_and_lost_files_are_redone_never_run(reference, prepared, tmp_path):

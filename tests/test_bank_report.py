@@ -145,6 +145,18 @@ def test_real_statistics_of_the_mmdet3d_kitti_database(shared_data):
     assert pedestrian["coverage"].sum() == 1  # inside KITTI's grid
 
 
+@pytest.mark.parametrize("dataset", ["nuscenes", "lyft"])
+def test_a_real_database_of_another_dataset_is_named_as_such(shared_data, dataset):
+    """The KITTI database against a nuScenes or Lyft bank: its classes say so before its
+    4-column .bin files are read as 5-column ones."""
+    real = shared_data / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl"
+    with pytest.raises(InputError) as caught:
+        real_statistics(real, dataset=dataset)
+    assert caught.value.path == real
+    assert str(caught.value) == (f"{real}: holds no {dataset} class (it has Pedestrian): the database of another "
+                                 f"dataset? The bank is {dataset}; choose a {dataset} database")
+
+
 def test_write_report(bank_copy):
     md_path, png_path = write_report(bank_copy)
     assert (md_path, png_path) == (bank_copy / REPORT_MD, bank_copy / REPORT_PNG)

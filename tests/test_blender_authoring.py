@@ -268,7 +268,8 @@ def test_refinement_in_the_ui_matches_the_command_line(scene, tilted_truck):
     np.testing.assert_allclose(obj.pgt.dims, headless.dims, rtol=1e-6)
     align = json.loads(obj.pgt.steps_json)[0]
     assert align["refined"] and 3.0 < align["tilt_deg"] < 5.0
-    assert refinement_text(obj) == f"Refined: tilt removed {align['tilt_deg']:.2f}°, noise 0 (source units)"
+    assert refinement_text(obj) == (f"Refined: tilt removed {align['tilt_deg']:.2f}° from the PCA minor axis, "
+                                    "noise 0 (source units)")
     up = np.array(obj.pgt.object_from_source)[2, :3]
     assert np.degrees(np.arccos(abs(up @ rotation[:, 2]))) < 0.5
 
@@ -327,6 +328,25 @@ def test_the_align_section_says_when_the_planes_gave_up(scene, tmp_path):
     assert align["up_from"] == "planes" and align["tilt_deg"] > 45
     assert refinement_text(obj).startswith(f"Refined: up from the surface planes (the PCA minor axis lay "
                                            f"{align['tilt_deg']:.1f}° off), noise ")
+
+
+def test_the_align_section_says_why_an_object_was_not_refined(scene, tmp_path):
+    """Refine off, and refine on for a ball (no flat surface): each says so."""
+    import trimesh
+    from pgt_blender.blender.ui import refinement_text
+    from pgt_blender.core.reconstruction import Reconstruction
+
+    settings = scene.pgt_authoring
+    truck = imported(scene, write_sample(tmp_path, "truck", seed=3, points=3000)["reconstruction.ply"])
+    settings.up, settings.refine = "pca", False
+    assert bpy.ops.object.pgt_align() == {"FINISHED"}
+    assert refinement_text(truck) == "Not refined to the surface (Refine was off)"
+    settings.refine = True
+    points = trimesh.creation.icosphere(4, 2.0).sample(5000, seed=1).astype(np.float32)
+    ball = objects.add_reconstruction(scene, Reconstruction(points, "point_ply", Path("ball.ply"), ""))
+    bpy.context.view_layer.objects.active = ball
+    assert bpy.ops.object.pgt_align() == {"FINISHED"}
+    assert refinement_text(ball) == "Not refined to the surface: too little flat surface to refine to"
 
 
 def test_up_from_every_face_of_an_open_mesh_is_named(scene, tilted_truck):

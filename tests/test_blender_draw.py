@@ -217,7 +217,7 @@ def _row(label: str, tooltip: str) -> str:
 def panel_reference() -> str:
     """Markdown: per panel, each field and button it can show (drawn in every state of
     STATES) with Blender's label and tooltip from the RNA."""
-    seen = {}
+    seen, labels = {}, {}
     for state in STATES:
         bpy.ops.wm.read_factory_settings(use_empty=True)
         _state(bpy.context.scene, _reference_samples(), state)
@@ -230,7 +230,12 @@ def panel_reference() -> str:
                 elif name == "operator":
                     category, _, op = arguments["operator"].partition(".")
                     rna = getattr(getattr(bpy.ops, category), op).get_rna_type()
-                    rows.setdefault(("op", rna.identifier), _row(f"*{rna.name}* (button)", rna.description))
+                    shown = labels.setdefault((title, rna.identifier), [])  # as drawn: one operator, several buttons
+                    if (arguments.get("text") or rna.name) not in shown:
+                        shown.append(arguments.get("text") or rna.name)
+                    rows[("op", rna.identifier)] = _row(f"{', '.join(f'*{label}*' for label in shown)} "
+                                                        f"({'button' if len(shown) == 1 else 'buttons'})",
+                                                        rna.description)
         if bpy.context.mode == "EDIT_MESH":
             bpy.ops.object.mode_set(mode="OBJECT")
     order = [f"PGT > {panel.bl_label}" for panel in ui.classes] + ["File > Import", "Preferences > Add-ons > PGT Blender"]

@@ -140,12 +140,23 @@ def test_a_stopped_export_resumes_to_the_same_bank(scene, folder, tmp_path):
     settings.output = str(tmp_path / "stopped")
     run = bank.BankRun(scene, settings)  # what the modal export steps on each timer event
     assert run.step() and run.step() and run.done == 4 < run.total
+    refused(bpy.ops.scene.pgt_export_bank, "another export is using this folder right now")  # while it runs
     run.stop()
     assert not (tmp_path / "stopped" / "manifest.json").exists()
     refused(bpy.ops.scene.pgt_export_bank, "is not empty: resume the bank there or overwrite it")
     settings.existing = "RESUME"
     assert bpy.ops.scene.pgt_export_bank() == {"FINISHED"}  # ... and resumed on request
     assert bank_bytes(tmp_path / "stopped") == bank_bytes(tmp_path / "whole")
+
+
+def test_every_operator_that_changes_blend_data_can_be_undone():
+    """All but those that change only settings and files: Export Bank, Stop, Save Config."""
+    from pgt_blender.blender import operators
+
+    settings_and_files = {operators.SCENE_OT_pgt_export_bank, operators.SCENE_OT_pgt_stop_bank,
+                          operators.SCENE_OT_pgt_save_bank_config}
+    for operator in set(operators.classes) - settings_and_files:
+        assert {"REGISTER", "UNDO"} <= operator.bl_options, operator.__name__
 
 
 def test_bad_inputs_leave_scene_and_disk_as_they_were(scene, folder, tmp_path):
@@ -166,11 +177,14 @@ def test_bad_inputs_leave_scene_and_disk_as_they_were(scene, folder, tmp_path):
 
     bank_settings = scene.pgt_bank
     bank_settings.status = "179 entries; wrote an earlier bank"
-    refused(bpy.ops.scene.pgt_export_bank, "no output folder chosen")
-    assert bank_settings.status == "refused, nothing written: Bank: no output folder chosen"
-    for reads_bank in (bpy.ops.scene.pgt_open_bank_report, bpy.ops.scene.pgt_preview_bank):  # not ./report.md
-        assert not reads_bank.poll()
-        refused(reads_bank, "Choose the bank's output folder first")
+    for on_bank_folder in (bpy.ops.scene.pgt_export_bank, bpy.ops.scene.pgt_open_bank_report,
+                           bpy.ops.scene.pgt_preview_bank):  # greyed out: not ./report.md, not into ./
+        assert not on_bank_folder.poll()
+        refused(on_bank_folder, "Choose the bank's output folder first")
+    bank_settings.output = str(tmp_path / "bank")
+    refused(bpy.ops.scene.pgt_export_bank, "2 incomplete object")
+    assert bank_settings.status.startswith("refused, nothing written: ") and "2 incomplete object" in bank_settings.status
+    assert not (tmp_path / "bank").exists()
     bank_settings["dataset"] = 99  # a .blend of a version with more datasets: reads as ""
     refused(bpy.ops.scene.pgt_save_bank_config, "Bank: no dataset chosen", filepath=str(tmp_path / "stale.toml"))
     bank_settings.dataset = "nuscenes"
@@ -178,7 +192,6 @@ def test_bad_inputs_leave_scene_and_disk_as_they_were(scene, folder, tmp_path):
     refused(bpy.ops.scene.pgt_export_bank, "Export Bank works in Object Mode")
     bpy.ops.object.mode_set(mode="OBJECT")
     small_bank(bank_settings, tmp_path / "bank")
-    refused(bpy.ops.scene.pgt_export_bank, "2 incomplete object")
     bank_settings.openpcdet = bank_settings.mmdet3d = False
     refused(bpy.ops.scene.pgt_export_bank, "no format chosen")
     assert not (tmp_path / "bank").exists()

@@ -11,6 +11,7 @@ from the PLY, so the same objects by either route make the same bank.
 """
 
 import math
+from contextlib import ExitStack
 from pathlib import Path
 
 import bpy
@@ -19,7 +20,7 @@ import numpy as np
 from ..core.bank import export
 from ..core.bank.config import (DATASET_CONSTANT_INTENSITY, DATASET_GRIDS, FORMATS, BankConfig, config_from_table,
                                 config_table, load_config)
-from ..core.bank.folder import info_path_root, read_manifest
+from ..core.bank.folder import exporting, info_path_root, read_manifest
 from ..core.bank.inputs import BankObject, checked_objects, incomplete_reason
 from ..core.bank.report import real_reference, write_report
 from ..core.errors import InputError
@@ -104,9 +105,10 @@ class BankRun:
     modal operator keeps Blender responsive: ``step`` writes the next chunk (its
     ``chunk_size`` entries, well under a second on the built-in samples), ``finish``
     assembles the bank and writes its report. Stopping between steps leaves a folder
-    that an export with "Resume" continues to the same bytes (core/bank/folder.py).
-    InputError for what cannot make a bank, or a Real database that cannot be read,
-    before anything is written."""
+    that an export with "Resume" continues to the same bytes (core/bank/folder.py); the
+    folder is held (folder.exporting) until ``stop``, so another export into it, in
+    this Blender or another process, is refused. InputError for what cannot make a bank,
+    or a Real database that cannot be read, before anything is written."""
 
     def __init__(self, scene: bpy.types.Scene, settings, checkpoint: str = ""):
         if not settings.output:
@@ -121,8 +123,11 @@ class BankRun:
         self.existed = self.out.exists()
         read = [bpy.data.filepath, settings.config_file and bpy.path.abspath(settings.config_file),
                 self.real and self.real[0]]
-        self.plan = export.plan_bank(checked, config, self.out, resume=settings.existing == "RESUME",
-                                     overwrite=settings.existing == "OVERWRITE", inputs=read)
+        with ExitStack() as held:  # the folder stays held until ``stop``
+            held.enter_context(exporting(self.out))
+            self.plan = export.plan_bank(checked, config, self.out, resume=settings.existing == "RESUME",
+                                         overwrite=settings.existing == "OVERWRITE", inputs=read)
+            self._held = held.pop_all()
         self.total, self.done = self.plan.pending_entries, 0
         self._chunks = export.run_plan(self.plan, workers=1)
 
@@ -146,7 +151,9 @@ class BankRun:
         return f"{export.kept_summary(self.manifest)}; wrote {self.out}"
 
     def stop(self) -> None:
+        """End the run (finished, stopped or failed) and let go of its folder."""
         self._chunks.close()
+        self._held.close()
 
 
 PREVIEW_COLLECTION = "PGT Bank Preview"

@@ -671,7 +671,18 @@ def _checkpoint(context) -> str:
     return bpy.path.abspath(preferences.intensity_checkpoint) if preferences and preferences.intensity_checkpoint else ""
 
 
-class SCENE_OT_pgt_export_bank(_BackgroundSteps, bpy.types.Operator):
+class _OnBankFolder:
+    """An operator on the Bank section's output folder: greyed out until one is chosen."""
+
+    @classmethod
+    def poll(cls, context):
+        if not context.scene.pgt_bank.output:
+            cls.poll_message_set("Choose the bank's output folder first")
+            return False
+        return True
+
+
+class SCENE_OT_pgt_export_bank(_BackgroundSteps, _OnBankFolder, bpy.types.Operator):
     """Export the scene's authored objects as an object bank; from the panel it runs in the background with progress (Esc or Stop ends it, resumable)"""
 
     bl_idname = "scene.pgt_export_bank"
@@ -685,7 +696,7 @@ class SCENE_OT_pgt_export_bank(_BackgroundSteps, bpy.types.Operator):
         if context.mode != "OBJECT":  # an object in Edit Mode holds its mesh in an edit mesh
             cls.poll_message_set("Export Bank works in Object Mode")
             return False
-        return True
+        return super().poll(context)
 
     def steps(self, context):
         """One chunk of entries per step (the Bank section's chunk size), then the assembly
@@ -777,22 +788,12 @@ def _same_file(blender_path: str, path: Path) -> bool:
     return Path(bpy.path.abspath(blender_path)).resolve() == path.resolve()
 
 
-class _ReadsBank:
-    """An operator on the bank in the Bank section's output folder: greyed out until one is chosen."""
-
-    @classmethod
-    def poll(cls, context):
-        if not context.scene.pgt_bank.output:
-            cls.poll_message_set("Choose the bank's output folder first")
-            return False
-        return True
-
-
-class SCENE_OT_pgt_open_bank_report(_ReadsBank, bpy.types.Operator):
+class SCENE_OT_pgt_open_bank_report(_OnBankFolder, bpy.types.Operator):
     """Open the bank's report.md as a text (shown in a Text Editor area when there is one); with a Real database set, the report is first written anew beside it, with the bank's quality score"""
 
     bl_idname = "scene.pgt_open_bank_report"
     bl_label = "Open Report"
+    bl_options = {"REGISTER", "UNDO"}  # it adds or replaces a text
 
     def execute(self, context):
         settings = context.scene.pgt_bank
@@ -820,7 +821,7 @@ class SCENE_OT_pgt_open_bank_report(_ReadsBank, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class SCENE_OT_pgt_preview_bank(_ReadsBank, bpy.types.Operator):
+class SCENE_OT_pgt_preview_bank(_OnBankFolder, bpy.types.Operator):
     """Load entries of the bank in the output folder as point objects colored by intensity, with their boxes"""
 
     bl_idname = "scene.pgt_preview_bank"

@@ -76,14 +76,21 @@ def status_icon(obj, not_done: str) -> str:
 
 def refinement_text(obj) -> str:
     """What the last alignment's refinement did: the tilt it removed from the starting up
-    (a prior, or without one the PCA minor axis; over 45 degrees that axis was not up at
-    all, a bus's width, and the planes gave up) and the surface noise (source units)."""
+    (the prior, or without one the PCA minor axis, which it names; over 45 degrees that
+    axis was not up at all, a bus's width, and the planes gave up) and the surface noise
+    (source units). Not refined: why, when the step record says (older records say only
+    whether)."""
     align = next((step for step in reversed(authoring.steps(obj)) if step["step"] == "align"), {})
     if not align.get("refined"):
-        return "Not refined to the surface"
+        reasons = {True: ": too little flat surface to refine to", False: " (Refine was off)"}
+        return "Not refined to the surface" + reasons.get(align.get("refine"), "")
     tilt = align["tilt_deg"]
-    turned = (f"up from the surface planes (the PCA minor axis lay {tilt:.1f}° off)"
-              if align["up_from"] == "planes" and tilt > 45 else f"tilt removed {tilt:.2f}°")
+    if align["up_from"] != "planes":
+        turned = f"tilt removed {tilt:.2f}°"
+    elif tilt <= 45:
+        turned = f"tilt removed {tilt:.2f}° from the PCA minor axis"
+    else:
+        turned = f"up from the surface planes (the PCA minor axis lay {tilt:.1f}° off)"
     return f"Refined: {turned}, noise {align['noise']:.3g} (source units)"
 
 

@@ -104,24 +104,28 @@ def export_bank(args) -> int:
         check_ray_address(args.address)
     if args.assemble:
         reference = real_reference(args, folder.read_identity(args.out)["config"])
-        for shard in args.shard_dirs:
-            folder.copy_shard(shard, args.out)
-        return finish(args, export.assemble(args.out, args.data_root), reference, 0.0)
+        with folder.exporting(args.out):
+            for shard in args.shard_dirs:
+                folder.copy_shard(shard, args.out)
+            return finish(args, export.assemble(args.out, args.data_root), reference, 0.0)
     config = load_config(args.config) if args.config else BankConfig()
     reference = real_reference(args, config.to_dict())
     objects, source = gather(args)
     existed = args.out.exists()
-    plan = export.plan_bank(objects, config, args.out, args.resume, args.overwrite, args.shard, inputs=_inputs(args))
-    print(f"{len(plan.job.objects)} object(s) from {source}: {sum(map(len, plan.chunks)):,} poses in "
-          f"{len(plan.chunks)} chunks, {len(plan.pending)} to do ({config.dataset}, {', '.join(config.formats)})")
-    started = time.perf_counter()
-    _progress(export.run_plan(plan, args.workers, args.executor, args.address), plan.pending_entries)
-    seconds = time.perf_counter() - started
-    if args.shard is not None:
-        print(f"shard {args.shard[0]}/{args.shard[1]} done in {seconds:.1f} s; "
-              f"when every shard is done: export_bank.py --assemble --out {args.out}")
-        return 0
-    return finish(args, export.assemble(args.out, args.data_root, existed), reference, seconds, plan.pending_entries)
+    with folder.exporting(args.out, shared=args.shard is not None):
+        plan = export.plan_bank(objects, config, args.out, args.resume, args.overwrite, args.shard,
+                                inputs=_inputs(args))
+        print(f"{len(plan.job.objects)} object(s) from {source}: {sum(map(len, plan.chunks)):,} poses in "
+              f"{len(plan.chunks)} chunks, {len(plan.pending)} to do ({config.dataset}, {', '.join(config.formats)})")
+        started = time.perf_counter()
+        _progress(export.run_plan(plan, args.workers, args.executor, args.address), plan.pending_entries)
+        seconds = time.perf_counter() - started
+        if args.shard is not None:
+            print(f"shard {args.shard[0]}/{args.shard[1]} done in {seconds:.1f} s; "
+                  f"when every shard is done: export_bank.py --assemble --out {args.out}")
+            return 0
+        return finish(args, export.assemble(args.out, args.data_root, existed), reference, seconds,
+                      plan.pending_entries)
 
 
 def _progress(finished, total: int) -> None:

@@ -22,7 +22,7 @@ import numpy as np
 
 from .. import cli
 from ..core.errors import InputError
-from ..core.files import apart_from_inputs, atomic_output, read_float32_rows
+from ..core.files import apart_from_inputs, atomic_output, listed, read_float32_rows
 from ..core.scan import sensor_fit
 from ..core.scan.sensors import PRESETS
 
@@ -30,7 +30,7 @@ from ..core.scan.sensors import PRESETS
 def scan_files(paths: list) -> list:
     files = []
     for path in paths:
-        found = sorted(path.glob("*.bin")) if path.is_dir() else [path]
+        found = listed(path, "*.bin") if path.is_dir() else [path]
         if not found:
             raise InputError(path, "holds no *.bin scans")
         files += found

@@ -27,7 +27,7 @@ import numpy as np
 
 from .. import cli
 from ..core.errors import InputError
-from ..core.files import apart_from_inputs, regular_file
+from ..core.files import TEXT_LIMIT, apart_from_inputs, regular_file
 from ..core.placement.bandit import ThompsonCells
 from ..core.placement.birdseye import birdseye_png
 from ..core.placement.entries import open_database
@@ -118,7 +118,7 @@ def main(argv: list) -> int:
 def _json(path: Path | None):
     if path is None:
         return None
-    regular_file(path)
+    regular_file(path, TEXT_LIMIT)
     try:
         return json.loads(path.read_text())
     except OSError as error:

@@ -167,18 +167,50 @@ def read_float32_rows(path, columns: int = 1, what: str = "values"):
     return data.reshape(-1, columns)
 
 
-def regular_file(path) -> Path:
-    """``path`` when it names a regular file (links followed); InputError for a missing
-    path, a folder, or a pipe or device, which a read would wait on or never finish."""
+# bytes: far above any config, label, calibration, sidecar, map or camera list; a text
+# input beyond it is the wrong file, which parsing would hold in memory many times over
+TEXT_LIMIT = 256 * 2**20
+
+
+def no_dead_link(path) -> Path:
+    """``path``; InputError naming it when it is a link that leads nowhere (its target
+    missing, or a loop of links): it reads as no file at all, which a message must not
+    claim."""
+    path = Path(path)
+    if path.is_symlink() and not path.exists():
+        raise InputError(path, "a link that leads nowhere (its target is missing, or the links loop)")
+    return path
+
+
+def listed(folder, pattern: str) -> list:
+    """The paths in the folder ``folder`` matching ``pattern`` (Path.glob), sorted;
+    InputError naming the folder when it cannot be read (glob passes over it in silence,
+    as if empty) or a match that is a link leading nowhere (no_dead_link)."""
+    folder = Path(folder)
+    try:
+        os.scandir(folder).close()
+    except OSError as error:
+        raise InputError(folder, f"cannot be read ({error.strerror or error})") from None
+    return [no_dead_link(path) for path in sorted(folder.glob(pattern))]
+
+
+def regular_file(path, limit: int | None = None) -> Path:
+    """``path`` when it names a regular file (links followed) of at most ``limit``
+    bytes, when given (TEXT_LIMIT for text inputs); InputError for a missing path, a
+    folder, a pipe or device, which a read would wait on or never finish, or a larger
+    file."""
     path = Path(path)
     try:
-        mode = path.stat().st_mode
+        status = path.stat()
     except OSError as error:
         raise InputError(path, f"cannot read the file ({error.strerror or error})") from None
     except ValueError:  # a NUL byte in the path
         raise InputError(path, "not a usable file name (it holds a NUL byte)") from None
-    if stat.S_ISDIR(mode):
+    if stat.S_ISDIR(status.st_mode):
         raise InputError(path, "is a folder; expected a file")
-    if not stat.S_ISREG(mode):
+    if not stat.S_ISREG(status.st_mode):
         raise InputError(path, "not a regular file (a pipe, socket or device); expected a file")
+    if limit is not None and status.st_size > limit:
+        raise InputError(path, f"too large for what is read from it ({status.st_size:,} bytes, more than "
+                               f"{limit / 2**20:,.0f} MB): the wrong file?")
     return path

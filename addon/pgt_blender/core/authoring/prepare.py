@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, finite_number
-from ..files import atomic_output, regular_file
+from ..files import TEXT_LIMIT, atomic_output, regular_file
 from ..reconstruction import Reconstruction
 from . import heading, sizing
 from .alignment import align_axes, camera_up
@@ -71,13 +71,15 @@ def up_vector(choice: str, world_from_cameras=(), source="points"):
 def align_step(positions, weights=None, up=None, source="points", refine: bool = True, faces=None) -> Step:
     """Axis alignment of the current points, refined to the object's surface planes
     unless ``refine`` is False (see :mod:`.alignment`). Details: where up and yaw came
-    from, the inlier count, whether the frame was refined, the tilt the refinement
-    removed (degrees) and the estimated surface noise (source units). ``faces``: (F, 3)
-    indices of a mesh's triangles, whose normals the refinement then uses."""
+    from, the inlier count, whether refinement was asked for and whether the frame was
+    refined (asked for, it is not when the object has too little flat surface), the tilt
+    the refinement removed (degrees) and the estimated surface noise (source units).
+    ``faces``: (F, 3) indices of a mesh's triangles, whose normals the refinement then
+    uses."""
     found = align_axes(positions, weights, up, source, refine, faces)
     return Step("align", found.transform, found.dims,
                 {"up_from": found.up_from, "yaw_from": found.yaw_from, "inliers": int(found.inliers.sum()),
-                 "refined": found.refined, "tilt_deg": found.tilt_deg, "noise": found.noise})
+                 "refine": refine, "refined": found.refined, "tilt_deg": found.tilt_deg, "noise": found.noise})
 
 
 def turn_step(turns: int, dims) -> Step:
@@ -225,7 +227,7 @@ def read_sidecar(path) -> dict:
     """The sidecar ``<name>.json`` that write_prepared wrote, checked: a JSON object whose
     ``class`` (when present) is a string, ``dims`` three positive finite metres and
     ``steps`` a list of objects. InputError naming the file and the field otherwise."""
-    path = regular_file(path)
+    path = regular_file(path, TEXT_LIMIT)
     try:
         record = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError, RecursionError) as error:  # ValueError: bad JSON, UTF-8 or a huge integer
@@ -274,8 +276,9 @@ def _step_problem(step) -> str:
     named_by = {"heading": "by", "size": "mode"}.get(step["step"])
     if named_by and not isinstance(step.get(named_by), str):
         return f"{named_by} must be a string, got {step.get(named_by)!r}"
-    if step["step"] == "align" and not isinstance(step.get("refined", False), bool):
-        return f"refined must be true or false, got {step['refined']!r}"
+    for flag in ("refine", "refined") if step["step"] == "align" else ():
+        if not isinstance(step.get(flag, False), bool):
+            return f"{flag} must be true or false, got {step[flag]!r}"
     if step.get("refined") and not all(finite_number(step.get(key)) for key in ("tilt_deg", "noise")):
         return "a refined alignment needs finite tilt_deg and noise"
     return ""

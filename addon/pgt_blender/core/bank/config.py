@@ -12,7 +12,7 @@ import numpy as np
 
 from ..classes import DATASETS
 from ..errors import InputError, finite_number
-from ..files import read_toml, regular_file
+from ..files import TEXT_LIMIT, read_toml, regular_file
 from ..scan.raycast import ENGINES
 from ..scan.sensors import INTENSITY_MAX
 
@@ -142,15 +142,17 @@ _SECTIONS = {"bank", "grid", "jitter", "scan", "ground", "classes"}
 def load_config(path) -> BankConfig:
     """The BankConfig of a TOML file; relative sensor and checkpoint paths are taken
     relative to the file. A bad file, section, key or value raises InputError."""
-    path = regular_file(path)
+    path = regular_file(path, TEXT_LIMIT)
     return config_from_table(read_toml(path), path)
 
 
 def config_from_table(table: dict, path="bank config") -> BankConfig:
     values = {}
     for section, entries in table.items():
-        if section not in _SECTIONS:
-            raise InputError(path, f"unknown section [{section}] (known: {', '.join(sorted(_SECTIONS))})")
+        if section not in _SECTIONS:  # a top-level key (a sensor file's "base") is no section
+            found = f"section [{section}]" if isinstance(entries, dict) else f"top-level key {section!r}"
+            raise InputError(path, f"unknown {found}: a bank config has only the sections "
+                                   f"{', '.join(f'[{name}]' for name in sorted(_SECTIONS))}")
         if not isinstance(entries, dict):
             raise InputError(path, f"{section} must be a [{section}] table")
         if section == "classes":

@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import InputError
 from ..files import atomic_output
 from ..scan.targets import resolve_engine
-from ..scan.sensors import INTENSITY_MAX, sensor_from_name
+from ..scan.sensors import INTENSITY_MAX, sensor_files, sensor_from_name
 from ..scan.sweeps import motion_class
 from . import executors
 from .config import BankConfig
@@ -31,7 +31,7 @@ from .formats import DATABASE_CLASSES, DATABASE_FOLDER, class_name_for, database
 from .grid import object_entries, sweeps_of
 from .inputs import BankObject, safe_name
 from .folder import (INTENSITY_BINS, MANIFEST, STATS_DTYPE, chunk_record_path, done_chunk, drop_cached,
-                     pending_chunks, prepare_folder, read_identity, write_entry_file, write_file)
+                     exporting, pending_chunks, prepare_folder, read_identity, write_entry_file, write_file)
 from .records import write_record
 
 @dataclass
@@ -119,7 +119,7 @@ def plan_bank(objects: list, config: BankConfig, out, resume: bool = False, over
         raise InputError(out, "the grid leaves no pose: every position is beyond max_distance or within "
                               "ego_clearance of the sensor; widen [grid] or relax those")
     chunks = job.chunks(entries)
-    config_files = [config.sensor if config.sensor.endswith(".toml") else None, config.intensity_checkpoint]
+    config_files = [*sensor_files(config.sensor), config.intensity_checkpoint]
     prepare_folder(job.out, identity(job, len(chunks)), resume, overwrite, shared=shard is not None,
                    inputs=[*inputs, *config_files])
     return Plan(job, chunks, pending_chunks(job.out, len(chunks), shard or (0, 1)))
@@ -137,10 +137,11 @@ def export_bank(objects: list, config: BankConfig, out, workers: int = 1, overwr
     """The whole export in one call (no progress bar): returns the manifest. ``data_root``
     and a bank that keeps no entry: see ``assemble``."""
     existed = Path(out).exists()
-    plan = plan_bank(objects, config, out, overwrite=overwrite)
-    for _ in run_plan(plan, workers):
-        pass
-    return assemble(plan.job.out, data_root, existed)
+    with exporting(Path(out)):
+        plan = plan_bank(objects, config, out, overwrite=overwrite)
+        for _ in run_plan(plan, workers):
+            pass
+        return assemble(plan.job.out, data_root, existed)
 
 
 CHUNK_STAGES = ("targets", "scans", "casts", "intensity", "records", "writes")

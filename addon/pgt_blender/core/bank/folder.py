@@ -10,7 +10,8 @@ A chunk is done exactly when its record exists (its entry files are written firs
 the record, atomically; a chunk cut short is redone whole): a folder is made ready once
 (``prepare_folder``), its pending chunks are those without a whole record, shards'
 records are copied in, and every reader of ``.work`` goes through here with one error
-policy (InputError naming the file).
+policy (InputError naming the file). An export holds its folder (``exporting``) so that
+a second one into the same folder is refused rather than mixed in.
 """
 
 import hashlib
@@ -18,12 +19,13 @@ import json
 import os
 import shutil
 import socket
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
-from ..files import atomic_output, held_input, output_path
+from ..files import atomic_output, folders_made, held_input, output_path
 from .records import read_record
 
 WORK = ".work"
@@ -31,6 +33,45 @@ MANIFEST = "manifest.json"
 INTENSITY_BINS = 32  # the report's per-class intensity histograms, over the dataset's range
 STATS_DTYPE = np.dtype([("object", "i4"), ("index", "i4"), ("x", "f4"), ("y", "f4"), ("heading", "f4"),
                         ("points", "i4"), ("kept", "?")])
+
+
+@contextmanager
+def exporting(out: Path, shared: bool = False):
+    """Hold the bank folder ``out`` for the block (an export, a resume, an overwrite or an
+    assembly): made if missing (and removed again, with the parents it needed, when the
+    block fails and leaves it empty), and locked with an advisory ``flock`` on the folder
+    itself, so that another process's export into it is refused with InputError instead
+    of mixing its chunks in. Shards of one array job (``shared``) hold it together, but
+    not beside anything else. Where the file system has no such lock (Windows, some
+    network shares) the block runs unlocked."""
+    output_path(out, folder=True)
+    with folders_made(out):
+        descriptor = _lock(out, shared)
+        try:
+            yield
+        finally:
+            if descriptor is not None:
+                os.close(descriptor)
+
+
+def _lock(out: Path, shared: bool) -> int | None:
+    """An open descriptor of the folder ``out`` holding its flock (closing it releases
+    the lock), or None where locks are not to be had."""
+    try:
+        import fcntl
+    except ImportError:  # Windows
+        return None
+    descriptor = os.open(out, os.O_RDONLY)
+    try:
+        fcntl.flock(descriptor, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(descriptor)
+        raise InputError(out, "another export is using this folder right now (exporting, resuming or assembling "
+                              "a bank there); wait for it to end or choose another output folder") from None
+    except OSError:  # no locks on this file system: unlocked, as on Windows
+        os.close(descriptor)
+        return None
+    return descriptor
 
 
 def prepare_folder(out: Path, ident: dict, resume: bool, overwrite: bool, shared: bool = False,

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..boxes import centred_bounds
 from ..errors import InputError
+from ..files import listed, no_dead_link
 from ..reconstruction import Reconstruction
 from ..scan.targets import require_scannable
 
@@ -74,9 +75,9 @@ def prepared_objects(folder) -> tuple[list, list]:
     if not folder.is_dir():
         raise InputError(folder, "not a folder of prepared objects")
     objects, incomplete = [], []
-    for path in sorted(folder.glob("*.ply")):
+    for path in listed(folder, "*.ply"):
         sidecar = path.with_suffix(".json")
-        if not sidecar.is_file():
+        if not no_dead_link(sidecar).is_file():
             incomplete.append((path, "no sidecar JSON (prepare it with prepare_objects.py)"))
             continue
         record = read_sidecar(sidecar)

@@ -29,6 +29,7 @@ from ..files import atomic_output, read_float32_rows
 from ..scan.sensors import BIN_COLUMNS, INTENSITY_MAX
 from .config import DATASET_GRIDS, grid_values
 from .folder import INTENSITY_BINS, WORK, chunk_record, chunk_record_path, read_identity
+from .formats import DATABASE_CLASSES
 from ..gt_database import load_infos
 
 DISTANCE_RING = 10.0  # m: width of the distance bins
@@ -186,6 +187,11 @@ def real_statistics(info_pickle, root=None, *, dataset: str, grid=None) -> dict:
     if dataset not in BIN_COLUMNS:
         raise ValueError(f"unknown dataset {dataset!r} (known: {', '.join(BIN_COLUMNS)})")
     infos = load_infos(info_pickle)
+    held = sorted(name for name, entries in infos.items() if entries)
+    if held and not set(held) & set(DATABASE_CLASSES[dataset]):  # its .bin rows would not be the dataset's either
+        raise InputError(info_pickle, f"holds no {dataset} class (it has {', '.join(map(str, held[:4]))}"
+                                      f"{', ...' if len(held) > 4 else ''}): the database of another dataset? The "
+                                      f"bank is {dataset}; choose a {dataset} database")
     edges = coverage_edges(*(grid or DATASET_GRIDS[dataset]))
     classes = {}
     for name, entries in infos.items():

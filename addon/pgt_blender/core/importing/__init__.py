@@ -16,7 +16,7 @@
 from pathlib import Path
 
 from ..errors import InputError
-from ..files import regular_file
+from ..files import no_dead_link, regular_file
 from ..reconstruction import Reconstruction
 from .cameras import load_cameras
 from .colmap import load_colmap
@@ -121,7 +121,7 @@ def find_reconstructions(directory) -> list:
     for entry in sorted(directory.iterdir()):
         if entry.name.startswith("."):
             continue
-        if entry.is_file() and entry.suffix.lower() in {".ply", ".npz", *MESH_SUFFIXES}:
+        if entry.suffix.lower() in {".ply", ".npz", *MESH_SUFFIXES} and no_dead_link(entry).is_file():
             found.append(entry)
         elif entry.is_dir() and run_ply(entry):
             found.append(entry)

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..files import atomic_output, regular_file
+from ..files import TEXT_LIMIT, atomic_output, regular_file
 from ..reconstruction import CameraView
 from .source import MAX_IMAGE_SIDE, checked_camera
 
@@ -34,7 +34,7 @@ def read_cameras_json(path) -> list:
     """The CameraViews of a 3DGS ``cameras.json``; InputError naming the file and the
     entry for anything that is not a valid camera (missing key, non-finite or
     non-positive size or focal length, a rotation that is not a rotation)."""
-    path = regular_file(path)
+    path = regular_file(path, TEXT_LIMIT)
     try:
         entries = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError, RecursionError) as error:  # ValueError: bad JSON, UTF-8 or a huge integer

@@ -16,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..errors import InputError
-from ..files import regular_file
+from ..files import TEXT_LIMIT, regular_file
 
 DATAPARSER_TRANSFORMS = "dataparser_transforms.json"
 
@@ -24,7 +24,7 @@ DATAPARSER_TRANSFORMS = "dataparser_transforms.json"
 def read_dataparser_transform(path) -> tuple:
     """(R (3, 3), t (3,), s) of a ``dataparser_transforms.json``; InputError naming the
     file unless R is a rotation and s a positive finite number."""
-    path = regular_file(path)
+    path = regular_file(path, TEXT_LIMIT)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
         transform = np.array(data["transform"], np.float64).reshape(3, 4)

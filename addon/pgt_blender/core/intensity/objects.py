@@ -18,7 +18,7 @@ import numpy as np
 
 from ..boxes import box_frame, kitti_camera_to_lidar
 from ..errors import InputError
-from ..files import read_float32_rows, regular_file
+from ..files import TEXT_LIMIT, listed, no_dead_link, read_float32_rows, regular_file
 from ..scan.sensors import INTENSITY_MAX
 from ..scan.targets import MAX_COORDINATE
 
@@ -89,7 +89,7 @@ def gt_database_objects(path, convention: str, dataset: str, min_points: int = 1
 def _text_lines(path: Path) -> list:
     """The lines of a text file a user names; InputError when it is not readable text."""
     try:
-        return regular_file(path).read_text(encoding="utf-8").splitlines()
+        return regular_file(path, TEXT_LIMIT).read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as error:
         raise InputError(path, f"not a readable text file ({type(error).__name__}: {error})") from None
 
@@ -139,13 +139,14 @@ def kitti_frames(folder):
     ``velodyne/*.bin`` in a KITTI ``folder`` with ``label_2`` and ``calib`` files of the
     same name; InputError naming what is missing or damaged."""
     folder = Path(folder)
-    scans = sorted((folder / "velodyne").glob("*.bin"))
+    scans = listed(folder / "velodyne", "*.bin") if (folder / "velodyne").is_dir() else []
     if not scans:
         raise InputError(folder, "no velodyne/*.bin scans (expected a KITTI folder with velodyne, label_2, calib)")
     for scan in scans:
         label, calib = folder / "label_2" / f"{scan.stem}.txt", folder / "calib" / f"{scan.stem}.txt"
-        if not label.is_file() or not calib.is_file():
-            raise InputError(scan, f"has no {label.name} in label_2 or calib")
+        for needed in (label, calib):
+            if not no_dead_link(needed).is_file():
+                raise InputError(scan, f"has no {needed.name} in {needed.parent.name}")
         rows = read_float32_rows(scan, 4, "values (x, y, z, intensity)")
         yield scan, rows.astype(np.float64), kitti_label_boxes(label, calib)
 
@@ -265,9 +266,9 @@ def prepared_rgb_objects(folder, sensor, poses=RGB_POSES) -> list:
 
     folder = Path(folder)
     objects = []
-    for sidecar in sorted(folder.glob("*.json")):
+    for sidecar in listed(folder, "*.json"):
         model = sidecar.with_suffix(".ply")
-        if not model.is_file():
+        if not no_dead_link(model).is_file():
             continue
         class_name = read_sidecar(sidecar).get("class")
         if not class_name:

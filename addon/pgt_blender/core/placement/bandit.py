@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..files import atomic_output, regular_file
+from ..files import TEXT_LIMIT, atomic_output, regular_file
 
 STATE_FORMAT = "pgt-thompson-cells/1"
 MAX_CELLS = 10**7  # range rings x azimuth sectors: a state file of a few hundred MB at most
@@ -123,7 +123,7 @@ class ThompsonCells:
     @classmethod
     def load(cls, path) -> "ThompsonCells":
         """The state ``save`` wrote; InputError naming ``path`` when it is not one."""
-        path = regular_file(path)
+        path = regular_file(path, TEXT_LIMIT)
         try:
             return cls.from_state_dict(json.loads(path.read_text()))
         except OSError as error:

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from ..files import regular_file
+from ..files import TEXT_LIMIT, regular_file
 
 RADIUS = 51.2  # m: the paper's map extent around the ego
 RESOLUTION = 0.128  # m per pixel: the paper's
@@ -141,7 +141,7 @@ def _mapping(value) -> dict:
 def read_polygons(path) -> list:
     """[(layer, [ring (K, 2) float64, ...]), ...] of a GeoJSON FeatureCollection or a JSON
     list of {"layer", "polygon"} (the module docstring); InputError naming ``path``."""
-    path = regular_file(path)
+    path = regular_file(path, TEXT_LIMIT)
     try:
         data = json.loads(path.read_text())
     except OSError as error:

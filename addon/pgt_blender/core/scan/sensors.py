@@ -32,7 +32,7 @@ import numpy as np
 
 from ..classes import DATASETS
 from ..errors import InputError
-from ..files import read_toml, regular_file
+from ..files import TEXT_LIMIT, read_toml, regular_file
 
 # Point formats of the datasets: intensity scale and .bin columns (REFERENCE.md 1-2).
 INTENSITY_MAX = {"nuscenes": 255.0, "kitti": 1.0, "lyft": 255.0}
@@ -369,7 +369,7 @@ def read_velodyne_calibration(path) -> dict:
     the file for anything else."""
     import yaml
 
-    path = regular_file(path)
+    path = regular_file(path, TEXT_LIMIT)
     try:
         table = yaml.safe_load(path.read_text())
         lasers = table["lasers"]
@@ -402,7 +402,7 @@ def load_sensor_toml(path) -> Sensor:
         base = "nuscenes"
         calibration = "32db.yaml"
     """
-    path = regular_file(path)
+    path = regular_file(path, TEXT_LIMIT)
     table = read_toml(path)
     unknown = sorted(set(table) - _TOML_KEYS - {"base", "calibration"})
     if unknown:
@@ -430,6 +430,16 @@ def load_sensor_toml(path) -> Sensor:
         return replace(PRESETS[base], **table)
     except (TypeError, ValueError) as error:
         raise InputError(path, str(error)) from None
+
+
+def sensor_files(name: str) -> list:
+    """The files the sensor ``name`` (as sensor_from_name takes it) is read from: none
+    for a preset; a TOML, and the calibration YAML it names."""
+    if not name.endswith(".toml"):
+        return []
+    path = regular_file(name, TEXT_LIMIT)
+    calibration = read_toml(path).get("calibration")
+    return [path, *([path.parent / calibration] if isinstance(calibration, str) else [])]
 
 
 def sensor_from_name(name: str) -> Sensor:
