@@ -264,6 +264,16 @@ def oversized_label(folder, inputs):
     return ["fit_ground.py", kitti], label, "too large for what is read from it (268,435,457 bytes, more than 256 MB)"
 
 
+def pipe_material(folder, inputs):
+    """A class mesh whose .mtl library is a named pipe, which a read would wait on forever."""
+    meshes = folder / "meshes"
+    meshes.mkdir()
+    (meshes / "car.obj").write_text("mtllib car.mtl\nv 0 0 0\nv 4 0 0\nv 0 2 0\nf 1 2 3\n")
+    os.mkfifo(meshes / "car.mtl")
+    return (["fit_returns.py", inputs["kitti"], "--meshes", meshes], meshes / "car.mtl",
+            "not a regular file (a pipe, socket or device)")
+
+
 def shuffled_velodyne(folder, inputs):
     """A KITTI scan whose rows are shuffled: no longer stored laser by laser, as the ring fit needs."""
     kitti = Path(shutil.copytree(inputs["kitti"], folder / "kitti"))
@@ -429,6 +439,11 @@ CASES = {
     "fit_returns on a scan not stored laser by laser": shuffled_velodyne,
     "a KITTI label that is a looping link": looping_label,
     "a KITTI label of 256 MB": oversized_label,
+    "a class mesh whose material library is a pipe": pipe_material,
+    "a sensor whose calibration is a link to nothing": scan(
+        lambda folder, inputs: (folder / "gone.yaml").symlink_to("nothing.yaml")
+        or sensor_file('calibration = "gone.yaml"')(folder, inputs), "a link that leads nowhere",
+        in_folder("gone.yaml")),
     "a bank config of 256 MB": lambda folder, inputs: (
         ["export_bank.py", "--objects", inputs["prepared"], "--config", oversized(folder / "bank.toml"), "--out",
          folder / "bank"], folder / "bank.toml", "too large for what is read from it"),

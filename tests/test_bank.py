@@ -502,6 +502,22 @@ def test_a_folder_another_export_holds_is_refused_and_left_alone(reference, prep
     assert bank_bytes(busy) == bank_bytes(out)
 
 
+def test_a_process_forked_while_a_folder_is_held_does_not_keep_it(tmp_path):
+    """A pool worker forked during an export and left running (its export killed) must
+    not hold the folder: the next export can take it."""
+    import multiprocessing
+
+    with folder.exporting(tmp_path / "bank"):
+        worker = multiprocessing.get_context("fork").Process(target=time.sleep, args=(60,))
+        worker.start()
+    try:
+        with folder.exporting(tmp_path / "bank"):
+            assert worker.is_alive()
+    finally:
+        worker.kill()
+        worker.join()
+
+
 def test_a_bank_outside_the_data_root_gets_paths_that_lead_out_of_it(reference, tmp_path):
     """--assemble --data-root ROOT with the bank kept elsewhere: the info paths start
     with ../ and the frameworks' joins (os.path.join(root, path)) reach the files."""

@@ -103,16 +103,17 @@ def export_bank(args) -> int:
     if args.executor == "ray":
         check_ray_address(args.address)
     if args.assemble:
-        reference = real_reference(args, folder.read_identity(args.out)["config"])
         with folder.exporting(args.out):
+            reference = real_reference(args, folder.read_identity(args.out)["config"])
             for shard in args.shard_dirs:
                 folder.copy_shard(shard, args.out)
             return finish(args, export.assemble(args.out, args.data_root), reference, 0.0)
     config = load_config(args.config) if args.config else BankConfig()
-    reference = real_reference(args, config.to_dict())
-    objects, source = gather(args)
     existed = args.out.exists()
+    # held before the slow reads (the real database, the objects): a busy folder is said at once
     with folder.exporting(args.out, shared=args.shard is not None):
+        reference = real_reference(args, config.to_dict())
+        objects, source = gather(args)
         plan = export.plan_bank(objects, config, args.out, args.resume, args.overwrite, args.shard,
                                 inputs=_inputs(args))
         print(f"{len(plan.job.objects)} object(s) from {source}: {sum(map(len, plan.chunks)):,} poses in "

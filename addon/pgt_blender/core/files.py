@@ -52,15 +52,25 @@ def folders_made(folder):
     """Make ``folder`` and its missing parents; when the block fails, remove those it
     made that are empty again (a failed step leaves no empty output folder)."""
     folder = Path(folder)
-    made = [path for path in (folder, *folder.parents) if not path.exists()]
+    made = missing_folders(folder)
     folder.mkdir(parents=True, exist_ok=True)
     try:
         yield folder
     except BaseException:
-        for path in made:
-            if path.is_dir() and not any(path.iterdir()):
-                path.rmdir()
+        remove_empty(made)
         raise
+
+
+def missing_folders(folder: Path) -> list:
+    """``folder`` and its parents that do not exist yet, innermost first."""
+    return [path for path in (folder, *folder.parents) if not path.exists()]
+
+
+def remove_empty(folders: list) -> None:
+    """Remove those of ``folders`` (innermost first) that are empty folders."""
+    for path in folders:
+        if path.is_dir() and not any(path.iterdir()):
+            path.rmdir()
 
 
 def output_path(path, folder: bool = False, suffixes: tuple = ()) -> Path:
@@ -203,6 +213,7 @@ def regular_file(path, limit: int | None = None) -> Path:
     try:
         status = path.stat()
     except OSError as error:
+        no_dead_link(path)  # a dead link in its own words, not "No such file"
         raise InputError(path, f"cannot read the file ({error.strerror or error})") from None
     except ValueError:  # a NUL byte in the path
         raise InputError(path, "not a usable file name (it holds a NUL byte)") from None

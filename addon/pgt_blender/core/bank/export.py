@@ -112,7 +112,8 @@ def plan_bank(objects: list, config: BankConfig, out, resume: bool = False, over
     """Check the inputs, ready the output folder (see ``prepare_folder``; ``inputs``: the
     files the caller read, which an overwrite must not delete, beside the config's own
     sensor and checkpoint) and list the chunks to do; ``shard`` (i, n) keeps chunk ids =
-    i mod n."""
+    i mod n. A caller that exports for a user holds ``out`` first (folder.exporting,
+    shared for a shard), as ``export_bank`` does, so that no other export mixes in."""
     job = new_job(objects, config, out)
     entries = job.entries()
     if not len(entries):

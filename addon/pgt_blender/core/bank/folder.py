@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..files import atomic_output, folders_made, held_input, output_path
+from ..files import TEXT_LIMIT, atomic_output, held_input, missing_folders, output_path, regular_file, remove_empty
 from .records import read_record
 
 WORK = ".work"
@@ -42,21 +42,43 @@ def exporting(out: Path, shared: bool = False):
     block fails and leaves it empty), and locked with an advisory ``flock`` on the folder
     itself, so that another process's export into it is refused with InputError instead
     of mixing its chunks in. Shards of one array job (``shared``) hold it together, but
-    not beside anything else. Where the file system has no such lock (Windows, some
-    network shares) the block runs unlocked."""
+    not beside anything else. A refused export removes nothing (the folder is the other
+    one's); a failed one removes what it made while it still holds the folder. Where the
+    file system has no such lock (Windows, some network shares) the block runs unlocked."""
     output_path(out, folder=True)
-    with folders_made(out):
-        descriptor = _lock(out, shared)
-        try:
-            yield
-        finally:
-            if descriptor is not None:
-                os.close(descriptor)
+    made = missing_folders(out)
+    descriptor = _lock(out, shared)
+    try:
+        yield
+    except BaseException:
+        remove_empty(made)
+        raise
+    finally:
+        if descriptor is not None:
+            _HELD.discard(descriptor)
+            os.close(descriptor)
+
+
+# Descriptors holding a folder's lock in this process. A process forked meanwhile (a
+# pool worker) closes its copies: a flock lasts while any copy is open, and a worker
+# left running after its export was killed would hold the folder for good.
+_HELD = set()
+
+
+def _close_held_copies() -> None:
+    for descriptor in _HELD:
+        os.close(descriptor)
+    _HELD.clear()
+
+
+if hasattr(os, "register_at_fork"):  # not on Windows, which has no flock either
+    os.register_at_fork(after_in_child=_close_held_copies)
 
 
 def _lock(out: Path, shared: bool) -> int | None:
-    """An open descriptor of the folder ``out`` holding its flock (closing it releases
-    the lock), or None where locks are not to be had."""
+    """Make the folder ``out`` and return an open descriptor of it holding its flock
+    (closing it releases the lock), or None where locks are not to be had."""
+    out.mkdir(parents=True, exist_ok=True)
     try:
         import fcntl
     except ImportError:  # Windows
@@ -64,13 +86,18 @@ def _lock(out: Path, shared: bool) -> int | None:
     descriptor = os.open(out, os.O_RDONLY)
     try:
         fcntl.flock(descriptor, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
-    except BlockingIOError:
-        os.close(descriptor)
-        raise InputError(out, "another export is using this folder right now (exporting, resuming or assembling "
-                              "a bank there); wait for it to end or choose another output folder") from None
+        # the folder removed (a failed export's cleanup) and made again since it was opened: not the one locked
+        held = os.path.samestat(os.fstat(descriptor), os.stat(out))
+    except (BlockingIOError, FileNotFoundError):  # held by another, or removed since it was opened
+        held = False
     except OSError:  # no locks on this file system: unlocked, as on Windows
         os.close(descriptor)
         return None
+    if not held:
+        os.close(descriptor)
+        raise InputError(out, "another export is using this folder right now (exporting, resuming or assembling "
+                              "a bank there); wait for it to end or choose another output folder")
+    _HELD.add(descriptor)
     return descriptor
 
 
@@ -169,6 +196,7 @@ def read_manifest(out: Path) -> dict:
     if not path.is_file():
         raise InputError(out, f"is not a finished bank: no {MANIFEST} (an export still running or stopped is "
                               "finished by resuming it)")
+    regular_file(path, TEXT_LIMIT)
     try:
         manifest = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:

@@ -180,7 +180,9 @@ def real_statistics(info_pickle, root=None, *, dataset: str, grid=None) -> dict:
     the dataset's columns (KITTI 4, nuScenes/Lyft 5), intensity the fourth. Distances
     and coverage from box3d_lidar x, y; coverage cells from ``grid`` = (x range, y
     range) as [start, stop, step] m (default: the dataset's grid). "dropped" is None
-    and "config" None. InputError names an unreadable pickle or .bin file.
+    and "config" None. InputError names an unreadable pickle or .bin file, or a pickle
+    none of whose classes is one of ``dataset``'s (another dataset's database; nuScenes
+    and Lyft share most names, so those two are not told apart).
     """
     info_pickle = Path(info_pickle)
     root = Path(root) if root is not None else info_pickle.parent
@@ -189,7 +191,7 @@ def real_statistics(info_pickle, root=None, *, dataset: str, grid=None) -> dict:
     infos = load_infos(info_pickle)
     held = sorted(name for name, entries in infos.items() if entries)
     if held and not set(held) & set(DATABASE_CLASSES[dataset]):  # its .bin rows would not be the dataset's either
-        raise InputError(info_pickle, f"holds no {dataset} class (it has {', '.join(map(str, held[:4]))}"
+        raise InputError(info_pickle, f"holds no {dataset} class (it has {', '.join(held[:4])}"
                                       f"{', ...' if len(held) > 4 else ''}): the database of another dataset? The "
                                       f"bank is {dataset}; choose a {dataset} database")
     edges = coverage_edges(*(grid or DATASET_GRIDS[dataset]))

@@ -1,5 +1,6 @@
 """Mesh files (OBJ, PLY with faces, GLB/GLTF, STL) -> Reconstruction, through trimesh."""
 
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -7,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..files import TEXT_LIMIT, listed, regular_file
 from ..reconstruction import Reconstruction
 from .ply import read_header
 from .source import checked_positions, sha256_of_files
@@ -43,7 +45,7 @@ def _trimesh_load(path: Path, force: str):
     import trimesh
 
     if path.suffix.lower() == ".obj":
-        _require_one_based_faces(path)
+        _require_readable_obj(path)
     try:
         return trimesh.load(str(path), force=force, process=False)
     except Exception as error:  # trimesh raises many types for corrupt files
@@ -52,11 +54,14 @@ def _trimesh_load(path: Path, force: str):
 
 # a face line's index (vertex, texture or normal) that is zero: OBJ counts from 1 (or back from -1)
 _ZERO_INDEX = re.compile(rb"^[ \t]*f[ \t][^\n#]*?(?<=[ \t/])[+-]?0+(?=[ \t/\r\n#]|$)", re.M)
+_MATERIAL_LIBRARY = re.compile(rb"^[ \t]*mtllib[ \t]+([^\r\n#]+?)[ \t]*(?:#[^\r\n]*)?\r?$", re.M)
 
 
-def _require_one_based_faces(path: Path) -> None:
+def _require_readable_obj(path: Path) -> None:
     """InputError naming the OBJ ``path`` and the line of a face with an index 0, which
-    trimesh reads as the last vertex (a silently wrong triangle); about 15 ms per MB."""
+    trimesh reads as the last vertex (a silently wrong triangle; about 15 ms per MB), or
+    a material library it names that trimesh would wait on or read whole (a pipe, a
+    huge file: files.regular_file). A library that is not there trimesh goes without."""
     try:
         data = path.read_bytes()
     except OSError as error:
@@ -65,6 +70,11 @@ def _require_one_based_faces(path: Path) -> None:
     if zero:
         line = data.count(b"\n", 0, zero.start()) + 1
         raise InputError(path, f"line {line}: a face index is 0; OBJ indices count from 1 (or back from -1)")
+    for names in _MATERIAL_LIBRARY.findall(data):  # one name with spaces, or several
+        for name in dict.fromkeys([names, *names.split()]):
+            library = path.parent / os.fsdecode(name)
+            if os.path.lexists(library):
+                regular_file(library, TEXT_LIMIT)
 
 
 def _require_declared_counts(path: Path, vertices: int, triangles: int) -> None:
@@ -127,9 +137,9 @@ def read_material_mesh(path) -> MaterialMesh:
 def _mtl_dissolves(path: Path) -> dict:
     """Material name -> dissolve ``d`` of the .mtl libraries beside an OBJ."""
     alphas = {}
-    for library in path.parent.glob("*.mtl"):
+    for library in listed(path.parent, "*.mtl"):
         name = None
-        for line in library.read_text(errors="replace").splitlines():
+        for line in regular_file(library, TEXT_LIMIT).read_text(errors="replace").splitlines():
             words = line.split()
             if words[:1] == ["newmtl"] and len(words) > 1:
                 name = words[1]

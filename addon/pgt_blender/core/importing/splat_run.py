@@ -17,6 +17,8 @@ absolute, or RUN/sparse/0).
 import re
 from pathlib import Path
 
+from ..errors import InputError
+from ..files import TEXT_LIMIT, regular_file
 from .cameras import load_cameras, read_cameras_json
 from .colmap import MODEL_FILES
 
@@ -53,9 +55,10 @@ def run_cameras(run) -> list:
 
 def _colmap_candidates(run: Path) -> list:
     candidates = [run / "sparse" / "0"]
-    try:
-        match = _SOURCE_PATH.search((run / "cfg_args").read_text(encoding="utf-8", errors="replace"))
-    except OSError:
+    try:  # optional: one that cannot be read (none, a pipe, a huge file) names no source
+        match = _SOURCE_PATH.search(regular_file(run / "cfg_args", TEXT_LIMIT).read_text(encoding="utf-8",
+                                                                                          errors="replace"))
+    except (OSError, InputError):
         match = None
     if match and Path(match.group(2)).is_absolute():  # a relative one was relative to a working folder unknown here
         candidates.insert(0, Path(match.group(2)) / "sparse" / "0")

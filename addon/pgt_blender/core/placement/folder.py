@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, finite_number
-from ..files import atomic_output, output_path, read_float32_rows
+from ..files import TEXT_LIMIT, atomic_output, output_path, read_float32_rows, regular_file
 from ..scan.sensors import BIN_COLUMNS
 
 FRAME = "the scan's LiDAR frame: metres, z up, the sensor at the origin (KITTI x forward y left, nuScenes x right " \
@@ -85,6 +85,8 @@ def read_placement(folder) -> tuple:
     ``boxes_record`` writes (record_problem)."""
     folder = Path(folder)
     path = folder / BOXES
+    if path.exists():  # a pipe would never end, a huge file fill the memory; a missing one is named below
+        regular_file(path, TEXT_LIMIT)
     try:
         record = json.loads(path.read_text())
     except OSError as error:

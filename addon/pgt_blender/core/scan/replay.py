@@ -15,6 +15,7 @@ import numpy as np
 
 from ..boxes import inside_box
 from ..errors import InputError
+from ..files import listed
 from ..samples import sample_vehicle
 from . import sensor_fit
 from .physical_intensity import fit_intensity_law
@@ -52,8 +53,8 @@ def class_meshes(choice: str) -> dict:
     if all((Path(choice) / path).is_file() for path in CHRONO_MESHES.values()):
         paths = {kind: Path(choice) / path for kind, path in CHRONO_MESHES.items()}
     else:
-        paths = {path.stem.lower(): path for path in sorted(Path(choice).glob("*"))
-                 if path.suffix.lower() in (".obj", ".ply")}
+        paths = {path.stem.lower(): path for pattern in ("*.[oO][bB][jJ]", "*.[pP][lL][yY]")
+                 for path in listed(choice, pattern)}
         if not paths:
             raise InputError(choice, "holds no <class>.obj or <class>.ply mesh")
     return {kind: (mesh.vertices, mesh.faces, path.name, mesh.see_through)
