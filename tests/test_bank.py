@@ -507,9 +507,17 @@ def test_a_process_forked_while_a_folder_is_held_does_not_keep_it(tmp_path):
     not hold the folder: the next export can take it."""
     import multiprocessing
 
+    forking = multiprocessing.get_context("fork")
+    running = forking.Event()
+
+    def work():  # runs after the fork's own steps, among them closing the copies
+        running.set()
+        time.sleep(60)
+
     with folder.exporting(tmp_path / "bank"):
-        worker = multiprocessing.get_context("fork").Process(target=time.sleep, args=(60,))
+        worker = forking.Process(target=work)
         worker.start()
+        assert running.wait(30)
     try:
         with folder.exporting(tmp_path / "bank"):
             assert worker.is_alive()
