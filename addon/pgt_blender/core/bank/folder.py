@@ -196,12 +196,8 @@ def read_manifest(out: Path) -> dict:
     if not path.is_file():
         raise InputError(out, f"is not a finished bank: no {MANIFEST} (an export still running or stopped is "
                               "finished by resuming it)")
-    regular_file(path, TEXT_LIMIT)
-    try:
-        manifest = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
-        raise InputError(path, f"damaged ({type(error).__name__}: {error})") from None
-    if not (isinstance(manifest, dict) and {"config", "info_pickles", "entries"} <= manifest.keys()):
+    manifest = _manifest_json(path)
+    if not {"config", "info_pickles", "entries"} <= manifest.keys():
         raise InputError(path, "not a bank manifest (config, info_pickles, entries)")
     formats = config_from_dict(manifest["config"], path).formats
     pickles = manifest["info_pickles"]
@@ -286,10 +282,7 @@ def info_path_root(info_pickle: Path) -> Path:
     manifest = Path(info_pickle).parent.parent / MANIFEST
     if not manifest.is_file():
         return Path(info_pickle).parent
-    try:
-        data_root = json.loads(manifest.read_text()).get("data_root")
-    except (OSError, ValueError, AttributeError, RecursionError) as error:
-        raise InputError(manifest, f"damaged ({type(error).__name__}: {error})") from None
+    data_root = _manifest_json(manifest).get("data_root")
     if _data_root(manifest, data_root) is None:
         return Path(info_pickle).parent
     root = manifest.parent / data_root
@@ -297,6 +290,19 @@ def info_path_root(info_pickle: Path) -> Path:
         raise InputError(manifest, f"data_root '{data_root}' is no folder from here ({root}): move the bank back "
                                    f"or re-target it with export_bank.py --assemble --data-root")
     return root
+
+
+def _manifest_json(path: Path) -> dict:
+    """The JSON object of the bank manifest ``path`` (an existing file); InputError
+    naming it when it is no regular file within TEXT_LIMIT, damaged, or no object."""
+    regular_file(path, TEXT_LIMIT)
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError) as error:  # ValueError: bad JSON or UTF-8, a huge integer
+        raise InputError(path, f"damaged ({type(error).__name__}: {error})") from None
+    if not isinstance(manifest, dict):
+        raise InputError(path, "not a bank manifest (config, info_pickles, entries)")
+    return manifest
 
 
 def _data_root(manifest: Path, value):
