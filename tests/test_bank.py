@@ -478,8 +478,37 @@ def test_shards_assemble_to_the_same_bank(reference, prepared, tmp_path):
     assert not (tmp_path / "shard0" / "manifest.json").exists()
     failed = run_export("--assemble", "--out", tmp_path / "shard0", check=False)
     assert failed.returncode == 1 and "not exported yet" in failed.stderr
+    chunks = sorted((tmp_path / "shard0" / folder.WORK / "chunks").iterdir())
+    with folder.exporting(tmp_path / "shard1", shared=True):  # that shard still exporting: said, nothing copied
+        failed = run_export("--assemble", "--out", tmp_path / "shard0", "--from", tmp_path / "shard1",
+                            tmp_path / "shard2", check=False)
+    assert failed.returncode == 1 and last_line(failed) == f"error: {tmp_path / 'shard1'}: {folder.SHARD_BUSY}"
+    assert sorted((tmp_path / "shard0" / folder.WORK / "chunks").iterdir()) == chunks
     run_export("--assemble", "--out", tmp_path / "shard0", "--from", tmp_path / "shard1", tmp_path / "shard2")
     assert bank_bytes(tmp_path / "shard0") == bank_bytes(out)
+
+
+def test_ctrl_c_during_the_report_says_how_to_get_it(reference, prepared, tmp_path, monkeypatch, capsys):
+    """Ctrl-C after the manifest, while the report is written (the quality score can take
+    minutes): the bank is whole, and the one line says which command writes its report."""
+    from pgt_blender.cli import run_main
+    from pgt_blender.commands import export_bank
+    from pgt_blender.core.bank import report
+
+    out, config = tmp_path / "bank", reference[1]
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patched:
+        patched.setattr(report, "write_report", interrupted)
+        code = run_main(export_bank.main, ["--objects", str(prepared), "--config", str(config), "--out", str(out),
+                                           "--workers", "1"])
+    assert code == 130 and capsys.readouterr().err.splitlines()[-1] == (
+        f"error: interrupted; {out}: the bank is written but not its report; "
+        f"export_bank.py --assemble --out {out} writes it")
+    assert bank_bytes(out) == bank_bytes(reference[0]) and not (out / "report.md").exists()
+    assert run_main(export_bank.main, ["--assemble", "--out", str(out)]) == 0 and (out / "report.md").is_file()
 
 
 def test_a_folder_another_export_holds_is_refused_and_left_alone(reference, prepared, tmp_path):

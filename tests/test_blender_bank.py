@@ -158,6 +158,28 @@ def test_an_export_that_keeps_no_entry_says_nothing_is_left(scene, sources, tmp_
     assert settings.status == "failed: nothing written stays (the error says why)"
 
 
+def test_a_defect_during_the_export_leaves_the_bank_section_as_any_failure(scene, sources, tmp_path, monkeypatch):
+    """An exception that is no input or file error (a defect) still reaches Blender with
+    its traceback, but the section no longer reads "exporting" and the folder is let go."""
+    from pgt_blender.core.bank import export
+
+    author_in_blender(scene, sources)
+    settings = scene.pgt_bank
+    settings.output, settings.grid_step = str(tmp_path / "bank"), 50.0
+
+    def defect(*args, **kwargs):
+        raise ZeroDivisionError("a defect")
+
+    with monkeypatch.context() as patched:
+        patched.setattr(export, "assemble", defect)
+        with pytest.raises(RuntimeError, match="ZeroDivisionError: a defect"):
+            bpy.ops.scene.pgt_export_bank()
+    assert not settings.running
+    assert settings.status == "failed: the written chunks stay; 'Resume' continues"
+    settings.existing = "RESUME"
+    assert bpy.ops.scene.pgt_export_bank() == {"FINISHED"}
+
+
 def test_overwrite_refuses_a_bank_folder_holding_the_blend_or_the_config(scene, sources, tmp_path):
     """Overwrite empties the bank folder: a .blend saved there, or the config file it reads,
     is named and kept, not deleted under the export."""

@@ -390,6 +390,8 @@ MALFORMED = {
                                        "vertices are not 3-D coordinates"),
     "OBJ face index 0": (_file("zero.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\n# f 0 1 2 is not read\nf 1/1 2/0 3/3\n"),
                          "line 5: a face index is 0; OBJ indices count from 1"),  # trimesh: the last vertex
+    "OBJ face index past the vertices": (_file("past.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n"),
+                                        "a face refers to a vertex the file does not have"),
     "cameras.json nested 100,000 deep": (_cameras_json("[" * 100_000), "RecursionError"),
     "cameras.json width Infinity": (_cameras_json(json.dumps([{**CAMERA, "width": float("inf")}])),
                                     "camera 0: width, height, fx, fy must be numbers"),

@@ -37,8 +37,8 @@ def run_main(main, argv: list) -> int:
     """``main(argv)``'s exit code, with a bad input (InputError) or a failed read or write
     (OSError: a folder where a file should be, a full disk, no permission) printed as the
     one line ``error: <file>: <problem>`` and exit code 1 instead of a traceback; memory
-    running out, as ``error: out of memory: <what>``; Ctrl-C as ``error: interrupted`` and
-    exit code 130. A warning is one line too,
+    running out, as ``error: out of memory: <what>``; Ctrl-C as ``error: interrupted`` (then
+    ``; <what is left to do>`` where a command says) and exit code 130. A warning is one line too,
     ``warning: <message>`` (Python's own form adds the source line that raised it)."""
     import warnings
 
@@ -52,8 +52,8 @@ def run_main(main, argv: list) -> int:
         print(f"error: {error}", file=sys.stderr)
     except OSError as error:
         print(f"error: {error.filename or '-'}: {error.strerror or error}", file=sys.stderr)
-    except KeyboardInterrupt:  # Ctrl-C: every output is written whole or not at all, so no traceback
-        print("error: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as interrupt:  # Ctrl-C: every output is written whole or not at all, so no traceback
+        print("; ".join(("error: interrupted", *map(str, interrupt.args))), file=sys.stderr)
         return 130
     except (MemoryError, RuntimeError) as error:
         problem = _memory_problem(error)

@@ -563,18 +563,16 @@ class _BackgroundSteps:
         try:
             for _ in self.steps(context):
                 pass
-        except REPORTED as error:
-            self.report({"ERROR"}, str(error))
-            return self.failed(context, error)
+        except Exception as error:
+            return self._failure(context, error)
         return self.finished(context)
 
     def invoke(self, context, event):
         self._run = self.steps(context)
         try:
             next(self._run)
-        except REPORTED as error:
-            self.report({"ERROR"}, str(error))
-            return self.failed(context, error)
+        except Exception as error:
+            return self._failure(context, error)
         manager = context.window_manager
         manager.progress_begin(0, 1)
         self._timer = manager.event_timer_add(0.01, window=context.window)
@@ -589,10 +587,9 @@ class _BackgroundSteps:
             return {"PASS_THROUGH"}
         try:
             share = next(self._run, None)
-        except REPORTED as error:  # a full disk, a folder gone: what is done stays done
+        except Exception as error:  # a full disk, a folder gone: what is done stays done
             self._end(context)
-            self.report({"ERROR"}, str(error))
-            return self.failed(context, error)
+            return self._failure(context, error)
         if share is None:
             self._end(context)
             return self.finished(context)
@@ -606,6 +603,16 @@ class _BackgroundSteps:
         manager = context.window_manager
         manager.event_timer_remove(self._timer)
         manager.progress_end()
+
+    def _failure(self, context, error):
+        """The result after ``error`` ended the steps: InputError and OSError are reported;
+        anything else (a defect) leaves the settings as any failure does (not "running")
+        and goes on to Blender, which prints its traceback."""
+        result = self.failed(context, error)
+        if not isinstance(error, REPORTED):
+            raise error
+        self.report({"ERROR"}, str(error))
+        return result
 
     def stop_requested(self, context) -> bool:
         return False

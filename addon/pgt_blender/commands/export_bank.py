@@ -165,7 +165,11 @@ def finish(args, manifest: dict, reference, seconds: float, poses: int = 0) -> i
     """Write the bank report (beside ``reference`` when given) and print the headline numbers."""
     from ..core.bank.report import write_report
 
-    report = f"report: {write_report(args.out, reference, quality_score(args) if reference else None)[0]}"
+    try:
+        report = f"report: {write_report(args.out, reference, quality_score(args) if reference else None)[0]}"
+    except KeyboardInterrupt:  # the bank itself is whole: say how to get its report
+        raise KeyboardInterrupt(f"{args.out}: the bank is written but not its report; "
+                                f"export_bank.py --assemble --out {args.out} writes it") from None
     rate = f" ({poses / seconds:,.0f} poses/s)" if seconds and poses else ""
     print(f"bank: {export.kept_summary(manifest)}{rate}\nwrote {args.out}; {report}")
     return 0

@@ -33,6 +33,9 @@ MANIFEST = "manifest.json"
 INTENSITY_BINS = 32  # the report's per-class intensity histograms, over the dataset's range
 STATS_DTYPE = np.dtype([("object", "i4"), ("index", "i4"), ("x", "f4"), ("y", "f4"), ("heading", "f4"),
                         ("points", "i4"), ("kept", "?")])
+BUSY = ("another export is using this folder right now (exporting, resuming or assembling a bank there); wait "
+        "for it to end or choose another output folder")
+SHARD_BUSY = "a shard is still exporting there (or another assembly copies from it); wait for it to end"
 
 
 @contextmanager
@@ -47,12 +50,21 @@ def exporting(out: Path, shared: bool = False):
     file system has no such lock (Windows, some network shares) the block runs unlocked."""
     output_path(out, folder=True)
     made = missing_folders(out)
-    descriptor = _lock(out, shared)
+    with _holding(out, shared, BUSY):
+        try:
+            yield
+        except BaseException:
+            remove_empty(made)
+            raise
+
+
+@contextmanager
+def _holding(folder: Path, shared: bool, busy: str):
+    """Hold ``folder`` (made if missing) locked for the block; InputError ``busy`` when
+    another process holds it."""
+    descriptor = _lock(folder, shared, busy)
     try:
         yield
-    except BaseException:
-        remove_empty(made)
-        raise
     finally:
         if descriptor is not None:
             _HELD.discard(descriptor)
@@ -75,9 +87,10 @@ if hasattr(os, "register_at_fork"):  # not on Windows, which has no flock either
     os.register_at_fork(after_in_child=_close_held_copies)
 
 
-def _lock(out: Path, shared: bool) -> int | None:
+def _lock(out: Path, shared: bool, busy: str) -> int | None:
     """Make the folder ``out`` and return an open descriptor of it holding its flock
-    (closing it releases the lock), or None where locks are not to be had."""
+    (closing it releases the lock), or None where locks are not to be had; InputError
+    ``busy`` when another holds it."""
     out.mkdir(parents=True, exist_ok=True)
     try:
         import fcntl
@@ -95,8 +108,7 @@ def _lock(out: Path, shared: bool) -> int | None:
         return None
     if not held:
         os.close(descriptor)
-        raise InputError(out, "another export is using this folder right now (exporting, resuming or assembling "
-                              "a bank there); wait for it to end or choose another output folder")
+        raise InputError(out, busy)
     _HELD.add(descriptor)
     return descriptor
 
@@ -255,11 +267,17 @@ def pending_chunks(out: Path, chunk_count: int, shard=(0, 1)) -> list:
 def copy_shard(source: Path, out: Path) -> int:
     """Copy a shard folder's done chunks (done_chunk: the records and their database
     files) into ``out`` (same identity required); returns the records copied. The
-    others are left: their chunks stay to do."""
+    others are left: their chunks stay to do. A shard folder an export still holds is
+    refused (InputError), not copied in part."""
     if Path(source).resolve() == Path(out).resolve():
         raise InputError(source, "is the bank being assembled (--out); --from takes the shards' folders")
     if read_identity(source) != read_identity(out):
         raise InputError(source, "is not a shard of this bank (its .work/identity.json differs)")
+    with _holding(source, False, SHARD_BUSY):
+        return _copy_done_chunks(source, out)
+
+
+def _copy_done_chunks(source: Path, out: Path) -> int:
     copied = 0
     for record_path in sorted((source / WORK / "chunks").glob("*.json")):
         record = done_chunk(source, int(record_path.stem), record_path) if record_path.stem.isdigit() else None

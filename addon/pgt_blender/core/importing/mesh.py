@@ -48,6 +48,9 @@ def _trimesh_load(path: Path, force: str):
         _require_readable_obj(path)
     try:
         return trimesh.load(str(path), force=force, process=False)
+    except IndexError:  # trimesh indexes the vertices with the faces as read
+        raise InputError(path, "could not be read as a mesh: a face refers to a vertex the file does not have") \
+            from None
     except Exception as error:  # trimesh raises many types for corrupt files
         raise InputError(path, f"could not be read as a mesh: {error}") from None
 
