@@ -4,6 +4,6 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "addon"))
-from pgt_blender.commands.train_heading import run  # noqa: E402
+from pgt_blender.cli import launch  # noqa: E402
 
-run()
+launch("train_heading")

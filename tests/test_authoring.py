@@ -174,6 +174,15 @@ def test_scale_to_anisotropic_and_uniform():
             sizing.scale_to(flat, [8.0, 2.0, 2.0])
 
 
+def test_sizing_that_reshapes_an_object_is_a_warning(recwarn):
+    """A sedan's tyre (0.7 x 0.25 x 0.7 m) sized as a car is stretched 3.2x more along
+    its length than up: a part, not a car. A whole vehicle is sized without a word."""
+    with pytest.warns(UserWarning, match=r"tyre.obj: sizing stretches one axis 3.2x more than another"):
+        sizing.scale_to([0.7, 0.25, 0.7], [4.63, 1.95, 1.73], source="tyre.obj")
+    sizing.scale_to([4.89, 1.85, 1.47], [4.63, 1.95, 1.73], source="sedan.obj")
+    assert not recwarn.list
+
+
 # ---- the chain --------------------------------------------------------------------------
 
 @pytest.mark.parametrize("class_name", ["truck", "construction_vehicle"])

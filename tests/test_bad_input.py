@@ -143,6 +143,16 @@ def reconstruct_file(name: str, content: bytes, problem):
     return build
 
 
+def latin1_image(folder, inputs):
+    """An image named in Latin-1 ("café.jpg"): Python holds the byte as a surrogate escape,
+    which the error line shows as \\udce9."""
+    image = folder / "caf\udce9.jpg"
+    image.write_bytes(b"\xff\xd8")
+    shown = str(image).encode(errors="backslashreplace").decode()
+    return (["reconstruct_frames.py", folder, "--out", folder / "model"], shown,
+            "the file name is not UTF-8 text, which COLMAP stores; rename the image")
+
+
 def scan(extra, problem, named=lambda folder, inputs: inputs["mesh"]):
     """scan_object.py of the sample truck at (10, 0) with ``extra(folder, inputs)`` arguments;
     the error names ``named(folder, inputs)``."""
@@ -228,6 +238,14 @@ def cut_velodyne(folder, inputs):
     scan_file = sorted((kitti / "velodyne").glob("*.bin"))[0]
     scan_file.write_bytes(scan_file.read_bytes() + b"\0\0")  # padded: the rows no longer line up
     return ["fit_ground.py", kitti], scan_file, "bytes are not whole rows of 4 float32 values"
+
+
+def empty_labels(folder, inputs):
+    """KITTI frames whose labels hold no box (empty, or DontCare only): no ground to fit."""
+    kitti = Path(shutil.copytree(inputs["kitti"], folder / "kitti"))
+    for label in (kitti / "label_2").glob("*.txt"):
+        label.write_text("")
+    return ["fit_ground.py", kitti], kitti, "none of its 0 labelled boxes has >= 50 ground returns around it"
 
 
 def looping_label(folder, inputs):
@@ -362,6 +380,10 @@ CASES = {
     "reconstruct_frames of a folder without images": lambda folder, inputs: (
         ["reconstruct_frames.py", folder, "--out", folder / "model"], folder, "no images (.jpg, .jpeg, .png)"),
     "reconstruct_frames of a text file": reconstruct_file("notes.txt", b"frames", "not a folder of images nor a video"),
+    "reconstruct_frames of an image named in Latin-1": latin1_image,
+    "reconstruct_frames into its image folder": lambda folder, inputs: (
+        ["reconstruct_frames.py", inputs["statue"].parents[1] / "images", "--out",
+         inputs["statue"].parents[1] / "images"], inputs["statue"].parents[1] / "images", "is or holds the input"),
     "reconstruct_frames of a damaged video": reconstruct_file("orbit.mp4", b"\0\1garbage" * 100,
                                                               "not a decodable video"),
     # scanning
@@ -375,6 +397,8 @@ CASES = {
     "unknown sensor preset": scan(lambda f, i: ["--sensor", "velodyne128"], "not a sensor preset",
                                   lambda folder, inputs: "velodyne128"),
     "sensor TOML unreadable": scan(sensor_file("columns = "), "not a readable TOML file", in_folder("sensor.toml")),
+    "sensor TOML integer of 5,000 digits": scan(sensor_file("columns = 1" + "0" * 5000), "not a readable TOML file",
+                                                in_folder("sensor.toml")),
     "sensor with 1e9 columns": scan(sensor_file("columns = 1000000000"), "exceeds 16,777,216 rays",
                                     in_folder("sensor.toml")),
     "sensor rate_hz = 'fast'": scan(sensor_file('rate_hz = "fast"'), "rate_hz must be a finite number",
@@ -387,6 +411,10 @@ CASES = {
     "mix_bank --real crafted": crafted_pickle("mix_bank.py", "--real", ("--bank", "infos"), "out.pkl"),
     "mix_bank --bank crafted": crafted_pickle("mix_bank.py", "--bank", ("--real", "infos"), "out.pkl"),
     "train_intensity --real crafted": crafted_pickle("train_intensity.py", "--real"),
+    "train_intensity --rgb of a mesh without its class": lambda folder, inputs: (
+        ["train_intensity.py", "--real", inputs["kitti"], "--rgb", f"={inputs['mesh']}", "--out", folder / "model"],
+        inputs["mesh"],
+        f"'={inputs['mesh']}' names no class: give CLASS=MESH"),
     "mix_bank NaN box": spoiled_bank("box3d_lidar", np.array([0, 0, np.nan, 1, 1, 1, 0], np.float32),
                                      "box3d_lidar must be 7 or more finite numbers"),
     "mix_bank negative point count": spoiled_bank("num_points_in_gt", -3, "num_points_in_gt must be a count >= 0"),
@@ -434,8 +462,12 @@ CASES = {
         lambda folder, kitti, inputs: inputs["infos"]),
     # real scans
     "velodyne file padded by two bytes": cut_velodyne,
+    "fit_ground on labels without a box": empty_labels,
     "fit_sensor on a folder without scans": lambda folder, inputs: (["fit_sensor.py", folder], folder,
                                                                     "holds no *.bin scans"),
+    "fit_sensor of 64 lasers on the 16-beam preset": lambda folder, inputs: (
+        ["fit_sensor.py", inputs["kitti"] / "velodyne", "--base", "vlp16"], inputs["kitti"] / "velodyne",
+        "the scans have 64 lasers, the vlp16 preset 16: refine --base kitti"),
     "fit_returns on a scan not stored laser by laser": shuffled_velodyne,
     "a KITTI label that is a looping link": looping_label,
     "a KITTI label of 256 MB": oversized_label,
@@ -529,6 +561,12 @@ def test_a_non_finite_pose_is_a_usage_error(inputs, tmp_path, flag, value):
     ("export_bank.py --workers 0", "argument --workers: expected a whole number 1 .. 1,024"),
     ("export_bank.py --out bank", "no input: give --blend FILE, --objects DIR, or run in Blender with a .blend"),
     ("score_bank.py --limit 0", "argument --limit: expected a whole number 1 .. 10,000,000"),
+    # an option read only with another: said, not silently ignored
+    ("place_objects.py --scan s.bin --info l.txt --bank b.pkl --out o --map-legend legend.json",
+     "--map-pose and --map-legend describe a --map image; give it"),
+    ("place_objects.py --scan s.bin --info l.txt --bank b.pkl --out o --class-layers layers.json",
+     "--class-layers names layers of a map: give --map or --map-polygons"),
+    ("import_reconstruction.py run --masks masks --out o.blend", "--masks is read with --foreground masks; give it"),
 ])
 def test_out_of_range_arguments_are_usage_errors(tmp_path, command, problem):
     """Every count and quantity a command takes is bounded (cli.whole, cli.within): a

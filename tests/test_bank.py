@@ -164,6 +164,8 @@ def test_the_sample_config_lists_every_key_at_its_default(tmp_path):
 @pytest.mark.parametrize("text, named", [
     ("[grid]\nheadingz = [0, 1, 1]\n", "grid.headingz"),
     ("[bank]\nmin_points = 0\n", "bank.min_points"),
+    ("[bank]\nformats = [\"openpcdet\", \"openpcdet\"]\n", "bank.formats = ['openpcdet', 'openpcdet']: expected "),
+    ("[bank]\nseed = 99999999999999999999999\n", "bank.seed = 99999999999999999999999: expected an integer 0 .. "),
     ("[bank]\ndataset = \"waymo\"\n", "bank.dataset"),
     ("[grid]\nx = [0, 10]\n", "grid.x"),
     ("[jitter]\nsize = 0.9\n", "jitter.size"),
@@ -678,7 +680,8 @@ def test_a_damaged_identity_names_the_fix_and_overwrite_replaces_it(reference, p
 
     shutil.copytree(out, copy)
     identity = copy / ".work" / "identity.json"
-    for damaged, problem in ((identity.read_text()[:40], "JSONDecodeError"), ("[" * 100_000, "RecursionError")):
+    for damaged, problem in ((identity.read_text()[:40], "JSONDecodeError"), ("[" * 100_000, "RecursionError"),
+                             ('{"chunks": 1' + "0" * 5000 + "}", "ValueError: Exceeds the limit")):
         identity.write_text(damaged)
         for args in (("--assemble",), ("--objects", prepared, "--config", config, "--resume")):
             result = run_export(*args, "--out", copy, check=False)
@@ -924,6 +927,7 @@ def test_learned_intensity_paints_the_bank(objects, tmp_path):
     """A (tiny) trained estimator replaces the physical intensities, the same bytes on
     one worker or two (spawned: PyTorch does not survive a fork)."""
     pytest.importorskip("torch")
+    from pgt_blender.core.intensity.estimator import IntensityEstimator
     from pgt_blender.core.intensity.objects import ObjectSet
     from pgt_blender.core.intensity.training import TrainConfig, train
 
@@ -939,6 +943,10 @@ def test_learned_intensity_paints_the_bank(objects, tmp_path):
     two_objects = [obj for obj in objects if obj.name != "truck_chassis"]
     physical = BankConfig(x=(-20.0, 20.0, 20.0), y=(-20.0, 20.0, 20.0), headings_deg=(0.0, 90.0, 90.0), chunk_size=4)
     learned = replace(physical, intensity_checkpoint=str(checkpoint))
+    # a config file names the training's folder (or its intensity.pt) relative to itself
+    config = write_config(tmp_path / "bank.toml", {"bank": {"intensity_checkpoint": "model"}})
+    assert load_config(config).intensity_checkpoint == str(tmp_path / "model")
+    assert IntensityEstimator.load(tmp_path / "model").path == checkpoint
     banks = {name: export.export_bank(two_objects, config, tmp_path / name, workers=workers)
              for name, config, workers in (("physical", physical, 1), ("one", learned, 1), ("two", learned, 2))}
     assert bank_bytes(tmp_path / "one") == bank_bytes(tmp_path / "two")

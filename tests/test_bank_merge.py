@@ -325,6 +325,7 @@ def test_a_crafted_database_runs_no_code(real, bank, tmp_path, crafted):
     ("box3d_lidar", np.array([0, 0, np.nan, 1, 1, 1, 0], np.float32), "box3d_lidar must be 7 or more finite numbers"),
     ("box3d_lidar", "big", "box3d_lidar must be 7 or more finite numbers"),
     ("box3d_lidar", np.array([0, 0, 0, 4, 0, 1.5, 0], np.float32), "box3d_lidar must be .* its dimensions positive"),
+    ("box3d_lidar", np.array([1e30, 0, 0, 4, 2, 1.5, 0], np.float32), r"box3d_lidar must be .* within 1e\+08 m"),
     ("num_points_in_gt", -3, "num_points_in_gt must be a count >= 0, got -3"),
     ("num_points_in_gt", 10**30, "num_points_in_gt must be a count >= 0"),
     ("path", 5, "path must be a file path string, got 5"),

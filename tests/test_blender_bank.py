@@ -101,7 +101,7 @@ def test_the_bank_report_scores_the_bank_against_the_real_database(scene, source
 
     # the shared mmdet3d database: one Pedestrian, a class the bank lacks (nothing to score)
     settings.real_database = str(shared_data / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl")
-    settings.real_convention = "mmdet3d"
+    assert settings.real_convention == "AUTO"  # read from its infos: mmdet3d's
     assert bpy.ops.scene.pgt_export_bank() == {"FINISHED"}
     report = tmp_path / "bank" / "report.md"
     text = report.read_text()
@@ -113,6 +113,11 @@ def test_the_bank_report_scores_the_bank_against_the_real_database(scene, source
     with pytest.raises(RuntimeError, match="absent.pkl"):
         bpy.ops.scene.pgt_open_bank_report()
     assert report.read_text() == text  # a bad database leaves the report as it was
+    settings.real_database = str(shared_data / "mmdet3d_kitti_gtdb" / "kitti_dbinfos_train.pkl")
+    settings.real_convention = "openpcdet"  # what its group_ids contradict: its objects would be half a box off
+    with pytest.raises(RuntimeError, match="holds mmdetection3d infos .* not openpcdet's"):
+        bpy.ops.scene.pgt_open_bank_report()
+    assert report.read_text() == text
 
     # the KITTI scans' objects (openpcdet convention): Cyclist and Truck are scored
     settings.real_database = str(kitti_scan_database(shared_data / "kitti_scans", tmp_path / "real"))
@@ -124,7 +129,9 @@ def test_the_bank_report_scores_the_bank_against_the_real_database(scene, source
     rows = {line.split(" | ")[0].strip("| "): line.split(" | ") for line in quality.splitlines()
             if line.startswith("| ") and not line.startswith("| class")}
     assert sorted(rows) == ["Cyclist", "Truck"] and all(row[2] == "1" for row in rows.values())
-    assert all(cell.strip(" |") != "–" for row in rows.values() for cell in row[4:])  # every feature-free metric
+    # every feature-free metric but 1-NNA, which one real object a class cannot measure (0 by construction)
+    assert all((cell.strip(" |") == "–") == (column == 6) for row in rows.values() for column, cell in enumerate(row)
+               if column >= 4)
 
     settings.real_database = ""
     assert bpy.ops.scene.pgt_open_bank_report() == {"FINISHED"}

@@ -3,7 +3,9 @@ Plenoxels readers, view-agnostic color (Algorithm 1) against analytic averages, 
 foreground extraction on synthetic scenes with a known foreground and on the real statue."""
 
 import json
+import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -105,6 +107,14 @@ def test_view_color_over_a_ring_of_views_is_the_analytic_mean(tmp_path, axis):
     np.testing.assert_allclose(recon.colors[:, :3], ring_average(coefficients, axis, 35.0), atol=2e-4)
     dc = np.clip(0.5 + SH_C0 * coefficients[:, :, 0], 0, 1)
     assert np.abs(recon.colors[:, :3] - dc).max() > 0.01  # the view terms do move the color
+
+
+def test_view_color_refuses_to_replace_a_files_own_view_hit(tmp_path):
+    run = splat_run(tmp_path / "run", TINY_CLUSTER, small_coefficients(np.random.default_rng(0), 4, 16),
+                    ring_cameras(2, 35.0), extra={"view_hit": np.ones(len(TINY_CLUSTER), np.float32)})
+    assert "view_hit" in load_reconstruction(run).attributes  # kept as the file has it ...
+    with pytest.raises(InputError, match="has its own 'view_hit' property, which the view color makes; rename it"):
+        load_reconstruction(run, capture=VIEW_COLOR)  # ... and not overwritten
 
 
 def test_view_color_over_a_spherical_design_is_the_dc_color(tmp_path):
@@ -221,6 +231,23 @@ def test_3dgs_run_reads_the_last_iteration_and_its_cameras(tmp_path):
             np.testing.assert_allclose(read.world_from_camera, written.world_from_camera, atol=1e-12)
             assert (read.fx, read.cx, read.cy, read.model) == (written.fx, written.cx, written.cy, "PINHOLE")
     assert load_reconstruction(run, with_cameras=False).cameras == []
+
+
+@pytest.mark.parametrize("spoil, problem", [
+    (lambda path: path.symlink_to(path.with_name("gone.ply")), "a link that leads nowhere"),
+    (os.mkfifo, "not a regular file"),
+    (Path.mkdir, "is a folder; expected a file"),
+])
+@pytest.mark.parametrize("spoilt", ["point_cloud/iteration_30000/point_cloud.ply", "cameras.json"])
+def test_3dgs_run_with_its_newest_splats_or_cameras_spoilt_names_them(tmp_path, spoilt, spoil, problem):
+    """Not an older iteration, nor a run without cameras, in silence."""
+    run = splat_run(tmp_path / "run", np.zeros((10, 3), np.float32) + np.arange(10)[:, None],
+                    small_coefficients(np.random.default_rng(0), 10, 1), samples.orbit_cameras(2, 4.0, 0.0))
+    (run / spoilt).unlink()
+    spoil(run / spoilt)
+    with pytest.raises(InputError, match=problem) as error:
+        load_reconstruction(run)
+    assert error.value.path == run / spoilt
 
 
 def test_3dgs_run_without_cameras_json_takes_the_colmap_model_it_trained_on(tmp_path, statue):
@@ -464,7 +491,7 @@ def test_splatfacto_export_with_its_run_transform_sees_through_the_colmap_camera
     (tmp_path / "dataparser_transforms.json").write_text('{"transform": [[2, 0, 0, 0]], "scale": 1}')
     with pytest.raises(InputError, match="dataparser_transforms.json: not a nerfstudio dataparser transform"):
         load_reconstruction(tmp_path / "splat.ply", cameras=statue)
-    overflowing = {"transform": np.eye(3, 4).tolist(), "scale": 1e308}
+    overflowing = {"transform": np.eye(3, 4).tolist(), "scale": 1e300}  # finite in float64, not in Blender's float32
     (tmp_path / "dataparser_transforms.json").write_text(json.dumps(overflowing))
     with pytest.raises(InputError, match="dataparser_transforms.json: moves camera .* beyond the floating-point range"):
         load_reconstruction(tmp_path / "splat.ply", cameras=statue)

@@ -171,8 +171,10 @@ def test_gt_database_reader_on_the_real_mmdet3d_sample(shared_data):
     half = pedestrian.dims / 2
     assert (np.abs(pedestrian.points) <= half + 0.01).all()  # inside the box, centred
     assert pedestrian.points[:, 2].min() == pytest.approx(-half[2], abs=0.01)  # feet on the box bottom
-    (same,) = hc.read_gt_database(database, "openpcdet")  # read as if centred: only z moves
-    np.testing.assert_allclose(same.points - pedestrian.points, [[0, 0, half[2]]] * 377, atol=1e-6)
+    (same,) = hc.read_gt_database(database)  # the convention read from its infos (a group_id each)
+    np.testing.assert_array_equal(same.points, pedestrian.points)
+    with pytest.raises(InputError, match="holds mmdetection3d infos .* not openpcdet's: leave the convention out"):
+        hc.read_gt_database(database, "openpcdet")  # read as if centred, it would float half its height
 
 
 @pytest.mark.parametrize("convention", ["mmdet3d", "openpcdet"])
@@ -190,6 +192,9 @@ def test_gt_database_reader_undoes_the_box_pose(tmp_path, convention):
     box = np.concatenate([origin, dims, [heading]]).astype(np.float32)
     infos = {"Car": [{"name": "Car", "path": "db/0_Car_0.bin", "box3d_lidar": box, "num_points_in_gt": 50},
                      {"name": "Car", "path": "db/0_Car_1.bin", "box3d_lidar": box, "num_points_in_gt": 2}]}
+    if convention == "mmdet3d":  # its create_groundtruth_database gives every info a group_id
+        for index, info in enumerate(infos["Car"]):
+            info["group_id"] = index
     (tmp_path / "dbinfos.pkl").write_bytes(pickle.dumps(infos))
     (car,) = hc.read_gt_database(tmp_path / "dbinfos.pkl", convention)  # the 2-point object is skipped
     np.testing.assert_allclose(car.points, local, atol=1e-5)

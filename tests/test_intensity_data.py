@@ -155,6 +155,17 @@ def test_bad_databases_are_clear_errors(tmp_path, columns, problem):
         gt_database_objects(path, "openpcdet", "kitti")
 
 
+def test_an_object_file_of_gigabytes_is_named_unread(tmp_path):
+    """A (sparse) 8 GiB object file whose info declares 10 points: named from its size,
+    before numpy would read it all (18 s and 10 GB of memory)."""
+    path = write_database(tmp_path, np.zeros((10, 4)), 10)
+    with open(tmp_path / "db" / "0_Car_0.bin", "wb") as stream:
+        stream.truncate(8 * 2**30)
+    with pytest.raises(InputError, match=r"0_Car_0.bin: 2147483648 floats do not split into the 10 points its info "
+                                         r"declares \(3 to 64 values each\)"):
+        gt_database_objects(path, "openpcdet", "kitti")
+
+
 def test_training_sets_from_the_shared_data(kitti, gt_database):
     real, rgb = training_sets([kitti, gt_database], [], "kitti", min_points=64, convention="mmdet3d")
     assert real.classes == rgb.classes == ("truck",)

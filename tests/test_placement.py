@@ -469,6 +469,21 @@ def test_pool_reads_both_conventions_the_same(banks):
     assert isinstance(pools[0], EntryPool)
 
 
+def test_an_info_pickles_convention_is_read_from_it_and_checked(banks):
+    """A bank's pickles given as plain info pickles: each read in its own convention
+    (mmdet3d's infos carry a group_id each), the same entries as the bank folder gives;
+    stated wrongly, refused (its objects would float or sink by half their height)."""
+    folder = open_database(banks["kitti"], "kitti", "mmdet3d")
+    for fmt in ("openpcdet", "mmdet3d"):
+        pickle_path = banks["kitti"] / fmt / "kitti_dbinfos_pgt.pkl"
+        pool = open_database(pickle_path, "kitti")
+        assert pool.convention == fmt
+        np.testing.assert_allclose(pool.classes["Cyclist"].boxes, folder.classes["Cyclist"].boxes, atol=1e-5)
+        other = "mmdet3d" if fmt == "openpcdet" else "openpcdet"
+        with pytest.raises(InputError, match=f"kitti_dbinfos_pgt.pkl: holds .* not {other}'s"):
+            open_database(pickle_path, "kitti", other)
+
+
 # --- the command ----------------------------------------------------------------------
 
 

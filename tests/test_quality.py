@@ -51,6 +51,7 @@ def test_mmd_coverage_and_one_nn_by_hand():
     rng = np.random.default_rng(1)
     near, far = rng.random((6, 64, 3)), rng.random((6, 64, 3)) + 5
     assert metrics.one_nn_accuracy(near, far) == 1.0  # every neighbour from its own set
+    assert np.isnan(metrics.one_nn_accuracy(near[:1], far))  # one each: 0 by construction, so not measured
 
 
 def test_wasserstein_distances():
@@ -257,6 +258,15 @@ def test_score_bank_command_writes_json_and_caches_its_encoder(banks, real, tmp_
                check=True)
     assert cached.stat().st_mtime_ns == stamp  # reused, not retrained
     assert (tmp_path / "again.json").read_bytes() == out.read_bytes()  # same inputs and seed, same bytes
+    # the same pickle over other object files (--real-root): other objects to learn, so not the cached encoder
+    other = Path(shutil.copytree(real.parent, tmp_path / "other_root"))
+    for path in other.rglob("*.bin"):
+        rows = np.fromfile(path, np.float32).reshape(-1, 4)
+        rows[:, :3] *= 0.5
+        rows.tofile(path)
+    run_script("score_bank.py", "--bank", bank, "--real", real, "--real-root", other, "--json", tmp_path / "other.json",
+               "--no-progress", check=True)
+    assert cached.stat().st_mtime_ns != stamp
     # the paper's dense reference, feature-free only: the densest real object a class, no encoder
     run_script("score_bank.py", "--bank", bank, "--real", real, "--reference", "dense", "--limit", 1, "--no-learned",
                "--json", tmp_path / "dense.json", "--no-progress", check=True)

@@ -350,18 +350,46 @@ def test_scan_object_without_torch_keeps_the_physical_intensity(truck_sample, tm
     assert (tmp_path / "fallback.bin").read_bytes() == (tmp_path / "plain.bin").read_bytes()
 
 
+def test_an_output_file_in_folders_not_made_yet_gets_them(truck_sample, tmp_path):
+    """Every command makes its output file's missing folders (files.atomic_output), as
+    the checks before the work allow (files.output_path), not fail after the work."""
+    out = tmp_path / "new" / "deeper" / "scan.bin"
+    run_script("scan_object.py", "--object", truck_sample["mesh.ply"], "--x", 10, "--y", 2, "--out", out, check=True)
+    assert out.stat().st_size > 0
+
+
 def test_every_command_is_a_console_script_with_a_shim():
     """Each pgt_blender/commands/<name>.py is installed as pgt-<name> (pyproject.toml) and
     has its headless_scripts/<name>.py shim (--help of every script: test_help)."""
     import tomllib
 
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
-    assert scripts == {f"pgt-{name.replace('_', '-')}": f"pgt_blender.commands.{name}:run" for name in COMMANDS}
+    assert scripts == {f"pgt-{name.replace('_', '-')}": f"pgt_blender.cli:launchers.{name}" for name in COMMANDS}
     assert all((ROOT / "headless_scripts" / f"{name}.py").is_file() for name in COMMANDS)
     console = Path(sys.executable).parent / "pgt-mix-bank"
     result = subprocess.run([str(console), "--real", "missing.pkl", "--bank", "b.pkl", "--out", "o.pkl"],
                             capture_output=True, text=True, timeout=120)
     assert (result.returncode, result.stderr) == (1, "error: missing.pkl: cannot read the file (No such file or directory)\n")
+
+
+@pytest.mark.parametrize("start", ["shim", "console script"])
+def test_ctrl_c_while_a_command_loads_its_libraries_is_one_line(start):
+    """Ctrl-C during the second or so a command spends importing scipy, torch or bpy:
+    ``error: interrupted``, exit 130, no traceback (cli.launch). The interrupt is raised
+    by an import hook on scipy, at the moment a real Ctrl-C there would land."""
+    script = {"shim": ROOT / "headless_scripts" / "score_bank.py",
+              "console script": Path(sys.executable).parent / "pgt-score-bank"}[start]
+    code = ("import runpy, sys\n"
+            "class Interrupt:\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            "        if name == 'scipy':\n"
+            "            raise KeyboardInterrupt\n"
+            "sys.meta_path.insert(0, Interrupt())\n"
+            "sys.argv = sys.argv[1:]\n"
+            "runpy.run_path(sys.argv[0], run_name='__main__')\n")
+    result = subprocess.run([sys.executable, "-c", code, str(script), "--help"], capture_output=True, text=True,
+                            timeout=120)
+    assert (result.returncode, result.stderr, result.stdout) == (130, "error: interrupted\n", "")
 
 
 def test_help_states_each_default():

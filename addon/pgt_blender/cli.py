@@ -93,10 +93,39 @@ def markdown_table(header: list, rows: list, align: str = "") -> str:
 def command(main):
     """The entry point of ``main(argv) -> int``: the arguments after ``--`` when Blender
     runs it, else ``argv[1:]``; bad input as one line; the code through :func:`exit`.
-    Console scripts (pyproject.toml) and headless_scripts/ shims call what this returns."""
+    :func:`launch` calls what this returns."""
     def run() -> None:
         exit(run_main(main, script_argv()))
     return run
+
+
+def launch(name: str) -> None:
+    """Run the command ``name`` (commands/<name>.py: its ``run``), imported here, so that
+    Ctrl-C while its libraries load (bpy, scipy, torch: up to a second) is ``error:
+    interrupted`` too, not a traceback. The headless_scripts/ shims call it, and the
+    console scripts (pyproject.toml) through ``launchers``."""
+    import importlib
+
+    try:
+        module = importlib.import_module(f".commands.{name}", __package__)
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        exit(130)
+    module.run()
+
+
+class _Launchers:
+    """``launchers.<name>()`` launches the command ``name``: the console scripts' entry
+    points (``pgt_blender.cli:launchers.export_bank``), which this module, light to
+    import, serves before any command's libraries load."""
+
+    def __getattr__(self, name: str):
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return lambda: launch(name)
+
+
+launchers = _Launchers()
 
 
 class _DefaultsShown(argparse.HelpFormatter):

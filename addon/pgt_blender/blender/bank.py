@@ -79,8 +79,12 @@ def bank_config(settings, checkpoint: str = "") -> BankConfig:
 
 
 def real_database(settings):
-    """(absolute path, convention) of the Bank section's Real database, or None."""
-    return (bpy.path.abspath(settings.real_database), settings.real_convention) if settings.real_database else None
+    """(absolute path, convention or None: read from the infos) of the Bank section's Real
+    database, or None."""
+    if not settings.real_database:
+        return None
+    convention = None if settings.real_convention == "AUTO" else settings.real_convention
+    return bpy.path.abspath(settings.real_database), convention
 
 
 def write_bank_report(out, real=None, reference=None) -> Path:

@@ -199,8 +199,10 @@ class PGT_PG_bank(bpy.types.PropertyGroup):
                                   description="A real ground-truth info pickle (*_dbinfos_*.pkl): the bank report "
                                               "sets its statistics beside the bank's and scores the bank against it "
                                               "per class (score_bank.py's quality table)")
-    real_convention: EnumProperty(name="Real points", default="openpcdet", description="How the real database "
+    real_convention: EnumProperty(name="Real points", default="AUTO", description="How the real database "
                                   "stores each object's points", items=[
+        ("AUTO", "From the file", "Read from the database's infos: mmdetection3d writes a group_id in each, "
+                                  "OpenPCDet in none"),
         ("openpcdet", "About the box centre", "OpenPCDet's ground-truth database"),
         ("mmdet3d", "About the box bottom", "mmdetection3d's ground-truth database")])
     existing: EnumProperty(name="If it exists", default="REFUSE", description="What to do with a non-empty output "

@@ -18,7 +18,7 @@ jobs run --shard i/n each (into the same folder, or separate ones copied togethe
 with --assemble --from DIR ...), then one --assemble writes the info pickles and the
 manifest. The bank report (report.md + report.png in the folder) compares the bank with
 a real database given by --real, with its quality score per class (score_bank.py; --real-convention
-says how --real stores points). --data-root makes the info paths relative to the
+says how --real stores points, by default read from its infos). --data-root makes the info paths relative to the
 dataset root the detector joins them to, so the bank loads beside the real database
 (also with --assemble, to move a finished bank). An output folder that is not empty is refused without
 --resume/--overwrite.
@@ -172,6 +172,11 @@ def finish(args, manifest: dict, reference, seconds: float, poses: int = 0) -> i
                                 f"export_bank.py --assemble --out {args.out} writes it") from None
     rate = f" ({poses / seconds:,.0f} poses/s)" if seconds and poses else ""
     print(f"bank: {export.kept_summary(manifest)}{rate}\nwrote {args.out}; {report}")
+    if manifest["data_root"] is None:  # the frameworks join info paths to their dataset root, not to these
+        print(f"info paths are relative to {args.out}/<format>/: to train beside a real database, "
+              f"export_bank.py --assemble --out {args.out} --data-root <the dataset root>")
+    else:
+        print(f"info paths are relative to the dataset root {(args.out / manifest['data_root']).resolve()}")
     return 0
 
 
@@ -199,9 +204,10 @@ def main(argv: list) -> int:
                              "DATA_PATH/VERSION for nuScenes and Lyft; mmdet3d: data_root): paths are written "
                              "relative to it (default: relative to each format folder)")
     parser.add_argument("--real", type=Path, help="a real *_dbinfos_*.pkl the bank report compares with")
-    parser.add_argument("--real-convention", choices=("openpcdet", "mmdet3d"), default="openpcdet",
+    parser.add_argument("--real-convention", choices=("openpcdet", "mmdet3d"),
                         help="how --real stores points, for the report's quality score: about the box centre "
-                             "(openpcdet, default) or its bottom centre (mmdet3d)")
+                             "(openpcdet) or its bottom centre (mmdet3d); default: read from the file, where "
+                             "mmdet3d's infos carry a group_id each")
     parser.add_argument("--from", dest="shard_dirs", type=Path, nargs="+", default=[],
                         help="with --assemble: shard folders to copy into --out first")
     args = parser.parse_args(argv)

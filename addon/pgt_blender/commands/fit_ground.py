@@ -18,6 +18,7 @@ from pathlib import Path
 
 from .. import cli
 from ..core.bank.ground import MIN_GROUND_POINTS, fit_kitti_frames
+from ..core.errors import InputError
 
 
 def _number(value, digits: int = 2) -> str:
@@ -32,6 +33,9 @@ def main(argv: list) -> int:
     parser.add_argument("--json", action="store_true", help="print the fit as one JSON object")
     args = parser.parse_args(argv)
     fit = fit_kitti_frames(args.folder, args.mounting_height)
+    if not fit["used"]:  # degenerate: an error in the command line, as an empty scan is
+        raise InputError(args.folder, f"none of its {len(fit['boxes'])} labelled boxes has >= {MIN_GROUND_POINTS} "
+                                      f"ground returns around it: no ground to fit")
     if args.json:
         print(json.dumps(fit))
         return 0

@@ -28,13 +28,15 @@ from ..core.scan.sensors import PRESETS
 
 
 def scan_files(paths: list) -> list:
-    files = []
+    """The scans ``paths`` name (a folder: its *.bin files), each once: a scan given twice
+    would be held out against itself."""
+    files = {}
     for path in paths:
         found = listed(path, "*.bin") if path.is_dir() else [path]
         if not found:
             raise InputError(path, "holds no *.bin scans")
-        files += found
-    return files
+        files |= {file.resolve(): file for file in found if file.resolve() not in files}
+    return list(files.values())
 
 
 def rms(values: np.ndarray) -> float:
@@ -49,10 +51,8 @@ def leave_one_out(scans: list, base) -> list:
         fit = sensor_fit.fit_lasers([other for other_index, other in enumerate(scans) if other_index != index])
         rank = np.argsort(np.argsort(fit.elevations_deg))
         base_errors = sensor_fit.elevation_errors(fit, scan, np.asarray(base.elevations_deg)[rank],
-                                                  np.asarray(base.vertical_offsets_m)[rank]) \
-            if base.beams == len(rank) else None
-        rows.append({"fitted_rms_deg": rms(sensor_fit.elevation_errors(fit, scan)),
-                     "base_rms_deg": None if base_errors is None else rms(base_errors)})
+                                                  np.asarray(base.vertical_offsets_m)[rank])
+        rows.append({"fitted_rms_deg": rms(sensor_fit.elevation_errors(fit, scan)), "base_rms_deg": rms(base_errors)})
     return rows
 
 
@@ -88,6 +88,11 @@ def main(argv: list) -> int:
     scans = [read_float32_rows(path, args.values_per_point).astype(np.float64) for path in files]
     fit = sensor_fit.fit_lasers(scans, files)
     base = PRESETS[args.base]
+    if base.beams != len(fit.elevations_deg):  # the fit refines the preset laser for laser
+        alike = " or ".join(sorted(name for name, preset in PRESETS.items() if preset.beams == len(fit.elevations_deg)))
+        raise InputError(args.scans[0], f"the scans have {len(fit.elevations_deg)} lasers, the {args.base} preset "
+                                        f"{base.beams}: " + (f"refine --base {alike}" if alike else
+                                                             "no preset has as many lasers"))
     sensor = sensor_fit.fitted_sensor(base, fit, args.out.stem if args.out else base.name)
     held_out = leave_one_out(scans, base) if len(scans) > 1 else []
     result = {"scans": [str(path) for path in files], "columns": fit.columns,
@@ -108,9 +113,8 @@ def main(argv: list) -> int:
           f"{row['residual_m'] * 1e3:.2f}", row["points"]] for row in result["lasers"]], "rrrrr"))
     print(f"\ncolumns per revolution: {fit.columns} (the {args.base} preset: {base.columns})")
     for path, row in zip(files, held_out):
-        base_rms = "-" if row["base_rms_deg"] is None else f"{row['base_rms_deg']:.3f}"
         print(f"held out {path.name}: elevation error {row['fitted_rms_deg']:.4f} deg RMS fitted on the others, "
-              f"{base_rms} deg with the {args.base} preset")
+              f"{row['base_rms_deg']:.3f} deg with the {args.base} preset")
     if args.out:
         print(f"wrote {args.out}")
     return 0

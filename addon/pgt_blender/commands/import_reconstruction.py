@@ -49,6 +49,8 @@ def main(argv: list) -> int:
     apart_from_inputs(args.out, [args.input, args.cameras, args.masks])
     if args.foreground == "masks" and not args.masks:
         parser.error("--foreground masks needs --masks FOLDER")
+    if args.masks and args.foreground != "masks":
+        parser.error("--masks is read with --foreground masks; give it")
     if not 0 <= args.mask_share <= 1:
         parser.error("--mask-share must be within [0, 1]")
     capture = CaptureOptions(view_color=args.view_color, foreground=args.foreground, masks=args.masks,

@@ -59,7 +59,9 @@ def main(argv: list) -> int:
                         help="folder to write scan.bin, boxes.json, birdseye.png")
     parser.add_argument("--dataset", choices=sorted(PRESETS), help="the scene's dataset (default: from --info)")
     parser.add_argument("--convention", choices=("openpcdet", "mmdet3d"),
-                        help="the database's layout (default: openpcdet)")
+                        help="the database's layout (a bank folder: which format's pickle, default openpcdet; "
+                             "an info pickle: checked, default: read from the file, where mmdet3d's infos carry "
+                             "a group_id each)")
     parser.add_argument("--objects", type=objects_argument, action="append", metavar="CLASS=N",
                         help=f"objects to place per class (repeat; default {DEFAULT_COUNT} of every bank class)")
     parser.add_argument("--sensor", help="sensor preset or .toml for occlusion and column steps "
@@ -82,6 +84,10 @@ def main(argv: list) -> int:
     check_placement_folder(args.out)
     if args.map is not None and (args.map_pose is None or args.map_legend is None):
         parser.error("--map needs --map-pose and --map-legend")
+    if args.map is None and (args.map_pose is not None or args.map_legend is not None):
+        parser.error("--map-pose and --map-legend describe a --map image; give it")
+    if args.class_layers is not None and args.map is None and args.map_polygons is None:
+        parser.error("--class-layers names layers of a map: give --map or --map-polygons")
     if args.map_pose is not None and len(args.map_pose) not in (3, 4):
         parser.error("--map-pose takes X0 Y0 RESOLUTION [YAW_DEG]")
 
@@ -112,6 +118,10 @@ def main(argv: list) -> int:
           f"inside placed boxes and {int(placement.scene_shadowed.sum())} in their shadows")
     picture = paths.get("birdseye.png", "no birdseye.png (matplotlib is not installed)")
     print(f"wrote {paths['scan.bin']} ({len(placement.points)} points), {paths['boxes.json']}, {picture}")
+    if not placement.inserted.any():  # a scene written unchanged should not pass unnoticed
+        warnings.warn(f"{args.scan}: no object placed: every try stood where its class may not, overlapped a box "
+                      f"or met a scene return, or kept too few points once occluded (core/placement/place.py); "
+                      f"another --seed, a larger --max-distance or fewer objects may place some", stacklevel=1)
     return 0
 
 

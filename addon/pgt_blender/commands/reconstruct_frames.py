@@ -24,7 +24,7 @@ from pathlib import Path
 
 from .. import cli
 from ..core.errors import InputError
-from ..core.files import folders_made
+from ..core.files import apart_from_inputs, folders_made
 from ..core.importing.frames import PICKS, VIDEO_SUFFIXES, choose_images, decode_video
 from ..core.importing.source import MAX_IMAGE_SIDE
 from ..core.importing.structure_from_motion import MATCHINGS, SfmOptions, reconstruct
@@ -53,6 +53,7 @@ def main(argv: list) -> int:
     parser.add_argument("--seed", type=cli.SEED, default=0, help="RANSAC's and the mapper's random seed")
     parser.add_argument("--quiet", action="store_true", help="no progress bars and no COLMAP log")
     args = parser.parse_args(argv)
+    apart_from_inputs(args.out, [args.input])  # its database and sparse/ would land among the photos
     options = SfmOptions(args.matching, args.overlap, args.camera == "single", args.max_features,
                          args.max_image_size, args.threads, args.seed)
     _quiet_colmap(args.quiet)

@@ -30,9 +30,9 @@ def main(argv: list) -> int:
     parser = cli.parser("score_bank.py", __doc__)
     parser.add_argument("--bank", type=Path, required=True, help="the exported bank's folder")
     parser.add_argument("--real", type=Path, required=True, help="real ground-truth info pickle (*_dbinfos_*.pkl)")
-    parser.add_argument("--convention", choices=CONVENTIONS, default="openpcdet",
-                        help="how --real stores points: about the box centre (openpcdet, default) or its "
-                             "bottom centre (mmdet3d)")
+    parser.add_argument("--convention", choices=CONVENTIONS,
+                        help="how --real stores points: about the box centre (openpcdet) or its bottom centre "
+                             "(mmdet3d); default: read from the file, where mmdet3d's infos carry a group_id each")
     parser.add_argument("--real-root", type=Path, help="folder --real's info paths are relative to "
                                                        "(default: its folder)")
     parser.add_argument("--encoder", type=Path, help="a quality encoder checkpoint (default: train one on --real "

@@ -3,7 +3,7 @@ no rotation augmentation) and save a checkpoint with its training config.
 
     pgt-train-heading --out PATH [--seed 0] [--steps 500] [--points 512]
     .venv/bin/python headless_scripts/train_heading.py --out PATH [--seed 0] [--steps 500] [--points 512]
-        [--chrono DIR] [--gt-database PKL --gt-convention mmdet3d|openpcdet] [--no-samples] [--threads 1]
+        [--chrono DIR] [--gt-database PKL [--gt-convention mmdet3d|openpcdet]] [--no-samples] [--threads 1]
         [--scans nuscenes|kitti|...|SENSOR.toml]
     blender -b -P headless_scripts/train_heading.py -- --out PATH [...]
 
@@ -72,7 +72,8 @@ def main(argv: list) -> int:
                         help="folder of .obj meshes, front at +x (the shipped checkpoint: ../shared/data/chrono_vehicles)")
     parser.add_argument("--gt-database", type=Path, help="mmdet3d / OpenPCDet *_dbinfos_*.pkl")
     parser.add_argument("--gt-convention", choices=("mmdet3d", "openpcdet"),
-                        help="how the database stores points: relative to the box bottom centre (mmdet3d) or centre")
+                        help="how the database stores points: relative to the box bottom centre (mmdet3d) or "
+                             "centre (openpcdet); default: read from the file (mmdet3d's infos carry a group_id)")
     parser.add_argument("--no-samples", action="store_true", help="leave out the built-in sample vehicles")
     parser.add_argument("--scans", metavar="SENSOR",
                         help="also train on this sensor's scans of every mesh (a preset name or a .toml)")
@@ -80,8 +81,6 @@ def main(argv: list) -> int:
                         help="torch CPU threads (part of what makes bytes repeat)")
     args = parser.parse_args(argv)
     apart_from_inputs(args.out, [args.chrono, args.gt_database])
-    if args.gt_database is not None and args.gt_convention is None:
-        parser.error("--gt-database needs --gt-convention mmdet3d or openpcdet")
     hc.require_torch(args.out)
     sets = training_sets(args)
     print(f"training on {len(sets)} point sets: " + ", ".join(item.name for item in sets[:12])

@@ -3,12 +3,12 @@ and write its checkpoints, loss log and config.
 
     pgt-train-intensity --out DIR [--real SRC ...] [--rgb SRC ...]
     .venv/bin/python headless_scripts/train_intensity.py --out DIR [--real SRC ...] [--rgb SRC ...]
-        [--gt-convention openpcdet] [--dataset kitti] [--min-points 64] [--points 256] [--steps 1000]
+        [--gt-convention openpcdet|mmdet3d] [--dataset kitti] [--min-points 64] [--points 256] [--steps 1000]
         [--checkpoint-every 100] [--seed 0] [--threads 2] [--resume]
     blender -b -P headless_scripts/train_intensity.py -- (the same arguments)
 
 --real (repeatable): a ground-truth database .pkl (points about the box centre for
---gt-convention openpcdet, the bottom centre for mmdet3d) or a KITTI folder (velodyne,
+--gt-convention openpcdet, the bottom centre for mmdet3d; by default read from its infos) or a KITTI folder (velodyne,
 label_2, calib); default ../shared/data/kitti_scans when present. --rgb (repeatable): a
 folder of prepared colored objects (prepare_objects.py's output) or CLASS=MESH for a
 mesh with material colors (e.g. car=sedan.obj); default the built-in sample vehicles.
@@ -66,8 +66,9 @@ def parse(argv: list):
                         help="GT database .pkl or KITTI folder (e.g. ../shared/data/kitti_scans), repeatable")
     parser.add_argument("--rgb", action="append", default=[],
                         help="folder of prepared colored objects or CLASS=MESH, repeatable (default: the built-in samples)")
-    parser.add_argument("--gt-convention", choices=("openpcdet", "mmdet3d"), default="openpcdet",
-                        help="a .pkl's points are about the box centre (openpcdet) or bottom centre (mmdet3d)")
+    parser.add_argument("--gt-convention", choices=("openpcdet", "mmdet3d"),
+                        help="a .pkl's points are about the box centre (openpcdet) or bottom centre (mmdet3d); "
+                             "default: read from the file, where mmdet3d's infos carry a group_id each")
     parser.add_argument("--dataset", default="kitti", choices=("kitti", "nuscenes", "lyft"),
                         help="whose LiDAR and intensity scale the real objects have")
     parser.add_argument("--min-points", type=cli.whole(0, 10**7), default=64,

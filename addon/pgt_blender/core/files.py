@@ -14,28 +14,30 @@ NAME_MAX = 255  # bytes in a file name on Linux, macOS and Windows file systems
 
 @contextmanager
 def atomic_output(path, writer: str = ""):
-    """A binary stream to a temporary file beside ``path``, renamed onto ``path`` when
-    the block ends without error and removed otherwise. A failed write (disk full,
-    permission) raises OSError naming ``path``, not the temporary file. ``writer`` names
-    the temporary for processes that may write the same ``path`` at once (each its own)."""
+    """A binary stream to a temporary file beside ``path`` (its missing folders made, and
+    removed again on failure: folders_made), renamed onto ``path`` when the block ends
+    without error and removed otherwise. A failed write (disk full, permission) raises
+    OSError naming ``path``, not the temporary file. ``writer`` names the temporary for
+    processes that may write the same ``path`` at once (each its own)."""
     path = Path(path)
     name = f".{path.name}{writer}.partial"
     if len(os.fsencode(name)) > NAME_MAX:  # a legal name of 247-255 bytes: a shorter temporary
         name = f".{hashlib.sha256(os.fsencode(path.name)).hexdigest()[:32]}{writer}.partial"
     temporary = path.with_name(name)
-    try:
-        with open(temporary, "wb") as stream:
-            yield stream
-        os.replace(temporary, path)
-    except OSError as error:
-        _discard(temporary)
-        if error.filename is not None and os.fspath(error.filename) != os.fspath(temporary):
+    with folders_made(path.parent):
+        try:
+            with open(temporary, "wb") as stream:
+                yield stream
+            os.replace(temporary, path)
+        except OSError as error:
+            _discard(temporary)
+            if error.filename is not None and os.fspath(error.filename) != os.fspath(temporary):
+                raise
+            # numpy's tofile raises an OSError of no errno: its own text is the reason then
+            raise OSError(error.errno, error.strerror or f"write failed ({error})", str(path)) from error
+        except BaseException:
+            _discard(temporary)
             raise
-        # numpy's tofile raises an OSError of no errno: its own text is the reason then
-        raise OSError(error.errno, error.strerror or f"write failed ({error})", str(path)) from error
-    except BaseException:
-        _discard(temporary)
-        raise
 
 
 def _discard(path: Path) -> None:
@@ -105,7 +107,7 @@ def read_toml(path: Path) -> dict:
 
     try:
         return tomllib.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as error:
+    except (OSError, ValueError) as error:  # ValueError: bad TOML or UTF-8, an integer beyond int()'s digits
         raise InputError(path, f"not a readable TOML file: {error}") from None
     except RecursionError:
         raise InputError(path, "not a readable TOML file: nested too deeply") from None

@@ -16,12 +16,16 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .files import read_float32_rows
+from .files import read_float32_rows, regular_file
 from .safe_pickle import load_pickle
+from .scan.targets import MAX_COORDINATE
 
 REQUIRED_KEYS = ("name", "path", "image_idx", "gt_idx", "box3d_lidar", "num_points_in_gt")
 OBJECT_KEYS = ("path", "box3d_lidar", "num_points_in_gt")  # what reading the objects needs
 CONVENTIONS = ("mmdet3d", "openpcdet")
+CONVENTION_NOTES = {"openpcdet": "OpenPCDet infos (points about the box centre, no group_id)",
+                    "mmdet3d": "mmdetection3d infos (points about the box bottom, a group_id each)"}
+MAX_POINT_VALUES = 64  # floats per point in an object file: x, y, z and features (the datasets store 4 or 5)
 
 
 @dataclass
@@ -43,7 +47,8 @@ class DatabaseObject:
 
 def load_infos(path, required: tuple = REQUIRED_KEYS) -> dict:
     """The info pickle at ``path``: a dict of class name -> list of info dicts, each with
-    the ``required`` keys, a finite box3d_lidar of 7 or more values and a count >= 0."""
+    the ``required`` keys, a finite box3d_lidar of 7 or more values (centre and dimensions
+    within MAX_COORDINATE m) and a count >= 0."""
     path = Path(path)
     infos = load_pickle(path)  # names a missing file, a folder or a pipe (files.regular_file)
     if not (isinstance(infos, dict) and all(isinstance(name, str) and isinstance(entries, list)
@@ -58,9 +63,10 @@ def load_infos(path, required: tuple = REQUIRED_KEYS) -> dict:
                 raise InputError(path, f"info {index} of '{name}' lacks {', '.join(missing)}")
             box = np.asarray(info["box3d_lidar"])
             if box.dtype.kind not in "fiu" or box.ndim != 1 or box.size < 7 or not np.isfinite(box).all() \
-                    or not (box[3:6] > 0).all():
+                    or not (box[3:6] > 0).all() or np.abs(box[:6]).max() > MAX_COORDINATE:
                 raise InputError(path, f"info {index} of '{name}': box3d_lidar must be 7 or more finite numbers, "
-                                       f"its dimensions positive, got {info['box3d_lidar']!r}")
+                                       f"its dimensions positive, within {MAX_COORDINATE:g} m, "
+                                       f"got {info['box3d_lidar']!r}")
             count = info["num_points_in_gt"]
             if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or not 0 <= count < 2**31:
                 raise InputError(path, f"info {index} of '{name}': num_points_in_gt must be a count >= 0, "
@@ -71,25 +77,51 @@ def load_infos(path, required: tuple = REQUIRED_KEYS) -> dict:
     return infos
 
 
-def read_objects(path, convention: str, min_points: int = 5) -> list:
+def detected_convention(infos: dict) -> str | None:
+    """Whose ground-truth database ``infos`` is: "mmdet3d" when every info carries a
+    group_id (mmdet3d's create_groundtruth_database always writes one; its points are
+    about the box bottom), "openpcdet" when none does (points about the box centre),
+    None when empty or mixed."""
+    tagged = {"group_id" in info for entries in infos.values() for info in entries}
+    if len(tagged) != 1:
+        return None
+    return "mmdet3d" if tagged.pop() else "openpcdet"
+
+
+def database_convention(path, infos: dict, given: str | None = None) -> str:
+    """The convention of the database ``infos`` read from ``path``: ``given`` (a
+    command's convention option) when the infos agree, else what they show
+    (detected_convention), else (empty or mixed) "openpcdet". InputError naming
+    ``path`` when ``given`` contradicts them: every object would be off by half its
+    height."""
+    if given is not None and given not in CONVENTIONS:
+        raise ValueError(f"unknown ground-truth database convention '{given}' ({', '.join(CONVENTIONS)})")
+    found = detected_convention(infos)
+    if given is not None and found is not None and given != found:
+        raise InputError(path, f"holds {CONVENTION_NOTES[found]}, not {given}'s: leave the convention out (it is "
+                               f"read from the file) or give {found}")
+    return given or found or "openpcdet"
+
+
+def read_objects(path, convention: str | None = None, min_points: int = 5) -> list:
     """Every object of ``iter_objects`` in a list."""
     return list(iter_objects(path, convention, min_points))
 
 
-def iter_objects(path, convention: str, min_points: int = 5, root=None, choose=None):
+def iter_objects(path, convention: str | None = None, min_points: int = 5, root=None, choose=None):
     """Yield a DatabaseObject per info of the pickle at ``path`` with at least
     ``min_points`` points (by class name, then as listed), one .bin file read at a
     time, so a database of any size streams. Each is turned into its box frame: moved
-    by the box centre (``convention`` "openpcdet") or bottom centre ("mmdet3d"),
-    rotated by -heading about z. Object files are relative to ``root`` (default: the
-    pickle's folder). ``choose(class_name, counts)`` -> indices into ``counts`` (the
-    (n,) num_points_in_gt of the class's infos with enough points) picks which to read,
-    in that order (default: all)."""
-    if convention not in CONVENTIONS:
-        raise ValueError(f"unknown ground-truth database convention '{convention}' ({', '.join(CONVENTIONS)})")
+    by the box centre ("openpcdet") or bottom centre ("mmdet3d": ``convention``, checked
+    and by default read from the infos: database_convention), rotated by -heading about
+    z. Object files are relative to ``root`` (default: the pickle's folder).
+    ``choose(class_name, counts)`` -> indices into ``counts`` (the (n,)
+    num_points_in_gt of the class's infos with enough points) picks which to read, in
+    that order (default: all)."""
     path = Path(path)
     root = path.parent if root is None else Path(root)
     infos = load_infos(path, OBJECT_KEYS)
+    convention = database_convention(path, infos, convention)
     source = f"gt_database:{path.name} ({convention}) sha256:{hashlib.sha256(path.read_bytes()).hexdigest()}"
     for class_name, class_infos in sorted(infos.items()):
         usable = [info for info in class_infos if int(info["num_points_in_gt"]) >= max(min_points, 1)]
@@ -102,11 +134,13 @@ def iter_objects(path, convention: str, min_points: int = 5, root=None, choose=N
 
 def _object(path: Path, box: np.ndarray, count: int, convention: str, class_name: str, relative: str,
             source: str) -> DatabaseObject:
-    values = read_float32_rows(path).ravel()
     if not (box[3:6] > 0).all():
         raise InputError(path, f"its box has non-positive dims {box[3:6].tolist()}")
-    if len(values) < 3 * count or len(values) % count:
-        raise InputError(path, f"{len(values)} floats do not split into the {count} points its info declares")
+    floats = regular_file(path).stat().st_size // 4  # checked before the read: a file of gigabytes stays unread
+    if not 3 * count <= floats <= MAX_POINT_VALUES * count or floats % count:
+        raise InputError(path, f"{floats} floats do not split into the {count} points its info declares "
+                               f"(3 to {MAX_POINT_VALUES} values each)")
+    values = read_float32_rows(path).ravel()
     columns = values.reshape(count, -1)
     points = columns[:, :3].astype(np.float64)
     if convention == "mmdet3d":

@@ -205,7 +205,7 @@ def mesh_folder_point_sets(directory) -> list:
     return [point_set_from_mesh(mesh, name, source) for name, mesh, source in mesh_folder_meshes(directory)]
 
 
-def read_gt_database(path, convention: str, min_points: int = 5) -> list:
+def read_gt_database(path, convention: str | None = None, min_points: int = 5) -> list:
     """The objects of an mmdetection3d or OpenPCDet ground-truth database
     (gt_database.read_objects) as point sets, their front at +x."""
     return [PointSet(obj.name, obj.points, obj.dims, obj.source, obj.features, obj.class_name, "database")

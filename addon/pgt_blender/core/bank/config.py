@@ -106,10 +106,10 @@ def _grid_range(value):
 _KEYS = {
     "bank.dataset": ("dataset", lambda v: v in DATASETS, f"one of {', '.join(DATASETS)}"),
     "bank.sensor": ("sensor", lambda v: isinstance(v, str) and "\0" not in v, "a preset name or a .toml path"),
-    "bank.formats": ("formats", lambda v: isinstance(v, list) and v and set(v) <= set(FORMATS),
-                     f"a non-empty list of {', '.join(FORMATS)}"),
-    "bank.seed": ("seed", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
-                  "an integer >= 0"),
+    "bank.formats": ("formats", lambda v: isinstance(v, list) and v and set(v) <= set(FORMATS)
+                     and len(set(v)) == len(v), f"a non-empty list of {', '.join(FORMATS)}, each once"),
+    "bank.seed": ("seed", lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2**31,
+                  "an integer 0 .. 2,147,483,647 (as every command's --seed)"),
     "bank.min_points": ("min_points", _positive_int, "an integer >= 1"),
     "bank.max_distance": ("max_distance", _non_negative, "metres >= 0 (0: no filter)"),
     "bank.sweeps": ("sweeps", lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= MAX_SWEEPS,
@@ -172,9 +172,9 @@ def config_from_table(table: dict, path="bank config") -> BankConfig:
             if not valid(value):
                 raise InputError(path, f"{name} = {value!r}: expected {expected}")
             values[attribute] = tuple(value) if isinstance(value, list) else value
-    for attribute in ("sensor", "intensity_checkpoint"):
-        value = values.get(attribute, "")
-        if value.endswith((".toml", ".pt")) and not Path(value).is_absolute() and isinstance(path, Path):
+    for attribute, is_path in (("sensor", lambda v: v.endswith(".toml")), ("intensity_checkpoint", bool)):
+        value = values.get(attribute, "")  # a sensor may be a preset's name; a checkpoint is always a path
+        if is_path(value) and not Path(value).is_absolute() and isinstance(path, Path):
             values[attribute] = str((path.parent / value).resolve())
     config = BankConfig(**values)
     poses = np.prod([grid_count(*values) for values in (config.headings_deg, config.x, config.y)], dtype=float)

@@ -186,7 +186,7 @@ def read_identity(out: Path) -> dict:
         raise InputError(out, f"is not a bank folder: no {WORK}/identity.json")
     try:
         ident = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
+    except (OSError, ValueError, RecursionError) as error:  # ValueError: bad JSON or UTF-8, a huge integer
         raise InputError(path, f"damaged ({type(error).__name__}: {error}); --overwrite starts the bank "
                                f"anew") from None
     if not (isinstance(ident, dict) and {"config", "objects", "class_names", "chunks"} <= ident.keys()):

@@ -28,12 +28,10 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import apart_from_inputs, atomic_output
-from ..gt_database import load_infos
+from ..gt_database import CONVENTION_NOTES, detected_convention, load_infos
 from .folder import info_path_root
 
 BOX_LAYOUTS = {7: "KITTI layout", 9: "nuScenes layout"}
-CONVENTIONS = {"openpcdet": "OpenPCDet infos (points about the box centre, no group_id)",
-               "mmdet3d": "mmdetection3d infos (points about the box bottom, a group_id each)"}
 MAX_PGT_PER_GT = 1000.0  # a bank entry per real one is the paper's 1:1; beyond this, a typo
 
 
@@ -150,12 +148,12 @@ def _output_path(path, bank_root: Path, root: Path) -> str:
 
 def _check_compatible(real_path: Path, real: dict, bank_path: Path, bank: dict) -> None:
     """The bank's infos must fit the real database's format: the same framework's
-    points (_convention), the same box length and every key all real infos carry (the
+    points (detected_convention), the same box length and every key all real infos carry (the
     samplers read them: difficulty, bbox, ...), except group_id, which the merge assigns."""
-    real_convention, bank_convention = _convention(real), _convention(bank)
+    real_convention, bank_convention = detected_convention(real), detected_convention(bank)
     if None not in (real_convention, bank_convention) and real_convention != bank_convention:
-        raise InputError(bank_path, f"holds {CONVENTIONS[bank_convention]} but the real database "
-                                    f"({real_path.name}) holds {CONVENTIONS[real_convention]}: the sampler would "
+        raise InputError(bank_path, f"holds {CONVENTION_NOTES[bank_convention]} but the real database "
+                                    f"({real_path.name}) holds {CONVENTION_NOTES[real_convention]}: the sampler would "
                                     f"shift every bank object by half its height; mix the bank's "
                                     f"{real_convention}/ pickle")
     real_length, bank_length = _box_length(real_path, real), _box_length(bank_path, bank)
@@ -170,17 +168,6 @@ def _check_compatible(real_path: Path, real: dict, bank_path: Path, bank: dict) 
             if missing:
                 raise InputError(bank_path, f"info {index} of '{name}' lacks {', '.join(missing)}, "
                                             f"which every info of {real_path.name} has")
-
-
-def _convention(infos: dict):
-    """Whose ground-truth database ``infos`` is: "mmdet3d" when every info carries a
-    group_id (mmdet3d's create_groundtruth_database always writes one; its points are
-    about the box bottom), "openpcdet" when none does (points about the box centre),
-    None when empty or mixed."""
-    tagged = {"group_id" in info for entries in infos.values() for info in entries}
-    if len(tagged) != 1:
-        return None
-    return "mmdet3d" if tagged.pop() else "openpcdet"
 
 
 def _box_length(path: Path, infos: dict):

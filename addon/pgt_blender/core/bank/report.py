@@ -443,8 +443,8 @@ def _plot_quality(axes, quality: dict) -> None:
             ("w1_grade", "W1 grade (deg)", None))
     width = 0.8 / (len(keys) + 1)
     for index, (key, label, reading) in enumerate(keys):
-        values = [quality["classes"][name][key] for name in names]
-        values = [reading(value) for value in values] if reading else values
+        values = [quality["classes"][name][key] for name in names]  # None: not measured (too few objects)
+        values = [np.nan if value is None else reading(value) if reading else value for value in values]
         axes.bar(np.arange(len(names)) + index * width, values, width, label=label)
     frechet = [quality["classes"][name]["frechet"] for name in names]
     if names and all(value is not None for value in frechet):

@@ -26,6 +26,8 @@ from .support import plane_foreground
 from .view_color import ViewColorSums
 from .visibility import VisibilitySettings, element_spacing, view_hits
 
+VIEW_COLOR_ATTRIBUTES = ("view_hit", "view_count")  # what the view color adds per element
+
 FOREGROUND_MODES = ("none", "masks", "plane")
 
 
@@ -66,6 +68,9 @@ def apply_capture(recon: Reconstruction, options: CaptureOptions) -> Reconstruct
         return recon
     if len(recon.faces):
         raise InputError(recon.source, "view color and foreground work on points, splats and voxels, not on a mesh")
+    taken = [name for name in VIEW_COLOR_ATTRIBUTES if name in recon.attributes] if options.view_color else []
+    if taken:  # the file's own values would be lost without a word
+        raise InputError(recon.source, f"has its own '{taken[0]}' property, which the view color makes; rename it")
     rng = np.random.default_rng(options.seed)
     spacing = element_spacing(recon.positions, rng)
     report = {"spacing": round(spacing, 9), "cameras": len(recon.cameras)}
@@ -128,8 +133,7 @@ def _apply_view_color(recon: Reconstruction, color: ViewColorSums) -> dict:
         recon.colors = np.ones((len(recon.positions), 4), np.float32)
     recon.colors[:, :3] = color.colors(recon.colors[:, :3])
     hit = color.counts > 0
-    recon.attributes["view_hit"] = hit
-    recon.attributes["view_count"] = color.counts
+    recon.attributes.update(zip(VIEW_COLOR_ATTRIBUTES, (hit, color.counts)))
     return {"sh_degree": color.degree, "hit": int(hit.sum()), "never_hit": int((~hit).sum()),
             "hit_share": round(float(hit.mean()), 6),
             "mean_views_per_hit_element": round(float(color.counts[hit].mean()), 3) if hit.any() else 0.0}

@@ -58,13 +58,19 @@ def chosen_indices(count: int, every: int, pick: str, scores=None) -> np.ndarray
 def folder_images(folder) -> list:
     """The image names (IMAGE_SUFFIXES, any case) directly in ``folder``, sorted; their
     order is the order frames are matched in. InputError when there are none, or for
-    the first whose header is not a usable image (checked_image_size)."""
+    the first whose name is not UTF-8 (COLMAP's database and model hold UTF-8 names) or
+    whose header is not a usable image (checked_image_size)."""
     folder = Path(folder)
     names = sorted(entry.name for entry in folder.iterdir()
                    if entry.is_file() and entry.suffix.lower() in IMAGE_SUFFIXES and not entry.name.startswith("."))
     if not names:
         raise InputError(folder, f"no images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
     for name in names:
+        try:
+            name.encode()  # a name that is not UTF-8 holds surrogate escapes, which do not encode
+        except UnicodeEncodeError:
+            raise InputError(folder / name, "the file name is not UTF-8 text, which COLMAP stores; "
+                                            "rename the image") from None
         checked_image_size(folder / name)
     return names
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import TEXT_LIMIT, regular_file
+from .source import unusable_as_float32
 
 DATAPARSER_TRANSFORMS = "dataparser_transforms.json"
 
@@ -50,7 +51,7 @@ def to_model_frame(cameras: list, path) -> list:
         world_from_camera[:3, :3] = rotation @ view.world_from_camera[:3, :3]
         with np.errstate(over="ignore", invalid="ignore"):  # named below
             world_from_camera[:3, 3] = scale * (rotation @ view.world_from_camera[:3, 3] + translation)
-        if not np.isfinite(world_from_camera).all():
+        if unusable_as_float32(world_from_camera).any():  # Blender keeps float32 matrices
             raise InputError(path, f"moves camera {view.name!r} beyond the floating-point range: "
                                    f"scale and translation are not this run's")
         moved.append(replace(view, world_from_camera=world_from_camera))

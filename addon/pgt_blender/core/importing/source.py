@@ -11,6 +11,7 @@ from ..reconstruction import CameraView
 _CHUNK = 1 << 20
 MAX_IMAGE_SIDE = 65536  # px: Blender's largest render resolution, which an imported view's camera takes
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+MAX_FOCAL_PX = 1e8  # a 2 m lens on a 36 mm sensor over 65,536 px is 3.6e6 px; more is a unit or file mistake
 
 
 def sha256_of_files(paths) -> str:
@@ -51,15 +52,17 @@ def unusable_as_float32(values: np.ndarray) -> np.ndarray:
 
 def checked_camera(path: Path, view: CameraView) -> CameraView:
     """``view``, or InputError naming ``path`` and the view for an image size outside 1 ..
-    MAX_IMAGE_SIDE px, a focal length that is not positive and finite, or a principal
-    point or pose that is not finite (each would break the view's Blender camera)."""
+    MAX_IMAGE_SIDE px, a focal length that is not positive and within MAX_FOCAL_PX, or a
+    principal point or pose that is not finite once stored as float32, as Blender keeps
+    it (each would break the view's Blender camera)."""
     where = f"camera of image {view.name!r}"
     if not (1 <= view.width <= MAX_IMAGE_SIDE and 1 <= view.height <= MAX_IMAGE_SIDE):
         raise InputError(path, f"{where}: image size {view.width} x {view.height} px is outside 1 .. {MAX_IMAGE_SIDE}")
-    if not (np.isfinite([view.fx, view.fy]).all() and view.fx > 0 and view.fy > 0):
-        raise InputError(path, f"{where}: focal lengths {view.fx:g}, {view.fy:g} px must be positive finite numbers")
-    if not np.isfinite([view.cx, view.cy]).all():
+    if not (0 < view.fx <= MAX_FOCAL_PX and 0 < view.fy <= MAX_FOCAL_PX):  # NaN compares False
+        raise InputError(path, f"{where}: focal lengths {view.fx:g}, {view.fy:g} px must be positive numbers up to "
+                               f"{MAX_FOCAL_PX:g}")
+    if unusable_as_float32(np.array([view.cx, view.cy])).any():
         raise InputError(path, f"{where}: principal point {view.cx:g}, {view.cy:g} px must be finite")
-    if not np.isfinite(view.world_from_camera).all():
-        raise InputError(path, f"{where}: its pose is not finite")
+    if unusable_as_float32(view.world_from_camera).any():
+        raise InputError(path, f"{where}: its pose is not finite (as float32)")
     return view

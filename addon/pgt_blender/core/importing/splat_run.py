@@ -14,11 +14,12 @@ from the COLMAP model the run trained on (``source_path``/sparse/0 when that pat
 absolute, or RUN/sparse/0).
 """
 
+import os
 import re
 from pathlib import Path
 
 from ..errors import InputError
-from ..files import TEXT_LIMIT, regular_file
+from ..files import TEXT_LIMIT, listed, regular_file
 from .cameras import load_cameras, read_cameras_json
 from .colmap import MODEL_FILES
 
@@ -28,10 +29,16 @@ _SOURCE_PATH = re.compile(r"source_path=(['\"])(.*?)\1")
 
 def run_ply(folder) -> Path | None:
     """``point_cloud.ply`` of the highest iteration in the run ``folder``, or None when
-    ``folder`` is not a 3DGS output folder."""
-    iterations = [(int(match.group(1)), entry) for entry in (Path(folder) / "point_cloud").glob("iteration_*")
-                  if (match := _ITERATION.search(entry.name)) and (entry / "point_cloud.ply").is_file()]
-    return max(iterations)[1] / "point_cloud.ply" if iterations else None
+    ``folder`` is not a 3DGS output folder. InputError when that newest one is no
+    regular file (a link leading nowhere, a pipe, a folder) or ``point_cloud/`` cannot
+    be read: an older iteration or a COLMAP reading in its place would be a silent
+    mistake."""
+    point_cloud = Path(folder) / "point_cloud"
+    if not point_cloud.is_dir():
+        return None
+    iterations = [(int(match.group(1)), entry / "point_cloud.ply") for entry in listed(point_cloud, "iteration_*")
+                  if (match := _ITERATION.search(entry.name)) and os.path.lexists(entry / "point_cloud.ply")]
+    return regular_file(max(iterations)[1]) if iterations else None
 
 
 def run_of(ply) -> Path | None:
@@ -45,7 +52,7 @@ def run_of(ply) -> Path | None:
 def run_cameras(run) -> list:
     """The cameras of a 3DGS run (see the module docstring); [] when it has none."""
     run = Path(run)
-    if (run / "cameras.json").is_file():
+    if os.path.lexists(run / "cameras.json"):  # whatever it is: read_cameras_json names what is wrong with it
         return read_cameras_json(run / "cameras.json")
     for model in _colmap_candidates(run):
         if all((model / f"{name}.bin").exists() or (model / f"{name}.txt").exists() for name in MODEL_FILES):

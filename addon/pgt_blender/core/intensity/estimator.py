@@ -42,10 +42,13 @@ class IntensityEstimator:
 
     @classmethod
     def load(cls, path, dataset: str | None = None) -> "IntensityEstimator":
-        """The estimator saved at ``path`` (training's intensity.pt). InputError when
-        torch is missing, the file is missing, damaged or not such a checkpoint, or it
-        was trained on another ``dataset``'s intensities (when one is given)."""
+        """The estimator saved at ``path`` (training's intensity.pt, or the training's
+        output folder holding it). InputError when torch is missing, the file is
+        missing, damaged or not such a checkpoint, or it was trained on another
+        ``dataset``'s intensities (when one is given)."""
         path = Path(path)
+        if path.is_dir() and (path / "intensity.pt").exists():
+            path = path / "intensity.pt"
 
         def build(saved):
             config = checked_config(saved, {

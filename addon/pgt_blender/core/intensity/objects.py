@@ -71,10 +71,11 @@ def _intensities(path, values: np.ndarray, dataset: str) -> np.ndarray:
     return (values / maximum).astype(np.float32)[:, None]
 
 
-def gt_database_objects(path, convention: str, dataset: str, min_points: int = 1) -> list:
+def gt_database_objects(path, convention: str | None, dataset: str, min_points: int = 1) -> list:
     """Real objects of an OpenPCDet (``convention="openpcdet"``, points about the box
-    centre) or mmdetection3d (``"mmdet3d"``, about its bottom centre) ``*_dbinfos_*.pkl``
-    whose .bin files carry x, y, z, intensity[, ...] columns (gt_database.py)."""
+    centre) or mmdetection3d (``"mmdet3d"``, about its bottom centre; None: read from the
+    infos) ``*_dbinfos_*.pkl`` whose .bin files carry x, y, z, intensity[, ...] columns
+    (gt_database.py)."""
     from ..gt_database import read_objects
 
     objects = []
@@ -296,7 +297,7 @@ def material_mesh_rgb_objects(path, class_name: str, sensor, poses=RGB_POSES) ->
     return scanned_rgb_objects(target, face_rgb, class_name, Path(path).stem, sensor, poses)
 
 
-def real_objects(source, dataset: str, convention: str = "openpcdet") -> list:
+def real_objects(source, dataset: str, convention: str | None = None) -> list:
     """Real objects of a ground-truth database pickle or a KITTI folder."""
     source = Path(source)
     if source.suffix == ".pkl":
@@ -338,9 +339,11 @@ def paired_sets(real: list, rgb: list, dataset: str, min_points: int = DEFAULT_P
 
 def rgb_source(source) -> tuple:
     """(class name, path) of one RGB source, "class=mesh path"; (None, path) for a
-    folder of prepared objects."""
+    folder of prepared objects. InputError for "=mesh path", a mesh without its class."""
     if isinstance(source, str) and "=" in source:
         class_name, path = source.split("=", 1)
+        if not class_name.strip():
+            raise InputError(path, f"'{source}' names no class: give CLASS=MESH, e.g. car={path}")
         return class_name, Path(path)
     return None, Path(source)
 

@@ -130,11 +130,12 @@ def turn_points(points: np.ndarray, angle: float, lift: float) -> np.ndarray:
 def open_database(path, dataset: str, convention: str | None = None, max_distance: float = 54.0,
                   min_points: int = 5) -> EntryPool:
     """The EntryPool of a bank folder (its manifest names the info pickle; the
-    openpcdet format when it has both) or of an info pickle (``convention``, default
-    openpcdet; object files relative to the pickle's folder), for scans of ``dataset``
-    (its column count). InputError naming what is wrong."""
+    openpcdet format when it has both) or of an info pickle (``convention``, checked
+    and by default read from its infos: gt_database.database_convention; object files
+    relative to the pickle's folder), for scans of ``dataset`` (its column count).
+    InputError naming what is wrong."""
     from ..bank.folder import read_manifest
-    from ..gt_database import load_infos
+    from ..gt_database import database_convention, load_infos
     from ..scan.sensors import BIN_COLUMNS
 
     path = Path(path)
@@ -149,9 +150,10 @@ def open_database(path, dataset: str, convention: str | None = None, max_distanc
         pickle_path = path / manifest["info_pickles"][fmt]
         root = path / manifest["data_root"] if manifest.get("data_root") else path / fmt
     else:
-        fmt, pickle_path, root = convention or "openpcdet", path, path.parent
-    pool = EntryPool(load_infos(pickle_path, ("path", "box3d_lidar", "num_points_in_gt")), root, fmt,
-                     len(BIN_COLUMNS[dataset]), max_distance, min_points, source=pickle_path)
+        fmt, pickle_path, root = convention, path, path.parent
+    infos = load_infos(pickle_path, ("path", "box3d_lidar", "num_points_in_gt"))
+    pool = EntryPool(infos, root, database_convention(pickle_path, infos, fmt), len(BIN_COLUMNS[dataset]),
+                     max_distance, min_points, source=pickle_path)
     if not any(len(entries.ranges) for entries in pool.classes.values()):
         raise InputError(pickle_path, f"no entry within {max_distance:g} m with {min_points} or more points")
     return pool

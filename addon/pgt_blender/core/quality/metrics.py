@@ -61,9 +61,11 @@ def mmd_coverage(bank_to_real: np.ndarray) -> tuple:
 
 def one_nn_accuracy(bank_xyz: np.ndarray, real_xyz: np.ndarray, seed: int = 0) -> float:
     """Leave-one-out 1-NN accuracy between equal-sized bank and real sets (the larger
-    drawn down to the smaller's size, seeded); NaN when either set is empty."""
+    drawn down to the smaller's size, seeded); NaN when either set has fewer than two
+    objects (with one each, each one's nearest is the other's: 0 by construction, which
+    would read as better than the ideal 0.5)."""
     size = min(len(bank_xyz), len(real_xyz))
-    if size == 0:
+    if size < 2:
         return float("nan")
     rng = np.random.default_rng(seed)
     bank = bank_xyz[np.sort(rng.choice(len(bank_xyz), size, replace=False))]

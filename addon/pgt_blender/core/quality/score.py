@@ -27,27 +27,33 @@ METRICS = ("bank_objects", "real_objects", "frechet", "frechet_low", "frechet_hi
            "one_nn_accuracy", "w1_points", "w1_intensity", "w1_fill", "w1_grade")
 
 
-def encoder_key(real_pickle, convention: str, reference: str, limit, seed: int) -> str:
-    """What a cached encoder must have been trained from: the real pickle's bytes and
-    the sampling and training settings."""
+def encoder_key(real_sets: dict, dataset: str, seed: int) -> str:
+    """What a cached encoder must have been trained from: the very objects it learns
+    (``real_sets``' classes, points, intensities and distances: whatever pickle, root,
+    convention and sampling they came from) and the training settings."""
     from .encoder import FORMAT, STEPS
 
-    digest = hashlib.sha256(Path(real_pickle).read_bytes())
-    digest.update(f"{FORMAT} {convention} {reference} {limit} {seed} {STEPS}".encode())
+    digest = hashlib.sha256(f"{FORMAT} {dataset} {seed} {STEPS}".encode())
+    for name in sorted(real_sets):
+        found = real_sets[name]
+        digest.update(name.encode())
+        for values in (found.xyz, found.intensity, found.distance):
+            digest.update(np.ascontiguousarray(values).tobytes())
     return digest.hexdigest()
 
 
-def score_bank(bank, real, convention: str = "openpcdet", real_root=None, encoder=None, learned: bool = True,
+def score_bank(bank, real, convention: str | None = None, real_root=None, encoder=None, learned: bool = True,
                reference: str = "all", limit: int | None = None, seed: int = 0, progress: bool = False) -> dict:
     """{"dataset", "classes": {class: {metric: value}}, "unmatched": [names],
     "encoder": checkpoint path or None} for the bank folder ``bank`` against the real
-    info pickle ``real`` (``convention``, files under ``real_root``, default its folder;
+    info pickle ``real`` (``convention``, checked and by default read from its infos:
+    gt_database.database_convention; files under ``real_root``, default its folder;
     ``reference`` and ``limit``: sets.database_sets for the real side, ``limit``
     defaulting to 593 for "dense" and MAX_OBJECTS for "all"; the bank's classes are
     drawn down to MAX_OBJECTS too). ``encoder``: a
     checkpoint; without one and with ``learned``, one is trained on the real database
-    and cached in the bank's .work folder (reused while the real pickle and settings
-    are unchanged). ``learned`` False (or torch missing, see ``quality_available``)
+    and cached in the bank's .work folder (reused while the real objects it learns and
+    the settings are unchanged: encoder_key). ``learned`` False (or torch missing, see ``quality_available``)
     leaves the Fréchet values None."""
     info_pickle, bank_convention, dataset, bank_root = bank_database(bank)
     with progress_bar(progress, None, " objects", leave=False) as bar:
@@ -66,7 +72,7 @@ def score_bank(bank, real, convention: str = "openpcdet", real_root=None, encode
         from .encoder import STEPS, cached_encoder
         with progress_bar(progress, STEPS, " steps", leave=False) as bar:
             model = cached_encoder(Path(bank) / WORK / ENCODER_CACHE, real_sets, dataset,
-                                   encoder_key(real, convention, reference, limit, seed), seed,
+                                   encoder_key(real_sets, dataset, seed), seed,
                                    progress=bar.update if bar is not None else None)
     classes = {name: class_scores(bank_sets[name], real_sets[name], model, seed) for name in matched}
     return {"dataset": dataset, "classes": classes, "unmatched": sorted(set(bank_sets) ^ set(real_sets)),
@@ -86,7 +92,8 @@ def class_scores(bank_set, real_set, encoder, seed: int = 0) -> dict:
         bank_features, real_features = encoder.features(bank_set), encoder.features(real_set)
         found["frechet"] = metrics.frechet(bank_features, real_features)
         found["frechet_low"], found["frechet_high"] = metrics.frechet_interval(bank_features, real_features, seed)
-    return found
+    return {key: None if isinstance(value, float) and np.isnan(value) else value  # JSON null, the table's –
+            for key, value in found.items()}
 
 
 def quality_available() -> bool:

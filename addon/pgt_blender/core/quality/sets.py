@@ -17,7 +17,7 @@ import numpy as np
 
 from ..bank.folder import INTENSITY_BINS, MANIFEST, info_path_root, read_manifest
 from ..errors import InputError
-from ..gt_database import CONVENTIONS, iter_objects
+from ..gt_database import iter_objects
 from ..scan.sensors import INTENSITY_MAX, sensor_from_name
 
 SET_POINTS = 64  # points per object, as the paper's FID
@@ -70,15 +70,14 @@ def dense_reference(counts: np.ndarray, size: int = PAPER_REFERENCE_SIZE, groups
     return chosen[:size]
 
 
-def database_sets(info_pickle, convention: str, dataset: str, root=None, reference: str = "all",
+def database_sets(info_pickle, convention: str | None, dataset: str, root=None, reference: str = "all",
                   seed: int = 0, limit: int | None = None, min_points: int = 1, progress=None) -> dict:
     """{class name: ClassSet} of the database ``info_pickle`` (``convention`` openpcdet or
-    mmdet3d; its .bin intensities on ``dataset``'s scale). ``reference`` "dense" applies
+    mmdet3d, None: read from its infos, gt_database.database_convention; its .bin
+    intensities on ``dataset``'s scale). ``reference`` "dense" applies
     dense_reference (size ``limit`` or the paper's 593); "all" keeps every object, or
     ``limit`` of them drawn without replacement (seeded) when given. ``progress(n)`` is
     called after each object read."""
-    if convention not in CONVENTIONS:
-        raise ValueError(f"unknown convention {convention!r} ({', '.join(CONVENTIONS)})")
     if reference not in REFERENCES:
         raise ValueError(f"unknown reference sampling {reference!r} ({', '.join(REFERENCES)})")
     rng = np.random.default_rng(seed)
