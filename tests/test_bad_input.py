@@ -315,6 +315,14 @@ def place(change, problem, named):
     return build
 
 
+def sidewalk_map(folder) -> list:
+    """--map-polygons of one sidewalk square 200 m a side about the sensor (class layers
+    name a map's layers)."""
+    (folder / "map.json").write_text('[{"layer": "sidewalk", "polygon": [[-100, -100], [100, -100], [100, 100], '
+                                     '[-100, 100]]}]')
+    return ["--map-polygons", folder / "map.json"]
+
+
 def scan_of_one_object(folder, shared, kitti):
     """A ground-truth database file given as the scan (the pedestrian's 377 returns about
     its box bottom, the origin): nothing lies below the sensor."""
@@ -451,7 +459,7 @@ CASES = {
         map_elsewhere, "the map image does not cover the scene", lambda folder, kitti, inputs: folder / "map.png"),
     "place_objects with a class layer table of letters": place(
         lambda folder, shared, kitti: (folder / "layers.json").write_text('{"Pedestrian": "sidewalk"}')
-        and ["--class-layers", folder / "layers.json"],
+        and ["--class-layers", folder / "layers.json", *sidewalk_map(folder)],
         "class 'Pedestrian' has 'sidewalk': expected a list of layer names",
         lambda folder, kitti, inputs: folder / "layers.json"),
     "place_objects into a folder with a folder where its picture goes": place(  # found before the placement
@@ -482,7 +490,7 @@ CASES = {
     "a sensor file of 256 MB": scan(lambda folder, inputs: ["--sensor", oversized(folder / "sensor.toml")],
                                     "too large for what is read from it", in_folder("sensor.toml")),
     "place_objects with a class layer table of 256 MB": place(
-        lambda folder, shared, kitti: ["--class-layers", oversized(folder / "layers.json")],
+        lambda folder, shared, kitti: ["--class-layers", oversized(folder / "layers.json"), *sidewalk_map(folder)],
         "too large for what is read from it", lambda folder, kitti, inputs: folder / "layers.json"),
     "prepare_objects on a looping link": looping_ply("prepare_objects.py"),
     "export_bank on a prepared object that is a looping link": looping_ply("export_bank.py"),
