@@ -164,6 +164,7 @@ def test_the_sample_config_lists_every_key_at_its_default(tmp_path):
 @pytest.mark.parametrize("text, named", [
     ("[grid]\nheadingz = [0, 1, 1]\n", "grid.headingz"),
     ("[bank]\nmin_points = 0\n", "bank.min_points"),
+    ("[bank]\ndataset = \"kitti\"\nsweeps = 3\n", "bank.sweeps = 3: kitti files hold one sweep each"),
     ("[bank]\nformats = [\"openpcdet\", \"openpcdet\"]\n", "bank.formats = ['openpcdet', 'openpcdet']: expected "),
     ("[bank]\nseed = 99999999999999999999999\n", "bank.seed = 99999999999999999999999: expected an integer 0 .. "),
     ("[bank]\ndataset = \"waymo\"\n", "bank.dataset"),

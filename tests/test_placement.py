@@ -469,6 +469,23 @@ def test_pool_reads_both_conventions_the_same(banks):
     assert isinstance(pools[0], EntryPool)
 
 
+def test_an_entry_file_that_does_not_hold_its_points_is_named_unread(tmp_path):
+    """An entry's file against its info's point count, from its size before any read: a
+    (sparse) 8 GiB file is named at once, not read into memory."""
+    (tmp_path / "db").mkdir()
+    infos = {"Car": [{"name": "Car", "path": "db/0.bin", "box3d_lidar": np.array([10.0, 0, -1, 4, 2, 1.5, 0]),
+                      "num_points_in_gt": 10}]}
+    (tmp_path / "dbinfos.pkl").write_bytes(pickle.dumps(infos))
+    pool = open_database(tmp_path / "dbinfos.pkl", "kitti")
+    np.zeros((12, 4), np.float32).tofile(tmp_path / "db" / "0.bin")
+    with pytest.raises(InputError, match="0.bin: 12 points, but its info declares 10"):
+        pool.load(infos["Car"][0])
+    with open(tmp_path / "db" / "0.bin", "wb") as stream:
+        stream.truncate(8 * 2**30)
+    with pytest.raises(InputError, match="0.bin: 536870912 points, but its info declares 10"):
+        pool.load(infos["Car"][0])
+
+
 def test_an_info_pickles_convention_is_read_from_it_and_checked(banks):
     """A bank's pickles given as plain info pickles: each read in its own convention
     (mmdet3d's infos carry a group_id each), the same entries as the bank folder gives;

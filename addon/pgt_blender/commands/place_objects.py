@@ -35,7 +35,7 @@ from ..core.placement.folder import check_placement_folder, write_placement
 from ..core.placement.maps import ImagePose, checked_class_layers, map_from_image, map_from_polygons, read_polygons
 from ..core.placement.place import PlacementConfig, place_objects
 from ..core.placement.scenes import frame_warning, read_scene
-from ..core.scan.sensors import PRESETS, sensor_from_name
+from ..core.scan.sensors import BIN_COLUMNS, sensor_from_name
 
 DEFAULT_COUNT = 3  # objects per bank class when --objects is not given
 MAX_OBJECTS = 1000  # per class: more than a scene holds
@@ -57,7 +57,7 @@ def main(argv: list) -> int:
     parser.add_argument("--bank", type=Path, required=True, help="bank folder or ground-truth info pickle")
     parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True,
                         help="folder to write scan.bin, boxes.json, birdseye.png")
-    parser.add_argument("--dataset", choices=sorted(PRESETS), help="the scene's dataset (default: from --info)")
+    parser.add_argument("--dataset", choices=sorted(BIN_COLUMNS), help="the scene's dataset (default: from --info)")
     parser.add_argument("--convention", choices=("openpcdet", "mmdet3d"),
                         help="the database's layout (a bank folder: which format's pickle, default openpcdet; "
                              "an info pickle: checked, default: read from the file, where mmdet3d's infos carry "

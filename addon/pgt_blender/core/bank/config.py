@@ -14,7 +14,7 @@ from ..classes import DATASETS
 from ..errors import InputError, finite_number
 from ..files import TEXT_LIMIT, read_toml, regular_file
 from ..scan.raycast import ENGINES
-from ..scan.sensors import INTENSITY_MAX
+from ..scan.sensors import BIN_COLUMNS, INTENSITY_MAX
 
 FORMATS = ("openpcdet", "mmdet3d")
 # Datasets whose released files carry no measured intensity: the lyft-dataset-sdk writes
@@ -184,6 +184,9 @@ def config_from_table(table: dict, path="bank config") -> BankConfig:
     if config.constant_intensity is not None and config.constant_intensity > INTENSITY_MAX[config.dataset]:
         raise InputError(path, f"bank.intensity = {config.intensity!r}: above {config.dataset}'s maximum "
                                f"{INTENSITY_MAX[config.dataset]:g}")
+    if config.sweeps > 1 and "time_lag" not in BIN_COLUMNS[config.dataset]:
+        raise InputError(path, f"bank.sweeps = {config.sweeps}: {config.dataset} files hold one sweep each, with no "
+                               f"time column to keep merged sweeps apart; leave it at 0 (the dataset's 1)")
     if config.constant_intensity is not None and config.intensity_checkpoint:
         raise InputError(path, f"bank.intensity_checkpoint is set but {config.dataset} intensities are the constant "
                                f"{config.constant_intensity:g}; set bank.intensity = \"model\" to use the checkpoint")

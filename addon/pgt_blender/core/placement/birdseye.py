@@ -1,6 +1,6 @@
 """The placement's bird's-eye picture (``birdseye.png``), sensor frame seen from above
 (x to the right, y up, the sensor at the centre): map layers (faint colours), the
-area where the placed classes may stand (green), the scene's returns coloured by
+area where the classes asked may stand (green), the scene's returns coloured by
 height over the estimated ground (ground returns grey), the scene points removed in
 the inserted objects' shadows (magenta), the scene's boxes (black) and the inserted
 ones (red, with their class). matplotlib is imported only here."""
@@ -38,7 +38,8 @@ def birdseye_png(scene_points: np.ndarray, placement, title: str, extent: float 
         axes.imshow(labels, origin="lower", extent=(-radius, radius, -radius, radius), alpha=0.25,
                     cmap=ListedColormap(colors), vmin=-0.5, vmax=len(colors) - 0.5, interpolation="nearest")
         legend += [Patch(color=color, alpha=0.25, label=f"map: {name}") for name, color in zip(layer_map.layers, colors)]
-    classes = sorted(set(placement.names[placement.inserted]))
+    # every class asked, placed or not: where one could stand says most when none did
+    classes = sorted(set(placement.names[placement.inserted]) | set(placement.missing))
     if classes:
         centres = -extent + (np.arange(int(2 * extent / GRID)) + 0.5) * GRID
         grid_x, grid_y = np.meshgrid(centres, centres)

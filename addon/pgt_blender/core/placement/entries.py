@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..files import read_float32_rows
+from ..files import read_float32_rows, regular_file
 from ..gt_database import CONVENTIONS
 
 
@@ -81,10 +81,12 @@ class EntryPool:
         if self._load is not None:
             return self._load(info)
         path = self.root / info["path"]
-        rows = read_float32_rows(path, self.columns, "point columns")
-        if len(rows) != int(info["num_points_in_gt"]):
-            raise InputError(path, f"{len(rows)} points, but its info declares {info['num_points_in_gt']}")
-        rows = rows.copy()  # stored relative to box3d_lidar[:3]: the centre, or mmdet3d's bottom centre
+        row_bytes = 4 * self.columns
+        size = regular_file(path).stat().st_size  # checked before the read: a file of gigabytes stays unread
+        if size % row_bytes == 0 and size // row_bytes != int(info["num_points_in_gt"]):
+            raise InputError(path, f"{size // row_bytes} points, but its info declares {info['num_points_in_gt']}")
+        # stored relative to box3d_lidar[:3]: the centre, or mmdet3d's bottom centre
+        rows = read_float32_rows(path, self.columns, "point columns").copy()
         rows[:, :3] += np.asarray(info["box3d_lidar"][:3], np.float32)
         return rows
 
