@@ -90,28 +90,19 @@ def markdown_table(header: list, rows: list, align: str = "") -> str:
     return "\n".join(lines)
 
 
-def command(main):
-    """The entry point of ``main(argv) -> int``: the arguments after ``--`` when Blender
-    runs it, else ``argv[1:]``; bad input as one line; the code through :func:`exit`.
-    :func:`launch` calls what this returns."""
-    def run() -> None:
-        exit(run_main(main, script_argv()))
-    return run
-
-
 def launch(name: str) -> None:
-    """Run the command ``name`` (commands/<name>.py: its ``run``), imported here, so that
-    Ctrl-C while its libraries load (bpy, scipy, torch: up to a second) is ``error:
-    interrupted`` too, not a traceback. The headless_scripts/ shims call it, and the
-    console scripts (pyproject.toml) through ``launchers``."""
+    """Run the command ``name`` (commands/<name>.py: its ``main(argv) -> int``) on the
+    script's arguments (script_argv) and end with its code through :func:`exit`. The
+    module is imported under run_main, so Ctrl-C while its libraries load (bpy, scipy,
+    torch: up to a second) is ``error: interrupted`` too, not a traceback. The
+    headless_scripts/ shims call it, and the console scripts (pyproject.toml) through
+    ``launchers``."""
     import importlib
 
-    try:
-        module = importlib.import_module(f".commands.{name}", __package__)
-    except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        exit(130)
-    module.run()
+    def main(argv: list) -> int:
+        return importlib.import_module(f".commands.{name}", __package__).main(argv)
+
+    exit(run_main(main, script_argv()))
 
 
 class _Launchers:

@@ -110,6 +110,3 @@ def export_demo_bank(out: Path) -> tuple:
     seconds = time.perf_counter() - started
     write_report(out)
     return out, manifest, seconds
-
-
-run = cli.command(main)

@@ -219,6 +219,3 @@ def main(argv: list) -> int:
     if not (args.assemble or args.blend or args.objects or _open_blend_file()):
         parser.error("no input: give --blend FILE, --objects DIR, or run in Blender with a .blend")
     return export_bank(args)
-
-
-run = cli.command(main)

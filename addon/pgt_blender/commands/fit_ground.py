@@ -48,6 +48,3 @@ def main(argv: list) -> int:
     print(f"\nfrom the {fit['used']} boxes with >= {MIN_GROUND_POINTS} ground returns: "
           f"grade_deg = {_number(fit['grade_deg'])}, slope_deg = {_number(fit['slope_deg'])}")
     return 0
-
-
-run = cli.command(main)

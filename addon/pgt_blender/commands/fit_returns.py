@@ -150,6 +150,3 @@ def main(argv: list) -> int:
     if args.out:
         print(f"wrote {args.out}")
     return 0
-
-
-run = cli.command(main)

@@ -35,7 +35,8 @@ def scan_files(paths: list) -> list:
         found = listed(path, "*.bin") if path.is_dir() else [path]
         if not found:
             raise InputError(path, "holds no *.bin scans")
-        files |= {file.resolve(): file for file in found if file.resolve() not in files}
+        for file in found:
+            files.setdefault(file.resolve(), file)
     return list(files.values())
 
 
@@ -118,6 +119,3 @@ def main(argv: list) -> int:
     if args.out:
         print(f"wrote {args.out}")
     return 0
-
-
-run = cli.command(main)

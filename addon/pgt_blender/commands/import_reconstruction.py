@@ -72,6 +72,3 @@ def main(argv: list) -> int:
               f"{summary['faces']} faces, {summary['cameras']} cameras"
               + (f" -> {args.out}" if args.out else ""))
     return 0
-
-
-run = cli.command(main)

@@ -50,6 +50,3 @@ def main(argv: list) -> int:
     gt, pgt = summary["ratio"]
     print(f"\nwrote {summary['out']} (asked GT:PGT {gt:g}:{pgt:g}, seed {summary['seed']})")
     return 0
-
-
-run = cli.command(main)

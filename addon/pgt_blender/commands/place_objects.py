@@ -162,6 +162,3 @@ def _scene_map(args, lidar_to_world: np.ndarray):
         image = np.round(image * 255).astype(np.uint8)
     return map_from_image(image, _json(args.map_legend), ImagePose(*args.map_pose), lidar_to_world,
                           source=args.map, legend_source=args.map_legend)
-
-
-run = cli.command(main)

@@ -96,6 +96,3 @@ def main(argv: list) -> int:
               f"{heading_label(heading) + score:>29}  [{dims}]")
     print(f"\n{len(inputs) - failures} of {len(inputs)} prepared into {args.out}")
     return 1 if failures else 0
-
-
-run = cli.command(main)

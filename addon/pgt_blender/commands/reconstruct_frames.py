@@ -106,6 +106,3 @@ def _quiet_colmap(quiet: bool) -> None:
     import pycolmap
 
     pycolmap.logging.minloglevel = pycolmap.logging.FATAL if quiet else pycolmap.logging.WARNING
-
-
-run = cli.command(main)

@@ -159,6 +159,3 @@ def main(argv: list) -> int:
           f"({stats['efficiency']:.0%} hit) in {stats['ms']:.2f} ms; intensity: {intensity_note}\n"
           f"box [x, y, z, dx, dy, dz, heading, vx, vy] = [{box}]\nwrote {args.out}")
     return 0
-
-
-run = cli.command(main)

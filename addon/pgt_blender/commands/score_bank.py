@@ -63,6 +63,3 @@ def main(argv: list) -> int:
             stream.write(json.dumps(scores, indent=2, sort_keys=True).encode())
         print(f"wrote {args.json}")
     return 0
-
-
-run = cli.command(main)

@@ -105,6 +105,3 @@ def main(argv: list) -> int:
         print(f"  {source['point_sets']:5d} x {source['source']}")
     print(f"wrote {args.out} ({args.out.stat().st_size / 1024:.0f} KiB)")
     return 0
-
-
-run = cli.command(main)

@@ -112,6 +112,3 @@ def main(argv: list) -> int:
     print(f"inference: {inference_rate(final, rgb):.3g} points/s over the rgb objects")
     print(f"wrote {final} ({final.stat().st_size / 1024:.0f} KiB), checkpoint.pt, losses.csv, config.json")
     return 0
-
-
-run = cli.command(main)

@@ -6,6 +6,8 @@ Gaussian noise, sigma 0.1, clipped to +-1 sigma. Here the noise is *relative*
 datasets that publish no std (KITTI, Lyft).
 """
 
+import warnings
+
 import numpy as np
 
 from ..classes import CLASS_SIZES
@@ -52,8 +54,6 @@ def scale_to(dims, target, uniform: bool = False, source="size") -> tuple:
     if uniform:
         factors = np.full(3, np.exp(np.log(factors).mean()))
     elif factors.max() > MAX_STRETCH * factors.min():
-        import warnings
-
         warnings.warn(f"{source}: sizing stretches one axis {factors.max() / factors.min():.1f}x more than another "
                       f"(box {np.round(dims / dims.max(), 2).tolist()} of its length against "
                       f"{np.round(target / target.max(), 2).tolist()}): a part of a vehicle, or another class?",

@@ -184,11 +184,7 @@ def read_identity(out: Path) -> dict:
     path = out / WORK / "identity.json"
     if not path.is_file():
         raise InputError(out, f"is not a bank folder: no {WORK}/identity.json")
-    try:
-        ident = json.loads(path.read_text())
-    except (OSError, ValueError, RecursionError) as error:  # ValueError: bad JSON or UTF-8, a huge integer
-        raise InputError(path, f"damaged ({type(error).__name__}: {error}); --overwrite starts the bank "
-                               f"anew") from None
+    ident = _json_file(path, "; --overwrite starts the bank anew")
     if not (isinstance(ident, dict) and {"config", "objects", "class_names", "chunks"} <= ident.keys()):
         raise InputError(path, "not a bank identity (config, objects, class_names, chunks); --overwrite starts "
                                "the bank anew")
@@ -313,14 +309,19 @@ def info_path_root(info_pickle: Path) -> Path:
 def _manifest_json(path: Path) -> dict:
     """The JSON object of the bank manifest ``path`` (an existing file); InputError
     naming it when it is no regular file within TEXT_LIMIT, damaged, or no object."""
-    regular_file(path, TEXT_LIMIT)
-    try:
-        manifest = json.loads(path.read_text())
-    except (OSError, ValueError, RecursionError) as error:  # ValueError: bad JSON or UTF-8, a huge integer
-        raise InputError(path, f"damaged ({type(error).__name__}: {error})") from None
+    manifest = _json_file(regular_file(path, TEXT_LIMIT))
     if not isinstance(manifest, dict):
         raise InputError(path, "not a bank manifest (config, info_pickles, entries)")
     return manifest
+
+
+def _json_file(path: Path, fix: str = ""):
+    """The JSON value of the bank's own file ``path``; InputError "damaged (...)" naming
+    it, then ``fix``, when it cannot be read or parsed."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError) as error:  # ValueError: bad JSON or UTF-8, a huge integer
+        raise InputError(path, f"damaged ({type(error).__name__}: {error}){fix}") from None
 
 
 def _data_root(manifest: Path, value):
