@@ -206,6 +206,9 @@ def spoiled_bank(key, value, problem):
     return build
 
 
+SMALL_GRID = {"grid": {"headings_deg": [0, 0, 1], "x": [10, 10, 1], "y": [0, 0, 1]}}
+
+
 def bank(table: dict, problem, named="bank.toml", sidecar=None):
     """export_bank.py on a copy of the prepared truck with ``table`` as the config and
     ``sidecar(record)`` (if given) as its sidecar."""
@@ -225,11 +228,12 @@ def bank(table: dict, problem, named="bank.toml", sidecar=None):
     return build
 
 
-def bank_with(extra, problem, named):
-    """export_bank.py as ``bank`` makes it (SMALL_GRID), plus ``extra(folder)`` arguments."""
+def bank_with(extra, problem, named, table=SMALL_GRID):
+    """export_bank.py as ``bank`` makes it (``table``), plus ``extra(folder, inputs)``
+    arguments; the error names ``named(folder, inputs)``."""
     def build(folder, inputs):
-        command, _, _ = bank(SMALL_GRID, problem)(folder, inputs)
-        return command + extra(folder), named(folder), problem
+        command, _, _ = bank(table, problem)(folder, inputs)
+        return command + extra(folder, inputs), named(folder, inputs), problem
     return build
 
 
@@ -341,7 +345,6 @@ def map_elsewhere(folder, shared, kitti):
     return ["--map", folder / "map.png", "--map-pose", "1000", "1000", "0.1", "--map-legend", folder / "legend.json"]
 
 
-SMALL_GRID = {"grid": {"headings_deg": [0, 0, 1], "x": [10, 10, 1], "y": [0, 0, 1]}}
 CASES = {
     # reading reconstructions
     "PLY body shorter than its header": import_ply("element vertex 2\n" + XYZ, "1 2 3\n", "declares 2 data rows"),
@@ -402,6 +405,9 @@ CASES = {
                                      lambda folder, inputs: inputs["points"]),
     "scan out of the sensor's range": scan(lambda f, i: ["--x", 500], "no returns at x = 500 m, y = 0 m: the object is "
                                            "out of the nuscenes sensor's range or view there; nothing written"),
+    "kitti sweeps merged into a .bin": scan(lambda f, i: ["--sensor", "kitti", "--sweeps", 3, "--speed", 5],
+                                            "kitti .bin files have no time column to keep 3 merged sweeps apart",
+                                            in_folder("scan.bin")),
     "unknown sensor preset": scan(lambda f, i: ["--sensor", "velodyne128"], "not a sensor preset",
                                   lambda folder, inputs: "velodyne128"),
     "sensor TOML unreadable": scan(sensor_file("columns = "), "not a readable TOML file", in_folder("sensor.toml")),
@@ -447,11 +453,15 @@ CASES = {
     "export_bank --real crafted": crafted_pickle("export_bank.py", "--real",
                                                  ("--objects", "prepared", "--workers", "1")),
     "export_bank with a dataset root that is no folder": bank_with(
-        lambda folder: ["--data-root", folder / "no-root"], "the dataset root is not a folder",
-        lambda folder: folder / "no-root"),  # named before any chunk is exported
+        lambda folder, _: ["--data-root", folder / "no-root"], "the dataset root is not a folder",
+        lambda folder, _: folder / "no-root"),  # named before any chunk is exported
     "export_bank on a Ray address nobody answers": bank_with(
-        lambda folder: ["--executor", "ray", "--address", "127.0.0.1:1"], "no Ray cluster answers there",
-        lambda folder: "127.0.0.1:1"),  # ray.init retried it without end
+        lambda folder, _: ["--executor", "ray", "--address", "127.0.0.1:1"], "no Ray cluster answers there",
+        lambda folder, _: "127.0.0.1:1"),  # ray.init retried it without end
+    "export_bank --real whose infos contradict --real-convention": bank_with(
+        lambda _, inputs: ["--real", inputs["infos"], "--real-convention", "openpcdet"],
+        "holds mmdetection3d infos (points about the box bottom, a group_id each), not openpcdet's",
+        lambda _, inputs: inputs["infos"], {**SMALL_GRID, "bank": {"dataset": "kitti"}}),  # before the export
     # placement into real scenes
     "place_objects on a scan without ground": place(scan_of_one_object, "no ground found",
                                                     lambda folder, kitti, inputs: kitti / "velodyne" / "000001.bin"),

@@ -247,6 +247,18 @@ def test_a_bad_real_database_raises_and_writes_nothing(bank_copy, tmp_path):
     assert_no_report(bank_copy)
 
 
+def test_a_real_object_file_of_gigabytes_is_named_unread(bank_copy):
+    """A (sparse) 8 GiB object file in a real database: named from its size against its
+    info's point count, before numpy would read it all."""
+    real = bank_copy / "mmdet3d" / "kitti_dbinfos_pgt.pkl"
+    info = infos(bank_copy)["Truck"][0]
+    with open(bank_copy / "mmdet3d" / info["path"], "r+b") as stream:
+        stream.truncate(8 * 2**30)
+    with pytest.raises(InputError, match=f"{info['path']}: 536870912 rows of 4 float32 values \\(kitti database "
+                                         f"columns\\), but its info declares {info['num_points_in_gt']}$"):
+        real_statistics(real, dataset="kitti")
+
+
 def assert_no_report(out: Path) -> None:
     assert not (out / REPORT_MD).exists() and not (out / REPORT_PNG).exists()
     assert not list(out.glob(".report*"))

@@ -109,6 +109,42 @@ def test_status_and_box_follow_the_steps(scene, truck_file):
     assert status_text(obj) == "aligned | heading unset | size: exact"
 
 
+def test_a_meshs_dimensions_follow_the_steps(scene, tmp_path):
+    """Blender's cached bounds of a mesh (Item > Dimensions, View Selected, culling) are
+    those of its vertices after each step, not the imported ones."""
+    obj = imported(scene, write_sample(tmp_path, "truck", seed=2)["mesh.ply"])
+    scene.pgt_authoring.size_mode, scene.pgt_authoring.exact_dims = "exact", (1.0, 2.8, 1.1)  # turned: y is long
+    for step in (bpy.ops.object.pgt_align, lambda: bpy.ops.object.pgt_turn(turns=1), bpy.ops.object.pgt_set_size):
+        assert step() == {"FINISHED"}
+        bpy.context.view_layer.update()
+        np.testing.assert_allclose(obj.dimensions, np.ptp(vertices(obj), axis=0), rtol=1e-5)
+    np.testing.assert_allclose(obj.dimensions, [1.0, 2.8, 1.1], rtol=0.02)
+
+
+def test_a_steps_warning_is_reported_in_the_status_bar(scene, tmp_path, capfd):
+    """Set Size's stretch warning, one WARNING line of the operator (Blender prints those
+    as "Warning: ..."), not a UserWarning on the console only."""
+    obj = imported(scene, write_sample(tmp_path, "truck", seed=2)["mesh.ply"])
+    assert bpy.ops.object.pgt_align() == {"FINISHED"}
+    scene.pgt_authoring.size_mode, scene.pgt_authoring.exact_dims = "exact", (2.0, 2.0, 2.0)
+    capfd.readouterr()
+    assert bpy.ops.object.pgt_set_size() == {"FINISHED"}
+    out, err = capfd.readouterr()
+    assert f"Warning: {obj.name}: sizing stretches one axis 2.8x more than another" in out
+    assert "UserWarning" not in err
+
+
+def test_lengths_are_metres_whatever_the_unit_scale_and_bounded_as_on_the_command_lines(scene):
+    """A centimetre scene (Unit Scale 0.01) would show and parse a length field through its
+    unit while the core reads metres; the fields hold the command lines' bounds."""
+    fields = [(bpy.types.Object, "pgt", "dims"), (bpy.types.Scene, "pgt_authoring", "exact_dims"),
+              (bpy.types.Scene, "pgt_scan", "distance"), (bpy.types.Scene, "pgt_bank", "grid_step")]
+    for owner, group, name in fields:
+        assert owner.bl_rna.properties[group].fixed_type.properties[name].unit == "NONE", name
+    scene.pgt_authoring.exact_dims, scene.pgt_scan.distance = (1e9, 1e9, 1e9), 1e30
+    assert tuple(scene.pgt_authoring.exact_dims) == (1000.0,) * 3 and scene.pgt_scan.distance == 1e4
+
+
 def test_front_from_cursor(scene, truck_file):
     obj = imported(scene, truck_file)
     bpy.ops.object.pgt_align()

@@ -201,6 +201,20 @@ def test_overwrite_refuses_a_bank_folder_holding_the_blend_or_the_config(scene, 
     assert blend.is_file() and (tmp_path / "bank" / "manifest.json").is_file()
 
 
+def test_a_file_saved_during_an_export_opens_with_none_running(scene, tmp_path):
+    """Ctrl+S (or autosave) during a background export saves its run state; the file opens
+    with Export Bank available and the status saying how to finish."""
+    settings = scene.pgt_bank
+    settings.output, settings.running, settings.stop_requested = str(tmp_path / "bank"), True, True
+    blend = tmp_path / "during.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    settings = bpy.context.scene.pgt_bank
+    assert not settings.running and not settings.stop_requested
+    assert settings.status == "the file was saved during an export: choose 'Resume' and export again to finish it"
+    assert bpy.ops.scene.pgt_export_bank.poll()
+
+
 def test_the_bank_fields_hold_the_config_file_bounds(scene, tmp_path):
     """Sweeps beyond a config file's 100 are clamped by the field, and what the fields
     make is checked as a file is (bank.bank_config through config_from_table)."""

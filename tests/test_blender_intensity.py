@@ -189,6 +189,34 @@ def test_an_object_or_preview_changed_since_the_scan_is_named(scene, preferences
     assert after.keys() == colors.keys() and all(np.array_equal(after[name], colors[name]) for name in colors)
 
 
+@pytest.mark.parametrize("moved", [0.0, 1.0])
+def test_an_authored_object_is_checked_against_its_scan_in_a_new_session(scene, preferences, checkpoint, tmp_path,
+                                                                           moved):
+    """An aligned mesh, scanned, then Apply in a new session (no ray target held): the
+    scan's values again, or, its vertices moved 1 m up since, the one-line refusal."""
+    from pgt_blender.core.samples import write_sample
+
+    path = write_sample(tmp_path, "truck", seed=0)["mesh.ply"]
+    assert bpy.ops.import_scene.pgt_mesh(filepath=str(path)) == {"FINISHED"}
+    obj = bpy.context.view_layer.objects.active
+    assert bpy.ops.object.pgt_align() == {"FINISHED"}
+    preferences.intensity_checkpoint = str(checkpoint)
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    preview = bpy.data.objects[f"{obj.name} Scan"]
+    learned = intensities(preview)
+    for vertex in obj.data.vertices:
+        vertex.co.z += moved
+    scanning._cache.clear()  # what a reopened file starts with
+    bpy.context.view_layer.objects.active = preview
+    if not moved:
+        assert bpy.ops.object.pgt_apply_intensity() == {"FINISHED"}
+        assert np.array_equal(intensities(preview), learned)
+        return
+    with pytest.raises(RuntimeError, match=f"{obj.name}: changed since the scan") as error:
+        bpy.ops.object.pgt_apply_intensity()
+    assert "Traceback" not in str(error.value) and np.array_equal(intensities(preview), learned)
+
+
 def test_a_preview_whose_object_name_went_to_a_camera_is_not_a_preview(scene, preferences, checkpoint):
     obj, _ = colored_box(scene)
     bpy.ops.object.pgt_scan()

@@ -428,7 +428,23 @@ def test_an_object_hidden_behind_a_wall_is_dropped_and_its_shadow_given_back(ban
     placement = place_objects(scene, np.zeros((0, 9)), [], pool, {"truck": 2}, PlacementConfig(NUSCENES),
                               np.random.default_rng(0), scene_map=road)
     assert placement.inserted.sum() == 0 and placement.missing == {"truck": 2}
+    assert placement.refused["truck"]["occluded"] == 2
     assert len(placement.points) == len(scene) and not placement.scene_shadowed.any()
+
+
+def test_why_objects_were_not_placed_is_tallied_by_check(banks):
+    """A flat analytic scene whose only road lies 500 m away: every candidate stands where
+    a truck may not (the map bounds the ground), and no other check is reached."""
+    points, _ = cast(NUSCENES, (0.0, 0.0, -1.84))
+    scene = np.column_stack([points, np.zeros((len(points), 2))]).astype(np.float32)
+    far_road = map_from_polygons([("road", [np.array([[500.0, 0.0], [510.0, 0.0], [510.0, 10.0], [500.0, 10.0]])])],
+                                 np.eye(4))
+    config = PlacementConfig(NUSCENES)
+    placement = place_objects(scene, np.zeros((0, 9)), [], open_database(banks["nuscenes"], "nuscenes"),
+                              {"truck": 2, "bicycle": 0}, config, np.random.default_rng(0), scene_map=far_road)
+    assert placement.missing == {"truck": 2}
+    assert placement.refused == {"truck": {"feasible": 2 * config.tries, "ego": 0, "overlap": 0, "standing": 0,
+                                           "no cell": 0, "occluded": 0}}
 
 
 def test_placement_on_the_nuscenes_sample_with_a_road_map(shared_data, banks):
@@ -478,11 +494,11 @@ def test_an_entry_file_that_does_not_hold_its_points_is_named_unread(tmp_path):
     (tmp_path / "dbinfos.pkl").write_bytes(pickle.dumps(infos))
     pool = open_database(tmp_path / "dbinfos.pkl", "kitti")
     np.zeros((12, 4), np.float32).tofile(tmp_path / "db" / "0.bin")
-    with pytest.raises(InputError, match="0.bin: 12 points, but its info declares 10"):
+    with pytest.raises(InputError, match="0.bin: 12 rows of 4 float32 point columns, but its info declares 10"):
         pool.load(infos["Car"][0])
     with open(tmp_path / "db" / "0.bin", "wb") as stream:
         stream.truncate(8 * 2**30)
-    with pytest.raises(InputError, match="0.bin: 536870912 points, but its info declares 10"):
+    with pytest.raises(InputError, match="0.bin: 536870912 rows of 4 float32 point columns, but its info declares 10"):
         pool.load(infos["Car"][0])
 
 
@@ -534,6 +550,23 @@ def test_a_label_file_of_another_frame_is_a_warning(shared_data, banks, tmp_path
                         "--bank", banks["kitti"], "--objects", "Cyclist=1", "--out", tmp_path, check=True)
     assert result.stderr == (f"warning: {label}: the labels and calibration of frame 000002 are used for the scan "
                              f"000001.bin; give label_2/000001.txt unless the scan was renamed\n")
+
+
+def test_a_scene_where_nothing_was_placed_is_a_warning_saying_why(shared_data, banks, tmp_path):
+    """Cyclists allowed on a sidewalk 500 m away only: the scene is written unchanged, the
+    table and boxes.json say why, and one warning line names the scan and the reasons."""
+    frame = shared_data / "kitti_scans"
+    (tmp_path / "map.json").write_text('[{"layer": "sidewalk", "polygon": [[500, 0], [510, 0], [510, 10], [500, 10]]}]')
+    (tmp_path / "layers.json").write_text('{"Cyclist": ["sidewalk"]}')
+    scan = frame / "velodyne" / "000001.bin"
+    result = run_script("place_objects.py", "--scan", scan, "--info", frame / "label_2" / "000001.txt",
+                        "--bank", banks["kitti"], "--objects", "Cyclist=2", "--map-polygons", tmp_path / "map.json",
+                        "--class-layers", tmp_path / "layers.json", "--out", tmp_path / "out", check=True)
+    assert "| Cyclist | 2 | 0 | 2 | 256 stood where the class may not |" in result.stdout
+    assert result.stderr == (f"warning: {scan}: no object placed (Cyclist: 256 stood where the class may not); "
+                             f"another --seed, a larger --max-distance or fewer objects may place some\n")
+    _, record = read_placement(tmp_path / "out")
+    assert record["refused"]["Cyclist"]["feasible"] == 256 and record["missing"] == {"Cyclist": 2}
 
 
 def test_without_matplotlib_the_placement_has_no_picture(shared_data, banks, tmp_path):

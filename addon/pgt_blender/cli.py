@@ -137,6 +137,15 @@ def parser(prog: str, doc: str) -> argparse.ArgumentParser:
     return argparse.ArgumentParser(prog=prog, description=doc.split("\n\n")[0], formatter_class=_DefaultsShown)
 
 
+def convention_option(parser: argparse.ArgumentParser, flag: str, database: str, note: str = "") -> None:
+    """Add ``flag``: how the ground-truth database ``database`` (an option's name) stores
+    its points (core.gt_database.CONVENTIONS), read from the file when not given."""
+    parser.add_argument(flag, choices=("openpcdet", "mmdet3d"),
+                        help=f"how {database} stores points: about the box centre (openpcdet) or its bottom centre "
+                             f"(mmdet3d); default: read from the file, where mmdet3d's infos carry a group_id each"
+                             + note)
+
+
 def finite(text: str) -> float:
     """A finite number, as an argparse type (NaN and infinities are refused)."""
     try:

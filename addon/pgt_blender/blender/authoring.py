@@ -143,7 +143,8 @@ def apply_step(obj: bpy.types.Object, step: Step) -> None:
     ``require_authorable(obj)`` first, as the record is read after the mesh is written."""
     radius = _points_radius(obj)
     mesh = obj.data
-    mesh.attributes["position"].data.foreach_set("vector", apply_transform(positions(obj), step.transform).ravel())
+    # through vertices, not the position attribute: only this tells Blender the bounds changed
+    mesh.vertices.foreach_set("co", apply_transform(positions(obj), step.transform).ravel())
     splats = splat_attributes(mesh)
     if "scale" in splats and "rotation" in splats:  # Gaussian splats turn and stretch with their means
         scales, rotations = apply_to_splats(splats["scale"], splats["rotation"], step.transform)

@@ -100,7 +100,7 @@ def write_bank_report(out, real=None, reference=None) -> Path:
 
     path, convention = real
     if reference is None:
-        reference = real_reference(path, read_manifest(out)["config"])
+        reference = real_reference(path, read_manifest(out)["config"], convention=convention)
     return write_report(out, reference, score_bank(out, path, convention, learned=quality_available()))[0]
 
 
@@ -122,7 +122,7 @@ class BankRun:
         source = bpy.data.filepath or scene.name
         checked = checked_objects(objects, incomplete, settings.skip_incomplete, source)
         self.real = real_database(settings)
-        self.reference = real_reference(self.real[0], config.to_dict()) if self.real else None
+        self.reference = real_reference(self.real[0], config.to_dict(), convention=self.real[1]) if self.real else None
         self.out = Path(bpy.path.abspath(settings.output))
         self.existed = self.out.exists()
         read = [bpy.data.filepath, settings.config_file and bpy.path.abspath(settings.config_file),
@@ -184,7 +184,8 @@ def preview_bank(scene: bpy.types.Scene, folder, count: int) -> tuple:
         if not path.is_relative_to(folder.resolve()):
             raise InputError(pickle, f"entry path {info['path']!r} leads outside the bank: the pickle is damaged")
         paths.append(path)
-    entries = [(info, read_float32_rows(path, len(BIN_COLUMNS[dataset]))) for info, path in zip(chosen, paths)]
+    entries = [(info, read_float32_rows(path, len(BIN_COLUMNS[dataset]), rows=int(info["num_points_in_gt"])))
+               for info, path in zip(chosen, paths)]
     made = []
     try:
         for info, rows in entries:

@@ -90,8 +90,9 @@ def learned_intensity(scan: Scan, source: bpy.types.Object, checkpoint, settings
     one. InputError as the core's, when ``source``'s geometry differs from ``scanned``
     (scanning.scanned_geometry at the scan; None: not known) and when the scan hit a face
     or point ``source`` no longer has (edited since the scan)."""
+    target = scanning.scan_target(source, settings.surfel_scale)  # also what scanned_geometry reads, made now
     bounds = authored_bounds(source)
-    bounds = scanning.scan_target(source, settings.surfel_scale).bounds if bounds is None else bounds
+    bounds = target.bounds if bounds is None else bounds
     if scanned is not None and scanned != scanning.scanned_geometry(source):
         raise InputError(source.name, "changed since the scan (its vertices or faces differ, or another object took "
                                       "its name): scan it again")

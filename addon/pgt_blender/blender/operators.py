@@ -305,6 +305,21 @@ class OBJECT_OT_pgt_add_sample(bpy.types.Operator):
         return {"FINISHED"}
 
 
+@contextmanager
+def warnings_reported(operator):
+    """Report each of the core's warnings (UserWarning) raised inside as a WARNING line, in
+    the status bar where a panel user looks, not only the console; numpy's RuntimeWarnings
+    are not the user's."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            yield
+        finally:
+            for warning in caught:
+                if warning.category is UserWarning:
+                    operator.report({"WARNING"}, one_line(str(warning.message)))
+
+
 def align(context, obj, settings) -> prepare.Step:
     """The Align Axes step of ``obj`` with the scene's authoring ``settings``."""
     source = obj.pgt.source_path or obj.name
@@ -366,7 +381,8 @@ class _AuthoringStep:
         with authoring.object_mode(obj):
             try:
                 authoring.require_authorable(obj)
-                step = self.step(context, obj, context.scene.pgt_authoring)
+                with warnings_reported(self):
+                    step = self.step(context, obj, context.scene.pgt_authoring)
             except REPORTED as error:
                 self.report({"ERROR"}, str(error))
                 return {"CANCELLED"}
@@ -477,15 +493,11 @@ class OBJECT_OT_pgt_scan(bpy.types.Operator):
         obj, settings = context.active_object, context.scene.pgt_scan
         with authoring.object_mode(obj):
             try:
-                with warnings.catch_warnings(record=True) as caught:
-                    warnings.simplefilter("always")
+                with warnings_reported(self):  # the core's own: dropped faces
                     result, sensor, sensor_from_object = scanning.scan(obj, settings, authoring.authored_bounds(obj))
             except REPORTED as error:
                 self.report({"ERROR"}, str(error))
                 return {"CANCELLED"}
-            for warning in caught:  # the core's own (dropped faces); numpy's RuntimeWarnings are not the user's
-                if warning.category is UserWarning:
-                    self.report({"WARNING"}, str(warning.message))
             if not result.hits:  # legal but empty: say why, and leave the scene as it was
                 self.report({"WARNING"}, f"{obj.name}: no returns at this pose, out of the "
                                          f"{properties.label(sensor.name)} sensor's range or view; no scan preview made")
@@ -653,8 +665,10 @@ class OBJECT_OT_pgt_author_selected(_BackgroundSteps, bpy.types.Operator):
         for index, obj in enumerate(chosen):  # each step applies whole: an error stops between steps
             for done, make in (("aligned", align), ("heading", detect_front), ("size", None)):
                 if not authoring.status(obj)[done]:
-                    authoring.apply_step(obj, make(context, obj, settings) if make else
-                                         set_size(context, obj, settings, seed=settings.seed + index))
+                    with warnings_reported(self):
+                        step = make(context, obj, settings) if make else set_size(context, obj, settings,
+                                                                                  seed=settings.seed + index)
+                    authoring.apply_step(obj, step)
                     self.applied += 1
             yield (index + 1) / len(chosen)
 

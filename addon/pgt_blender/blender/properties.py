@@ -5,6 +5,7 @@
 import math
 
 import bpy
+from bpy.app.handlers import persistent
 from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty,
                        PointerProperty, StringProperty)
 
@@ -86,8 +87,9 @@ class PGT_PG_object(bpy.types.PropertyGroup):
                                             description="4x4 from the source file's frame to the object "
                                                         "frame: the product of the authoring steps (float32; "
                                                         "each step's float64 transform is in Steps)")
-    dims: FloatVectorProperty(name="Box", size=3, subtype="XYZ", unit="LENGTH",
-                              description="Box length, width, height in the object frame")
+    dims: FloatVectorProperty(name="Box", size=3, subtype="XYZ",
+                              description="Box length, width, height in the object frame, m (a Blender unit each, "
+                                          "whatever the scene's Unit Scale)")
     steps_json: StringProperty(name="Steps", description="JSON list of the authoring steps applied; "
                                                          "what is done and left is read off it")
 
@@ -127,9 +129,9 @@ class PGT_PG_authoring(bpy.types.PropertyGroup):
         ("keep", "Keep", "The source is already metric")])
     uniform: BoolProperty(name="Uniform", description="One scale factor for all axes (keeps the proportions)")
     seed: IntProperty(name="Seed", min=0, description="Seed of the size noise")
-    exact_dims: FloatVectorProperty(name="Exact size", size=3, default=(4.0, 2.0, 1.5), min=0.001,
-                                    subtype="XYZ", unit="LENGTH",
-                                    description="Length, width, height the Exact mode scales the box to")
+    exact_dims: FloatVectorProperty(name="Exact size", size=3, default=(4.0, 2.0, 1.5), min=0.001, max=1000.0,
+                                    subtype="XYZ", description="Length, width, height the Exact mode scales the "
+                                                               "box to, m")
 
 
 class PGT_PG_scan(bpy.types.PropertyGroup):
@@ -141,8 +143,8 @@ class PGT_PG_scan(bpy.types.PropertyGroup):
         + [("CUSTOM", "Custom", "A sensor TOML file: Sensor fields, or base = a preset and what differs")])
     sensor_file: StringProperty(name="Sensor file", subtype="FILE_PATH", options=PATH_OPTIONS,
                                 description="Custom sensor .toml")
-    distance: FloatProperty(name="Distance", default=15.0, min=0.0, soft_max=100.0, unit="LENGTH",
-                            description="Ground distance from the sensor to the object's origin")
+    distance: FloatProperty(name="Distance", default=15.0, min=0.0, max=1e4, soft_max=100.0,
+                            description="Ground distance from the sensor to the object's origin, m")
     azimuth: FloatProperty(name="Azimuth", default=0.0, subtype="ANGLE",
                            description="Direction of the object seen from the sensor, from +x counter-clockwise")
     heading: FloatProperty(name="Heading", default=math.radians(90.0), subtype="ANGLE",
@@ -178,7 +180,7 @@ class PGT_PG_bank(bpy.types.PropertyGroup):
     heading_step: FloatProperty(name="Heading step", default=math.radians(_BANK_DEFAULTS.headings_deg[2]),
                                 min=math.radians(1.0), max=math.radians(360.0), subtype="ANGLE",
                                 description="Headings from -180 to 180 degrees every this many")
-    grid_step: FloatProperty(name="Grid step", default=5.0, min=0.5, soft_max=50.0, unit="LENGTH",
+    grid_step: FloatProperty(name="Grid step", default=5.0, min=0.5, soft_max=50.0,
                              description="Box centres every this many metres over the dataset's x and y range")
     openpcdet: BoolProperty(name="OpenPCDet", default=True, description="Write the OpenPCDet ground-truth database")
     mmdet3d: BoolProperty(name="mmdetection3d", default=True,
@@ -248,14 +250,28 @@ def preferences(context):
 classes = (PGT_PG_object, PGT_PG_authoring, PGT_PG_scan, PGT_PG_bank, PGTPreferences)
 
 
+@persistent
+def no_export_running(_filepath) -> None:
+    """After a file loads: no export runs in it, though one may have been running when it
+    was saved (Ctrl+S or autosave during an export keeps ``running`` set, which would grey
+    out Export Bank for good)."""
+    for scene in bpy.data.scenes:
+        settings = scene.pgt_bank
+        if settings.running or settings.stop_requested:
+            settings.running = settings.stop_requested = False
+            settings.status = "the file was saved during an export: choose 'Resume' and export again to finish it"
+
+
 def register():
     bpy.types.Object.pgt = PointerProperty(type=PGT_PG_object)
     bpy.types.Scene.pgt_authoring = PointerProperty(type=PGT_PG_authoring)
     bpy.types.Scene.pgt_scan = PointerProperty(type=PGT_PG_scan)
     bpy.types.Scene.pgt_bank = PointerProperty(type=PGT_PG_bank)
+    bpy.app.handlers.load_post.append(no_export_running)
 
 
 def unregister():
+    bpy.app.handlers.load_post.remove(no_export_running)
     del bpy.types.Scene.pgt_bank
     del bpy.types.Scene.pgt_scan
     del bpy.types.Scene.pgt_authoring

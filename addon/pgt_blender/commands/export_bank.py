@@ -150,7 +150,7 @@ def real_reference(args, config: dict):
     database leaves nothing behind); None without --real."""
     from ..core.bank import report
 
-    return report.real_reference(args.real, config) if args.real else None
+    return report.real_reference(args.real, config, convention=args.real_convention) if args.real else None
 
 
 def quality_score(args) -> dict:
@@ -204,10 +204,7 @@ def main(argv: list) -> int:
                              "DATA_PATH/VERSION for nuScenes and Lyft; mmdet3d: data_root): paths are written "
                              "relative to it (default: relative to each format folder)")
     parser.add_argument("--real", type=Path, help="a real *_dbinfos_*.pkl the bank report compares with")
-    parser.add_argument("--real-convention", choices=("openpcdet", "mmdet3d"),
-                        help="how --real stores points, for the report's quality score: about the box centre "
-                             "(openpcdet) or its bottom centre (mmdet3d); default: read from the file, where "
-                             "mmdet3d's infos carry a group_id each")
+    cli.convention_option(parser, "--real-convention", "--real")
     parser.add_argument("--from", dest="shard_dirs", type=Path, nargs="+", default=[],
                         help="with --assemble: shard folders to copy into --out first")
     args = parser.parse_args(argv)

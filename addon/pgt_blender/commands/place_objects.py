@@ -33,7 +33,7 @@ from ..core.placement.birdseye import birdseye_png
 from ..core.placement.entries import open_database
 from ..core.placement.folder import check_placement_folder, write_placement
 from ..core.placement.maps import ImagePose, checked_class_layers, map_from_image, map_from_polygons, read_polygons
-from ..core.placement.place import PlacementConfig, place_objects
+from ..core.placement.place import REFUSALS, PlacementConfig, place_objects
 from ..core.placement.scenes import frame_warning, read_scene
 from ..core.scan.sensors import BIN_COLUMNS, sensor_from_name
 
@@ -58,10 +58,8 @@ def main(argv: list) -> int:
     parser.add_argument("--out", type=cli.OUTPUT_FOLDER, required=True,
                         help="folder to write scan.bin, boxes.json, birdseye.png")
     parser.add_argument("--dataset", choices=sorted(BIN_COLUMNS), help="the scene's dataset (default: from --info)")
-    parser.add_argument("--convention", choices=("openpcdet", "mmdet3d"),
-                        help="the database's layout (a bank folder: which format's pickle, default openpcdet; "
-                             "an info pickle: checked, default: read from the file, where mmdet3d's infos carry "
-                             "a group_id each)")
+    cli.convention_option(parser, "--convention", "--bank", " (a bank folder: the format whose pickle is read, "
+                                                           "default openpcdet)")
     parser.add_argument("--objects", type=objects_argument, action="append", metavar="CLASS=N",
                         help=f"objects to place per class (repeat; default {DEFAULT_COUNT} of every bank class)")
     parser.add_argument("--sensor", help="sensor preset or .toml for occlusion and column steps "
@@ -112,17 +110,24 @@ def main(argv: list) -> int:
     paths = write_placement(args.out, placement, scene, args.seed, picture)
 
     placed = placement.names[placement.inserted]
-    rows = [[name, count, int((placed == name).sum()), placement.missing.get(name, 0)] for name, count in counts.items()]
-    print(cli.markdown_table(["class", "asked", "placed", "not placed"], rows))
+    rows = [[name, count, int((placed == name).sum()), placement.missing.get(name, 0),
+             _refusals(placement.refused.get(name, {}))] for name, count in counts.items()]
+    print(cli.markdown_table(["class", "asked", "placed", "not placed", "why tries were refused"], rows, "lrrrl"))
     print(f"\nscene: {len(scene.points)} points, {len(scene.boxes)} boxes; removed {int(placement.scene_in_boxes.sum())} "
           f"inside placed boxes and {int(placement.scene_shadowed.sum())} in their shadows")
     picture = paths.get("birdseye.png", "no birdseye.png (matplotlib is not installed)")
     print(f"wrote {paths['scan.bin']} ({len(placement.points)} points), {paths['boxes.json']}, {picture}")
     if not placement.inserted.any():  # a scene written unchanged should not pass unnoticed
-        warnings.warn(f"{args.scan}: no object placed: every try stood where its class may not, overlapped a box "
-                      f"or met a scene return, or kept too few points once occluded (core/placement/place.py); "
-                      f"another --seed, a larger --max-distance or fewer objects may place some", stacklevel=1)
+        reasons = "; ".join(f"{name}: {_refusals(refused)}" for name, refused in placement.refused.items())
+        warnings.warn(f"{args.scan}: no object placed ({reasons}); another --seed, a larger --max-distance or "
+                      f"fewer objects may place some", stacklevel=1)
     return 0
+
+
+def _refusals(refused: dict) -> str:
+    """How often each check refused something (place.REFUSALS), most first."""
+    counted = sorted(((count, check) for check, count in refused.items() if count), key=lambda item: -item[0])
+    return ", ".join(f"{count} {REFUSALS[check]}" for count, check in counted) or "none"
 
 
 def _json(path: Path | None):

@@ -17,8 +17,8 @@ and the printed box) is the authored one, the sidecar <object>.json's dims centr
 the origin, as in the bank; without a sidecar, the geometry's bounds. --sensor: nuscenes, kitti, lyft, vlp16 or a .toml file.
 
 Output by suffix: .bin float32 in the dataset's columns (KITTI x y z intensity;
-nuScenes/Lyft x y z intensity time_lag), .ply every column, .npy the structured rows
-(columns: pgt_blender/core/scan/returns.py). With --sweeps N the object moves as its
+nuScenes/Lyft x y z intensity time_lag; a KITTI .bin takes one sweep), .ply every
+column, .npy the structured rows (columns: pgt_blender/core/scan/returns.py). With --sweeps N the object moves as its
 class's motion model draws (seeded; class from --class or the sidecar <object>.json),
 or at --speed/--acceleration. Intensity: the sensor's physical law, or with
 --intensity-checkpoint the learned estimator (train_intensity.py) on each return's
@@ -42,7 +42,7 @@ from ..core.intensity.estimator import scan_intensity
 from ..core.scan.range_view import range_view_scan
 from ..core.scan.raycast import ScanOptions, placement
 from ..core.scan.returns import OUTPUT_SUFFIXES, write_scan
-from ..core.scan.sensors import PRESETS, sensor_from_name
+from ..core.scan.sensors import BIN_COLUMNS, PRESETS, sensor_from_name
 from ..core.scan.sweeps import CLASS_MOTION, Motion, motion_class, sample_motion, scan_sweeps
 from ..core.scan.targets import element_colors, has_gaussians, reflectivity_from_srgb, target_from_reconstruction
 
@@ -62,6 +62,9 @@ def authored_box(record: dict):
 
 def scan(args):
     sensor = sensor_from_name(args.sensor)
+    if args.sweeps > 1 and args.out.suffix == ".bin" and "time_lag" not in BIN_COLUMNS[sensor.dataset]:
+        raise InputError(args.out, f"{sensor.dataset} .bin files have no time column to keep {args.sweeps} merged "
+                                   f"sweeps apart; write .ply or .npy (they keep time_lag) or drop --sweeps")
     recon = load_reconstruction(args.object, with_cameras=False)
     options = ScanOptions(range_noise=args.noise, drop_rate=args.drop_rate, ray_drop=args.ray_drop, seed=args.seed)
     heading = np.radians(args.heading)

@@ -21,7 +21,6 @@ from .. import cli
 from ..core.bank.folder import MANIFEST
 from ..core.errors import InputError
 from ..core.files import apart_from_inputs, atomic_output
-from ..core.gt_database import CONVENTIONS
 from ..core.quality.score import quality_available, score_bank, table_rows
 from ..core.quality.sets import REFERENCES
 
@@ -30,9 +29,7 @@ def main(argv: list) -> int:
     parser = cli.parser("score_bank.py", __doc__)
     parser.add_argument("--bank", type=Path, required=True, help="the exported bank's folder")
     parser.add_argument("--real", type=Path, required=True, help="real ground-truth info pickle (*_dbinfos_*.pkl)")
-    parser.add_argument("--convention", choices=CONVENTIONS,
-                        help="how --real stores points: about the box centre (openpcdet) or its bottom centre "
-                             "(mmdet3d); default: read from the file, where mmdet3d's infos carry a group_id each")
+    cli.convention_option(parser, "--convention", "--real")
     parser.add_argument("--real-root", type=Path, help="folder --real's info paths are relative to "
                                                        "(default: its folder)")
     parser.add_argument("--encoder", type=Path, help="a quality encoder checkpoint (default: train one on --real "

@@ -71,9 +71,7 @@ def main(argv: list) -> int:
     parser.add_argument("--chrono", type=Path,
                         help="folder of .obj meshes, front at +x (the shipped checkpoint: ../shared/data/chrono_vehicles)")
     parser.add_argument("--gt-database", type=Path, help="mmdet3d / OpenPCDet *_dbinfos_*.pkl")
-    parser.add_argument("--gt-convention", choices=("mmdet3d", "openpcdet"),
-                        help="how the database stores points: relative to the box bottom centre (mmdet3d) or "
-                             "centre (openpcdet); default: read from the file (mmdet3d's infos carry a group_id)")
+    cli.convention_option(parser, "--gt-convention", "--gt-database")
     parser.add_argument("--no-samples", action="store_true", help="leave out the built-in sample vehicles")
     parser.add_argument("--scans", metavar="SENSOR",
                         help="also train on this sensor's scans of every mesh (a preset name or a .toml)")

@@ -66,9 +66,7 @@ def parse(argv: list):
                         help="GT database .pkl or KITTI folder (e.g. ../shared/data/kitti_scans), repeatable")
     parser.add_argument("--rgb", action="append", default=[],
                         help="folder of prepared colored objects or CLASS=MESH, repeatable (default: the built-in samples)")
-    parser.add_argument("--gt-convention", choices=("openpcdet", "mmdet3d"),
-                        help="a .pkl's points are about the box centre (openpcdet) or bottom centre (mmdet3d); "
-                             "default: read from the file, where mmdet3d's infos carry a group_id each")
+    cli.convention_option(parser, "--gt-convention", "a --real .pkl")
     parser.add_argument("--dataset", default="kitti", choices=("kitti", "nuscenes", "lyft"),
                         help="whose LiDAR and intensity scale the real objects have")
     parser.add_argument("--min-points", type=cli.whole(0, 10**7), default=64,

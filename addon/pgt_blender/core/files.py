@@ -156,23 +156,27 @@ def npy_header(stream, path, where: str = "") -> tuple:
     return shape, dtype
 
 
-def read_float32_rows(path, columns: int = 1, what: str = "values"):
+def read_float32_rows(path, columns: int = 1, what: str = "values", rows: int | None = None):
     """(N, columns) float32 rows of a raw little-endian float32 file (KITTI velodyne
     scans, ground-truth database .bin files); InputError naming ``path`` when it cannot
-    be read (also: larger than the memory) or its size is not a whole number of rows (a
-    cut or padded file)."""
+    be read (also: larger than the memory), its size is not a whole number of rows (a
+    cut or padded file) or not the ``rows`` its info declares. Sizes are checked before
+    the read: a file of gigabytes where a few rows are due stays unread."""
     import numpy as np
 
     path = regular_file(path)
     try:
-        data = np.fromfile(path, "<f4")
         size = path.stat().st_size
+        if size % (4 * columns):
+            raise InputError(path, f"{size} bytes are not whole rows of {columns} float32 {what}")
+        if rows is not None and size // (4 * columns) != rows:
+            raise InputError(path, f"{size // (4 * columns)} rows of {columns} float32 {what}, but its info "
+                                   f"declares {rows}")
+        data = np.fromfile(path, "<f4")
     except OSError as error:
         raise InputError(path, f"cannot read the file ({error.strerror or error})") from None
     except MemoryError:  # a file larger than the memory: named, not just "out of memory"
-        raise InputError(path, f"too large to read ({path.stat().st_size / 2**30:.1f} GiB)") from None
-    if size % (4 * columns):
-        raise InputError(path, f"{size} bytes are not whole rows of {columns} float32 {what}")
+        raise InputError(path, f"too large to read ({size / 2**30:.1f} GiB)") from None
     unusable = int(np.count_nonzero(~np.isfinite(data)))
     if unusable:
         raise InputError(path, f"{unusable} of {data.size} float32 {what} are NaN or Inf")

@@ -140,8 +140,7 @@ def _object(path: Path, box: np.ndarray, count: int, convention: str, class_name
     if not 3 * count <= floats <= MAX_POINT_VALUES * count or floats % count:
         raise InputError(path, f"{floats} floats do not split into the {count} points its info declares "
                                f"(3 to {MAX_POINT_VALUES} values each)")
-    values = read_float32_rows(path).ravel()
-    columns = values.reshape(count, -1)
+    columns = read_float32_rows(path, floats // count, rows=count)
     points = columns[:, :3].astype(np.float64)
     if convention == "mmdet3d":
         points[:, 2] -= box[5] / 2  # bottom centre -> centre

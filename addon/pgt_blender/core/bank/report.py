@@ -30,7 +30,7 @@ from ..scan.sensors import BIN_COLUMNS, INTENSITY_MAX
 from .config import DATASET_GRIDS, grid_values
 from .folder import INTENSITY_BINS, WORK, chunk_record, chunk_record_path, read_identity
 from .formats import DATABASE_CLASSES
-from ..gt_database import load_infos
+from ..gt_database import database_convention, load_infos
 
 DISTANCE_RING = 10.0  # m: width of the distance bins
 QUANTILES = (0.5, 0.1, 0.9)  # median, p10, p90
@@ -172,7 +172,7 @@ def _chunk_records(out: Path, chunk_count: int):
         yield record
 
 
-def real_statistics(info_pickle, root=None, *, dataset: str, grid=None) -> dict:
+def real_statistics(info_pickle, root=None, *, dataset: str, grid=None, convention: str | None = None) -> dict:
     """The statistics of bank_statistics for a real OpenPCDet/mmdetection3d database.
 
     info_pickle: ``{class: [info]}`` (``*_dbinfos_*.pkl``); each info's ``path`` is
@@ -182,13 +182,16 @@ def real_statistics(info_pickle, root=None, *, dataset: str, grid=None) -> dict:
     range) as [start, stop, step] m (default: the dataset's grid). "dropped" is None
     and "config" None. InputError names an unreadable pickle or .bin file, or a pickle
     none of whose classes is one of ``dataset``'s (another dataset's database; nuScenes
-    and Lyft share most names, so those two are not told apart).
+    and Lyft share most names, so those two are not told apart), or whose infos
+    contradict a stated ``convention`` (gt_database.database_convention: the score read
+    after the export would refuse it).
     """
     info_pickle = Path(info_pickle)
     root = Path(root) if root is not None else info_pickle.parent
     if dataset not in BIN_COLUMNS:
         raise ValueError(f"unknown dataset {dataset!r} (known: {', '.join(BIN_COLUMNS)})")
     infos = load_infos(info_pickle)
+    database_convention(info_pickle, infos, convention)
     held = sorted(name for name, entries in infos.items() if entries)
     if held and not set(held) & set(DATABASE_CLASSES[dataset]):  # its .bin rows would not be the dataset's either
         raise InputError(info_pickle, f"holds no {dataset} class (it has {', '.join(held[:4])}"
@@ -202,7 +205,8 @@ def real_statistics(info_pickle, root=None, *, dataset: str, grid=None) -> dict:
         counts = classes[name] = ClassCounts(edges)
         points = np.zeros(len(entries), np.int64)
         for index, info in enumerate(entries):
-            rows = _database_rows(root / info["path"], len(BIN_COLUMNS[dataset]), dataset)
+            rows = read_float32_rows(root / info["path"], len(BIN_COLUMNS[dataset]),
+                                     f"values ({dataset} database columns)", int(info["num_points_in_gt"]))
             points[index] = len(rows)
             counts.intensity += np.histogram(rows[:, 3], INTENSITY_BINS, (0.0, INTENSITY_MAX[dataset]))[0]
         centres = np.array([np.asarray(info["box3d_lidar"], np.float32)[:2] for info in entries],
@@ -211,15 +215,12 @@ def real_statistics(info_pickle, root=None, *, dataset: str, grid=None) -> dict:
     return _statistics(info_pickle, dataset, None, edges, classes)
 
 
-def _database_rows(path: Path, columns: int, dataset: str) -> np.ndarray:
-    """(N, columns) float32 rows of one database .bin; InputError naming it otherwise."""
-    return read_float32_rows(path, columns, f"values ({dataset} database columns)")
-
-
-def real_reference(real, config: dict, real_root=None) -> dict:
-    """real_statistics of the database ``real`` (.bin files under ``real_root``) for a
-    bank made with ``config`` (its dataset and grid), to set beside it in the report."""
-    return real_statistics(real, real_root, dataset=config["dataset"], grid=(config["x"], config["y"]))
+def real_reference(real, config: dict, real_root=None, convention: str | None = None) -> dict:
+    """real_statistics of the database ``real`` (.bin files under ``real_root``, stored
+    in ``convention``, None: read from it) for a bank made with ``config`` (its dataset
+    and grid), to set beside it in the report."""
+    return real_statistics(real, real_root, dataset=config["dataset"], grid=(config["x"], config["y"]),
+                           convention=convention)
 
 
 def write_report(out, reference: dict | None = None, quality: dict | None = None) -> tuple:

@@ -5,7 +5,9 @@
   (what the stock samplers also put first);
 - ``boxes.json``: ``dataset``, ``scan`` (the input), ``frame``, ``columns``,
   ``box_values`` (x y z dx dy dz heading [vx vy]: centre boxes in the scan's LiDAR
-  frame, m and rad), ``seed``, ``missing`` {class: objects not placed},
+  frame, m and rad), ``seed``, ``missing`` {class: objects not placed}, ``refused``
+  {class: {check: count}} why (place.REFUSALS: tries refused by each check, objects that
+  found no free cell or were too thin once occluded),
   ``scene_points_removed`` {inside_boxes, shadowed} and ``boxes``: every box, the
   scene's first, each {``class``, ``box``, ``inserted``, ``ground_height`` (z of the
   estimated ground it stands on: the mean under its centre and corners, m), and for inserted ones ``entry`` (its info's
@@ -50,7 +52,7 @@ def boxes_record(placement, scene, seed: int) -> dict:
         boxes.append(record)
     return {"dataset": scene.dataset, "scan": str(scene.source), "frame": FRAME,
             "columns": list(BIN_COLUMNS[scene.dataset]), "box_values": values, "seed": seed,
-            "missing": placement.missing,
+            "missing": placement.missing, "refused": placement.refused,
             "scene_points_removed": {"inside_boxes": int(placement.scene_in_boxes.sum()),
                                      "shadowed": int(placement.scene_shadowed.sum())},
             "boxes": boxes}

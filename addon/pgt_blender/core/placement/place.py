@@ -22,6 +22,11 @@ After ``tries`` candidates an object that found no place is given up (counted in
 (as the stock samplers do), the range-view occlusion runs (occlusion.occlude), and an
 object left with fewer than ``min_points`` points is dropped and the occlusion redone
 without it. Every random draw comes from the ``rng`` given.
+
+Why objects were not placed is tallied per class in ``Placement.refused`` {class:
+{check: count}} under the names of ``REFUSALS``: candidates refused by each check (1-4,
+each counted at the first it fails), objects that found no free cell with an entry at
+its range, and objects dropped as too thin once occluded.
 """
 
 import time
@@ -38,6 +43,10 @@ from .feasibility import Feasibility, scene_feasibility
 from .ground import Ground, estimate_ground
 from .maps import MapRaster
 from .occlusion import occlude
+
+REFUSALS = {"feasible": "stood where the class may not", "ego": "stood within the ego clearance",
+            "overlap": "overlapped a box", "standing": "met a scene return", "no cell": "found no free cell in range",
+            "occluded": "kept too few points once occluded"}
 
 
 @dataclass
@@ -65,7 +74,8 @@ class Placement:
     ``inserted`` (B,) bool, ``ground_height`` (B,) the ground z each box stands on (m,
     Ground.under_boxes), ``entries`` the info dict each inserted box came from, ``turns``
     (I,) rad each was turned by. ``scene_in_boxes`` and ``scene_shadowed`` (N,) bool: scene points removed
-    inside placed boxes and in their shadows. ``missing`` {class: objects not placed}.
+    inside placed boxes and in their shadows. ``missing`` {class: objects not placed},
+    ``refused`` {class: {check: count}} why (module docstring, REFUSALS).
     ``seconds`` {stage: s}: ground, feasibility, candidates, entries (reading and turning
     the chosen ones), compose (removal, occlusion, the output arrays)."""
 
@@ -80,6 +90,7 @@ class Placement:
     scene_in_boxes: np.ndarray
     scene_shadowed: np.ndarray
     missing: dict = field(default_factory=dict)
+    refused: dict = field(default_factory=dict)
     ground: Ground | None = None
     feasibility: Feasibility | None = None
     seconds: dict = field(default_factory=dict)
@@ -111,12 +122,13 @@ def place_objects(points: np.ndarray, boxes: np.ndarray, names, pool: EntryPool,
     taken = np.zeros(len(order), bool)  # by position in ``order``: an object stands there
 
     placed, entries, turns, missing = [], [], [], {}
+    refused = {class_name: dict.fromkeys(REFUSALS, 0) for class_name, count in counts.items() if count > 0}
     for class_name, count in counts.items():
         mask = feasibility.map_mask(class_name)
         for _ in range(count):
             found = _place_one(pool.classes[class_name], class_name, mask, order, taken, bandit, feasibility,
                                ground, np.vstack([scene_boxes[:, :7]] + [box[None, :7] for box in placed]),
-                               obstacles, config, rng)
+                               obstacles, config, rng, refused[class_name])
             if found is None:
                 missing[class_name] = missing.get(class_name, 0) + 1
                 continue
@@ -133,7 +145,7 @@ def place_objects(points: np.ndarray, boxes: np.ndarray, names, pool: EntryPool,
     entries = [(class_name, pool.classes[class_name].infos[pick]) for class_name, pick in entries]
     clock.lap("entries")
     placement = _compose(points, xyz, scene_boxes, np.asarray(names), placed, entries, turns, clouds, ground,
-                         feasibility, config, missing)
+                         feasibility, config, missing, refused)
     clock.lap("compose")
     placement.seconds = clock.laps
     return placement
@@ -158,12 +170,15 @@ def _box_width(pool: EntryPool) -> int:
     return 7
 
 
-def _place_one(entries, class_name, mask, order, taken, bandit, feasibility, ground, boxes, obstacles, config, rng):
+def _place_one(entries, class_name, mask, order, taken, bandit, feasibility, ground, boxes, obstacles, config, rng,
+               refused):
     """(box, entry index, turn) of the first candidate that passes the checks, or None;
-    the cell it stands in is marked ``taken``."""
+    the cell it stands in is marked ``taken``, the refusals counted in ``refused``."""
     low, high, _, _ = bandit.bounds(order)
     first_entry, past_entry = entries.within(low, high)
     free = np.flatnonzero(~taken & (past_entry > first_entry))  # cells with an entry at their range
+    if not len(free):
+        refused["no cell"] += 1
     for first in range(0, min(config.tries, len(free)), config.batch):
         positions = free[first:min(first + config.batch, config.tries)]
         _, _, start, stop = bandit.bounds(order[positions])
@@ -174,15 +189,20 @@ def _place_one(entries, class_name, mask, order, taken, bandit, feasibility, gro
         turn = column_turn(np.arctan2(stored[:, 1], stored[:, 0]), target, config.sensor.columns)
         candidates = turn_boxes(stored, turn)  # the checks, cheapest first, each on what passed the last
         spots = np.concatenate([candidates[:, None, :2], footprint_corners(candidates)], axis=1).reshape(-1, 2)
-        ok = feasibility.allows(class_name, spots, mask).reshape(len(candidates), 5).all(axis=1)
-        ok &= _ego_gap(candidates) >= config.ego_clearance
+        feasible = feasibility.allows(class_name, spots, mask).reshape(len(candidates), 5).all(axis=1)
+        ok = feasible & (_ego_gap(candidates) >= config.ego_clearance)
+        clear = ok.copy()
         ok[ok] = ~bev_overlaps(candidates[ok, :7], boxes, config.box_margin).any(axis=1)
+        refused["feasible"] += int((~feasible).sum())
+        refused["ego"] += int((feasible & ~clear).sum())
+        refused["overlap"] += int((clear & ~ok).sum())
         survivors = np.flatnonzero(ok)
         candidates[survivors, 2] = ground.under_boxes(candidates[survivors]) + candidates[survivors, 5] / 2
         for index in survivors:
             if not inside_box(obstacles, candidates[index]).any():
                 taken[positions[index]] = True
                 return candidates[index], int(picks[index]), float(turn[index])
+            refused["standing"] += 1
     return None
 
 
@@ -193,7 +213,8 @@ def _ego_gap(boxes: np.ndarray) -> np.ndarray:
     return np.hypot(np.maximum(np.abs(along) - boxes[:, 3] / 2, 0.0), np.maximum(np.abs(across) - boxes[:, 4] / 2, 0.0))
 
 
-def _compose(points, xyz, scene_boxes, names, placed, entries, turns, clouds, ground, feasibility, config, missing):
+def _compose(points, xyz, scene_boxes, names, placed, entries, turns, clouds, ground, feasibility, config, missing,
+             refused):
     """The Placement: scene points (and their float64 ``xyz``) inside placed boxes removed,
     occlusion, thin objects dropped."""
     placed = np.array(placed, np.float64).reshape(-1, scene_boxes.shape[1])
@@ -217,6 +238,7 @@ def _compose(points, xyz, scene_boxes, names, placed, entries, turns, clouds, gr
         keep[thin] = False
         for i in thin:
             missing[entries[i][0]] = missing.get(entries[i][0], 0) + 1
+            refused[entries[i][0]]["occluded"] += 1
     shadowed = np.zeros(len(points), bool)
     shadowed[np.flatnonzero(~in_boxes)[~scene_kept]] = True
     stops = np.cumsum(counts)
@@ -227,4 +249,5 @@ def _compose(points, xyz, scene_boxes, names, placed, entries, turns, clouds, gr
     inserted_mask = np.concatenate([np.zeros(len(scene_boxes), bool), np.ones(len(chosen), bool)])
     bottoms = ground.under_boxes(out_boxes) if len(out_boxes) else np.zeros(0)
     return Placement(out_points, out_boxes, out_names, inserted_mask, bottoms, [entries[i][1] for i in chosen],
-                     np.array([turns[i] for i in chosen]), rows, in_boxes, shadowed, missing, ground, feasibility)
+                     np.array([turns[i] for i in chosen]), rows, in_boxes, shadowed, missing, refused, ground,
+                     feasibility)
