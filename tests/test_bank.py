@@ -258,7 +258,8 @@ def test_every_entry_loads_through_both_frameworks(bank):
                     points, box = load_like_openpcdet(root, info, columns), info["box3d_lidar"].astype(np.float64)
                 else:
                     points, box = load_like_mmdet3d(root, info, columns)
-                    assert isinstance(info["group_id"], int)
+                    assert info["group_id"] == info["image_idx"]
+                assert isinstance(info["image_idx"], int) and info["image_idx"] >= 2**24  # never a real frame's
                 # kept where the ray hit, then moved by range noise (sigma 2 cm): within 6 sigma
                 assert inside_box(points[:, :3].astype(np.float64), box, NOISE_MARGIN).all()
                 # standing on the ground model's ground: within 3 sigma of the road grade

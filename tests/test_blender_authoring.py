@@ -82,20 +82,24 @@ def test_detect_front_heads_a_trailer_by_its_running_gear(scene, tmp_path, capfd
 
 
 def test_status_and_box_follow_the_steps(scene, truck_file):
-    from pgt_blender.blender.ui import status_text
+    from pgt_blender.blender.ui import status_icon, status_text
 
     obj = imported(scene, truck_file)
     assert status_text(obj) == "not aligned | heading unset | size unset"
     bpy.ops.object.pgt_align()
     assert authoring.status(obj) == {"aligned": True, "heading": "", "size": ""}
     dims = tuple(obj.pgt.dims)
+    with pytest.raises(RuntimeError, match=f"{obj.name}: 0 quarter turns: nothing to turn"):
+        bpy.ops.object.pgt_turn(turns=0)
+    assert authoring.status(obj)["heading"] == ""
     bpy.ops.object.pgt_turn(turns=1)
     assert tuple(obj.pgt.dims) == pytest.approx((dims[1], dims[0], dims[2]))
     assert status_text(obj) == "aligned | heading: manual | size unset"
     scene.pgt_authoring.size_mode = "exact"
     scene.pgt_authoring.exact_dims = (5.0, 2.0, 2.5)
     bpy.ops.object.pgt_set_size()
-    assert status_text(obj) == "aligned | heading: manual | size: exact"
+    assert status_text(obj) == "aligned | heading: manual | size: exact, no class"
+    assert status_icon(obj, "INFO") == "INFO"  # not ready for a bank
     box = next(child for child in obj.children if child.get(authoring.BOX_TAG))
     assert box.empty_display_type == "CUBE"
     np.testing.assert_allclose(box.scale, [2.5, 1.0, 1.25], rtol=1e-6)
@@ -106,7 +110,7 @@ def test_status_and_box_follow_the_steps(scene, truck_file):
     inside = (np.abs(local) <= np.array([2.5, 1.0, 1.25]) * 1.01 + margin).all(axis=1)
     assert inside.mean() > 0.97  # the sample's 3 % floaters aside, the box holds the points
     bpy.ops.object.pgt_align()  # aligning again leaves the front to be confirmed again
-    assert status_text(obj) == "aligned | heading unset | size: exact"
+    assert status_text(obj) == "aligned | heading unset | size: exact, no class"
 
 
 def test_a_meshs_dimensions_follow_the_steps(scene, tmp_path):
@@ -516,6 +520,18 @@ def test_author_selected_checks_every_object_before_changing_any(scene, truck_fi
         bpy.ops.object.pgt_author_selected()
     np.testing.assert_array_equal(vertices(good), before)
     assert good.pgt.steps_json == ""
+
+
+def test_author_selected_checks_the_heading_checkpoint_before_changing_any(scene, truck_file, tmp_path):
+    objects_chosen = [imported(scene, truck_file) for _ in range(2)]
+    for obj in objects_chosen:
+        obj.select_set(True)
+    settings = scene.pgt_authoring
+    settings.dataset, settings.class_name = "nuscenes", "truck"
+    settings.heading_method, settings.checkpoint = "classifier", str(tmp_path / "missing.pt")
+    with pytest.raises(RuntimeError, match="missing.pt"):
+        bpy.ops.object.pgt_author_selected()
+    assert all(obj.pgt.steps_json == "" for obj in objects_chosen)
 
 
 def test_a_point_display_the_user_emptied_does_not_stop_a_step(scene, truck_file):

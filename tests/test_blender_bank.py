@@ -227,6 +227,26 @@ def test_the_bank_fields_hold_the_config_file_bounds(scene, tmp_path):
         bank_config(settings)
 
 
+@pytest.mark.parametrize("field", ["output", "config_file", "real_database"])
+def test_a_blend_relative_path_in_an_unsaved_file_is_named(scene, sources, tmp_path, monkeypatch, field):
+    """"//bank" before the .blend is saved would be the folder Blender started in."""
+    author_in_blender(scene, sources)
+    monkeypatch.chdir(tmp_path)
+    settings = scene.pgt_bank
+    settings.output = str(tmp_path / "bank")
+    setattr(settings, field, "//bank")
+    with pytest.raises(RuntimeError, match="//bank: is relative to the .blend file, which is not saved yet"):
+        bpy.ops.scene.pgt_export_bank()
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("name", ["bank.txt", "bank"])
+def test_save_config_writes_a_toml_only(scene, tmp_path, name):
+    with pytest.raises(RuntimeError, match=f"{tmp_path / name}: expected a file name ending in .toml"):
+        bpy.ops.scene.pgt_save_bank_config(filepath=str(tmp_path / name))
+    assert not list(tmp_path.iterdir())
+
+
 def test_the_bank_fields_default_to_the_command_lines_grid(scene):
     """The Bank section's defaults make the default config's grid: its heading step, a
     float32 angle, reads 30.000001 degrees, which left out the last of the 13 headings."""

@@ -520,6 +520,25 @@ def test_a_sensor_inside_the_object_is_a_warning(scene, capfd):
     assert "inside the object's box" not in capfd.readouterr().out
 
 
+def test_modifiers_and_an_object_scale_are_a_warning_and_not_scanned(scene, capfd):
+    """The scan reads the mesh data in metres: an Array modifier and a scale of 2 change
+    nothing in it, and a warning says they are left out."""
+    vertices, faces = box_geometry()
+    obj = mesh_object(scene, "Box", vertices, faces)
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    plain = scan_columns(bpy.data.objects["Box Scan"])
+    assert "not scanned" not in capfd.readouterr().out
+    obj.modifiers.new("Array", "ARRAY")
+    obj.scale = (2.0, 2.0, 2.0)
+    bpy.context.view_layer.update()
+    bpy.context.view_layer.objects.active = obj
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    assert ("Warning: Box: its modifiers (Array) and its scale (2, 2, 2) are not scanned, only its mesh data: apply "
+            "them (Object > Apply) to scan what the viewport shows") in capfd.readouterr().out
+    scanned = scan_columns(bpy.data.objects["Box Scan"])
+    assert all(np.array_equal(scanned[name], plain[name]) for name in plain)
+
+
 def test_zero_area_faces_are_a_warning(scene, capfd):
     vertices, faces = box_geometry()
     vertices = np.vstack([vertices, [[0, 0, 5], [1, 0, 5], [2, 0, 5]]])

@@ -48,8 +48,13 @@ REAL_PICKLES = {
     "mmdet3d": {"nuscenes": "nuscenes_dbinfos_train.pkl", "kitti": "kitti_dbinfos_train.pkl",
                 "lyft": "lyft_dbinfos_train.pkl"},
 }
-MMDET3D_CONFIGS = {"nuscenes": "centerpoint/centerpoint_voxel01_second_secfpn_8xb4-cyclic-20e_nus-3d.py",
-                   "kitti": "_base_/datasets/kitti-3d-3class.py", "lyft": "_base_/datasets/lyft-3d.py"}
+# The stock configs the user guide's mmdet3d table names: one whose dataset file defines the
+# sampler, one that defines its own db_sampler or pipeline.
+MMDET3D_CONFIGS = {"nuscenes": ("centerpoint/centerpoint_voxel01_second_secfpn_8xb4-cyclic-20e_nus-3d.py",
+                                "centerpoint/centerpoint_pillar02_second_secfpn_8xb4-cyclic-20e_nus-3d.py"),
+                   "kitti": ("_base_/datasets/kitti-3d-3class.py",
+                             "parta2/parta2_hv_secfpn_8xb2-cyclic-80e_kitti-3d-3class.py"),
+                   "lyft": ("_base_/datasets/lyft-3d.py", "ssn/ssn_hv_secfpn_sbn-all_16xb2-2x_lyft-3d.py")}
 GUIDE_NAMES = {"nuscenes": "nuScenes", "kitti": "KITTI", "lyft": "Lyft"}
 GUIDE = ROOT / "docs" / "user_guide.md"  # "Training with a bank"
 # Small grids; KITTI's inside camera 2's view and within 30 m, so every entry has a difficulty.
@@ -87,14 +92,18 @@ def export_arguments(dataset: str) -> tuple:
     return Path(words[words.index("--data-root") + 1]), Path(words[words.index("--out") + 1])
 
 
-def mmdet3d_change(dataset: str) -> dict:
-    """The user guide's mmdet3d change: {"info_path": file} or {"object_sample_code": code}."""
+def mmdet3d_child_config(dataset: str, config: str) -> str:
+    """The user guide's mmdet3d child config for ``dataset`` on the stock ``config``
+    (relative to mmdet3d's configs, written ``MMDET3D_CONFIGS/<config>``), with its table's
+    pickle."""
+    blocks = re.findall(r"```python\n(.*?)```", GUIDE.read_text(), re.S)
+    block = next(b for b in blocks if b.startswith("_base_ = [") and ("type='ObjectSample'" in b) == (dataset == "lyft"))
+    block = re.sub(r"_base_ = \['/path/to/mmdet3d/configs/[^']+'\]", f"_base_ = ['MMDET3D_CONFIGS/{config}']", block)
     if dataset == "lyft":
-        text = GUIDE.read_text()
-        block = next(b for b in re.findall(r"```python\n(.*?)```", text, re.S) if "type='ObjectSample'" in b)
-        return {"object_sample_code": block.strip().rstrip(","), "object_sample_after": "LoadAnnotations3D"}
+        return block
     span = next(s for s in readme_row("| dataset | config | change |", dataset) if s.startswith("info_path="))
-    return {"info_path": re.fullmatch(r"info_path=data_root \+ '([^']+)'", span).group(1)}
+    return block.replace("nuscenes_dbinfos_mixed.pkl",
+                         re.fullmatch(r"info_path=data_root \+ '([^']+)'", span).group(1))
 
 
 def test_the_user_guide_names_every_change():
@@ -104,9 +113,10 @@ def test_the_user_guide_names_every_change():
         assert openpcdet_change(dataset, "mixed") == {"DB_INFO_PATH": [f"{dataset}_dbinfos_mixed.pkl"]}
         root, bank = export_arguments(dataset)
         assert bank == root / "pgt_bank"
-        assert MMDET3D_CONFIGS[dataset] in GUIDE.read_text()
-    assert mmdet3d_change("kitti") == {"info_path": "kitti_dbinfos_mixed.pkl"}
-    assert "use_dim=[0, 1, 2, 4]" in mmdet3d_change("lyft")["object_sample_code"]
+        assert all(config in readme_row("| dataset | config | change |", dataset)
+                   for config in MMDET3D_CONFIGS[dataset])
+    assert "'kitti_dbinfos_mixed.pkl'" in mmdet3d_child_config("kitti", "x.py")
+    assert "use_dim=[0, 1, 2, 4]" in mmdet3d_child_config("lyft", "x.py")
 
 
 # --- banks under dataset roots --------------------------------------------------------
@@ -299,8 +309,11 @@ def mmdet3d_python() -> Path:
     return MMDET3D_PYTHON
 
 
-@pytest.mark.parametrize("dataset", DATASETS)
-def test_mmdet3d_stock_config_samples_the_bank(dataset, banks, pcdet, tmp_path, mmdet3d_python, shared_data):
+@pytest.mark.parametrize("dataset, config", [(dataset, config) for dataset in DATASETS
+                                             for config in MMDET3D_CONFIGS[dataset]])
+def test_mmdet3d_stock_config_samples_the_bank(dataset, config, banks, pcdet, tmp_path, mmdet3d_python, shared_data):
+    """The user guide's child config loaded as training loads it, run from the pipeline
+    training reads, in a working folder holding data/<dataset> as the stock data_root says."""
     root = dataset_root(tmp_path, "mmdet3d", dataset, banks, pcdet)
     scene = scene_of(dataset, openpcdet.CLASS_NAMES[dataset])
     keep = scene["gt_boxes_mask"]
@@ -310,18 +323,13 @@ def test_mmdet3d_stock_config_samples_the_bank(dataset, banks, pcdet, tmp_path, 
         points_file.write_bytes(points.astype(np.float32).tobytes())
     else:  # LoadPointsFromFile reads 5 columns and LoadPointsFromMultiSweeps zeroes the 5th
         points_file.write_bytes(points[:, :5].astype(np.float32).tobytes())
-    change = mmdet3d_change(dataset)
-    request = {"config": MMDET3D_CONFIGS[dataset], "data_root": f"{root}/", "seed": 0, "repeats": REPEATS,
+    request = {"child_config": mmdet3d_child_config(dataset, config), "seed": 0, "repeats": REPEATS,
                "out": str(tmp_path / "sampled.npz"),
                "scene": {"points_file": str(points_file), "boxes": scene["gt_boxes"][keep].tolist(),
                          "names": scene["gt_names"][keep].tolist()}}
-    if "info_path" in change:
-        request["db_sampler"] = {"info_path": f"{root}/{change['info_path']}"}
-    else:
-        request.update(change)
     (tmp_path / "request.json").write_text(json.dumps(request))
     result = subprocess.run([str(mmdet3d_python), str(ROOT / "tests" / "detectors" / "mmdet3d_sample.py"),
-                             str(tmp_path / "request.json")], capture_output=True, text=True)
+                             str(tmp_path / "request.json")], capture_output=True, text=True, cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     sampled = np.load(tmp_path / "sampled.npz")
     known = infos_by_box([root / f"{dataset}_dbinfos_mixed.pkl"])
@@ -511,7 +519,7 @@ def test_mmdet3d_places_the_bank_with_the_pgt_placement_transform(banks, pcdet, 
     points_file = tmp_path / "scene.bin"
     points_file.write_bytes(scene["points"].astype(np.float32).tobytes())
     _, step, custom_imports = placement_blocks()
-    request = {"config": MMDET3D_CONFIGS["kitti"], "data_root": f"{root}/", "seed": 0, "repeats": REPEATS,
+    request = {"config": MMDET3D_CONFIGS["kitti"][0], "data_root": f"{root}/", "seed": 0, "repeats": REPEATS,
                "out": str(tmp_path / "placed.npz"), "db_sampler": {"info_path": f"{root}/kitti_dbinfos_mixed.pkl"},
                "place": {"step": step, "custom_imports": custom_imports},
                "scene": {"points_file": str(points_file), "boxes": scene["gt_boxes"][keep].tolist(),

@@ -7,12 +7,13 @@ Runs in its own virtualenv (numpy >= 2; see mmdet3d-constraints.txt) and imports
 nothing of pgt_blender. The request (JSON):
 
 - ``config``: a config shipped with mmdet3d, relative to ``mmdet3d/.mim/configs``;
-- ``data_root``: the dataset root (the config's ``data_root``, here a test folder);
-- ``db_sampler``: keys set on the config's ``db_sampler`` dict (the documented change:
-  ``info_path``), plus ``data_root``; or, for configs without an ObjectSample step
-  (Lyft's), ``object_sample_code``: the step as Python (the user guide's), evaluated with
-  the config's ``class_names`` and ``data_root``, inserted after the step named by
-  ``object_sample_after``;
+- ``child_config``: the documented change, a child config as Python whose ``_base_``
+  names ``MMDET3D_CONFIGS/<config>`` (that folder's path is put in): loaded from a file
+  as training loads it, its ``ObjectSample`` step taken from the pipeline training
+  reads (``train_dataloader``'s, inside any dataset wrappers), its paths relative to the
+  working directory as the stock ``data_root`` is; or, for ``place``:
+- ``data_root``: the dataset root (the config's ``data_root``, here a test folder) and
+  ``db_sampler``: keys set on the config's ``db_sampler`` dict, plus ``data_root``;
 - ``scene``: ``points_file`` (float32 .bin, the dataset's columns), ``boxes``
   (gravity-centre LiDAR boxes x y z dx dy dz yaw [vx vy]), ``names``;
 - ``place`` (optional): keys of a step that replaces ObjectSample and takes its
@@ -46,22 +47,23 @@ def main(request_path: str) -> int:
     from mmdet3d.structures import LiDARInstance3DBoxes
     from mmengine.config import Config
     request = json.loads(Path(request_path).read_text())
-    stock = Path(mmdet3d.__file__).parent / ".mim" / "configs" / request["config"]
+    configs = Path(mmdet3d.__file__).parent / ".mim" / "configs"
+    child = Path(request["out"]).with_suffix(".config.py")
     if "place" in request:
-        child = Path(request["out"]).with_suffix(".config.py")
-        child.write_text(f"_base_ = [{str(stock)!r}]\ncustom_imports = {request['place']['custom_imports']!r}\n")
-        stock = child
-    config = Config.fromfile(str(stock))
-    pipeline = copy.deepcopy(config.train_pipeline)
-    types = [step["type"] for step in pipeline]
-    data_root = request["data_root"]
-    if "ObjectSample" in types:
-        step = pipeline[types.index("ObjectSample")]
-        step["db_sampler"].update(request["db_sampler"], data_root=data_root)
+        child.write_text(f"_base_ = [{str(configs / request['config'])!r}]\n"
+                         f"custom_imports = {request['place']['custom_imports']!r}\n")
+        pipeline = copy.deepcopy(Config.fromfile(str(child)).train_pipeline)
+        step = next(step for step in pipeline if step["type"] == "ObjectSample")
+        step["db_sampler"].update(request["db_sampler"], data_root=request["data_root"])
     else:
-        step = eval(request["object_sample_code"], {"dict": dict, "data_root": data_root,
-                                                    "class_names": config.class_names})
-        pipeline.insert(types.index(request["object_sample_after"]) + 1, step)
+        child.write_text(request["child_config"].replace("MMDET3D_CONFIGS/", f"{configs}/"))
+        dataset = Config.fromfile(str(child)).train_dataloader["dataset"]
+        while "pipeline" not in dataset:  # RepeatDataset, CBGSDataset
+            dataset = dataset["dataset"]
+        pipeline = copy.deepcopy(dataset["pipeline"])
+        step = next((step for step in pipeline if step["type"] == "ObjectSample"), None)
+        if step is None:
+            raise ValueError("the pipeline training reads has no ObjectSample step: the change did not reach it")
     loading = [TRANSFORMS.build(s) for s in pipeline if s["type"] in ("LoadPointsFromFile", "LoadPointsFromMultiSweeps")]
     if "place" in request:
         step = {**request["place"]["step"], "db_sampler": step["db_sampler"]}

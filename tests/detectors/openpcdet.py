@@ -40,7 +40,7 @@ CONFIGS = SOURCE / "tools" / "cfgs"
 KITTI_IMAGE_SHAPE = (375, 1242)  # rows, columns: KittiDataset.get_image_shape of the shared frames
 
 # The model configs' CLASS_NAMES: the nuScenes and Lyft ones from OpenPCDet's
-# cbgs_voxel0075_res3d_centerpoint.yaml and lyft_models/cbgs_voxel01_res3d_centerpoint.yaml,
+# cbgs_voxel0075_res3d_centerpoint.yaml and lyft_models/cbgs_second_multihead.yaml,
 # KITTI's from its 3-class models (pointpillar.yaml, second.yaml, pv_rcnn.yaml).
 CLASS_NAMES = {
     "nuscenes": ["car", "truck", "construction_vehicle", "bus", "trailer", "barrier", "motorcycle", "bicycle",

@@ -25,8 +25,9 @@ BOX_TAG = "pgt_box"
 
 
 def is_reconstruction(obj) -> bool:
-    """Whether ``obj`` is a mesh that pgt_blender imported (the authoring steps' input)."""
-    return obj is not None and obj.type == "MESH" and obj.pgt.source_kind != "none"
+    """Whether ``obj`` is a mesh that pgt_blender imported (the authoring steps' input);
+    a kind this version does not know (a stored index past its items reads "") is not."""
+    return obj is not None and obj.type == "MESH" and obj.pgt.source_kind not in ("none", "")
 
 
 @contextmanager

@@ -31,7 +31,9 @@ from ..core.scan.sensors import BIN_COLUMNS, INTENSITY_MAX
 from ..core.scan.targets import has_gaussians
 from .authoring import current_dims, is_reconstruction, status
 from .objects import box_empty, remove_datablocks, replace_collection
-from .scanning import mesh_triangles, mesh_vertices, point_colors, points_object, ramp, splat_attributes
+from .properties import field_path
+from .scanning import (mesh_triangles, mesh_vertices, point_colors, points_object, ramp, splat_attributes,
+                       warn_unscanned)
 
 
 def scene_bank_objects(scene: bpy.types.Scene) -> tuple[list, list]:
@@ -45,6 +47,7 @@ def scene_bank_objects(scene: bpy.types.Scene) -> tuple[list, list]:
         if reason:
             incomplete.append((obj.name, reason))
             continue
+        warn_unscanned(obj)
         mesh = obj.data
         faces = mesh_triangles(mesh)[0] if len(mesh.polygons) else np.zeros((0, 3), np.int32)
         splats = {} if len(faces) else splat_attributes(mesh)
@@ -61,7 +64,7 @@ def bank_config(settings, checkpoint: str = "") -> BankConfig:
     is set, else its fields over the defaults; ``checkpoint`` (the preferences' intensity
     checkpoint) makes the intensities learned, as in the Scan section."""
     if settings.config_file:
-        return load_config(bpy.path.abspath(settings.config_file))
+        return load_config(field_path(settings.config_file))
     if settings.dataset not in DATASET_GRIDS:  # "": a stored index this version has no item for
         raise InputError("Bank", "no dataset chosen: choose one in the Bank section")
     formats = tuple(name for name in FORMATS if getattr(settings, name))
@@ -84,7 +87,7 @@ def real_database(settings):
     if not settings.real_database:
         return None
     convention = None if settings.real_convention == "AUTO" else settings.real_convention
-    return bpy.path.abspath(settings.real_database), convention
+    return field_path(settings.real_database), convention
 
 
 def write_bank_report(out, real=None, reference=None) -> Path:
@@ -123,9 +126,9 @@ class BankRun:
         checked = checked_objects(objects, incomplete, settings.skip_incomplete, source)
         self.real = real_database(settings)
         self.reference = real_reference(self.real[0], config.to_dict(), convention=self.real[1]) if self.real else None
-        self.out = Path(bpy.path.abspath(settings.output))
+        self.out = Path(field_path(settings.output))
         self.existed = self.out.exists()
-        read = [bpy.data.filepath, settings.config_file and bpy.path.abspath(settings.config_file),
+        read = [bpy.data.filepath, settings.config_file and field_path(settings.config_file),
                 self.real and self.real[0]]
         with ExitStack() as held:  # the folder stays held until ``stop``
             held.enter_context(exporting(self.out))

@@ -16,7 +16,7 @@ from ..core.bank.folder import WORK
 from ..core.capture import CaptureOptions
 from ..core.classes import MINORITY_CLASSES
 from ..core.errors import InputError, one_line, printable
-from ..core.files import apart_from_inputs, atomic_output, regular_file
+from ..core.files import apart_from_inputs, atomic_output, output_path, regular_file
 from ..core.importing import SUPPORTED, find_reconstructions, load_reconstruction
 from . import authoring, bank, intensity, objects, placement, properties, scanning
 
@@ -422,6 +422,8 @@ class OBJECT_OT_pgt_turn(_AuthoringStep, bpy.types.Operator):
                        description="Counter-clockwise quarter turns seen from above")
 
     def step(self, context, obj, settings):
+        if not self.turns:  # would record a manual heading that nobody decided
+            raise InputError(obj.name, "0 quarter turns: nothing to turn")
         return prepare.turn_step(self.turns, authoring.current_dims(obj))
 
     def outcome(self, step, settings) -> str:
@@ -471,7 +473,7 @@ class OBJECT_OT_pgt_set_size(_AuthoringStep, bpy.types.Operator):
         """How the size came about: kept, exact, or drawn for the dataset's class (seed)."""
         details = step.details
         seed = f", seed {details['seed']}" if "seed" in details else ""
-        return f" ({details['mode']}: {details['dataset']} {details['class']}{seed})"
+        return f" ({details['mode']}: {details['dataset']} {details['class'] or '(no class)'}{seed})"
 
 
 class OBJECT_OT_pgt_scan(bpy.types.Operator):
@@ -651,7 +653,9 @@ class OBJECT_OT_pgt_author_selected(_BackgroundSteps, bpy.types.Operator):
         return True
 
     def steps(self, context):
-        """One object's remaining steps per step; object i by name sizes with seed + i."""
+        """One object's remaining steps per step; object i by name sizes with seed + i.
+        What concerns every object (the class, the heading checkpoint) is checked before
+        any changes."""
         settings = context.scene.pgt_authoring
         chosen = sorted((obj for obj in context.selected_objects if authoring.is_reconstruction(obj)),
                         key=lambda obj: obj.name)
@@ -660,6 +664,10 @@ class OBJECT_OT_pgt_author_selected(_BackgroundSteps, bpy.types.Operator):
             raise InputError("Author Selected", problem)
         for obj in chosen:
             authoring.require_authorable(obj)
+        if settings.heading_method == "classifier" and not all(authoring.status(obj)["heading"] for obj in chosen):
+            from ..core.authoring.heading_classifier import DEFAULT_CHECKPOINT, load_checkpoint
+
+            load_checkpoint(bpy.path.abspath(settings.checkpoint) if settings.checkpoint else DEFAULT_CHECKPOINT)
         self.objects, self.applied = len(chosen), 0
         yield 0.0
         for index, obj in enumerate(chosen):  # each step applies whole: an error stops between steps
@@ -723,7 +731,8 @@ class SCENE_OT_pgt_export_bank(_BackgroundSteps, _OnBankFolder, bpy.types.Operat
         """One chunk of entries per step (the Bank section's chunk size), then the assembly
         and the report."""
         settings = context.scene.pgt_bank
-        self.bank_run = run = bank.BankRun(context.scene, settings, _checkpoint(context))
+        with warnings_reported(self):  # what the bank leaves out of an object
+            self.bank_run = run = bank.BankRun(context.scene, settings, _checkpoint(context))
         settings.running, settings.stop_requested, settings.progress = True, False, 0.0
         settings.status = printable(f"exporting {run.total:,} entries to {run.out}")
         try:
@@ -787,8 +796,9 @@ class SCENE_OT_pgt_save_bank_config(bpy.types.Operator, ExportHelper):
     def execute(self, context):
         if _nothing_chosen(self, self.filepath, "file"):
             return {"CANCELLED"}
-        scene, out, checkpoint = context.scene, Path(bpy.path.abspath(self.filepath)), _checkpoint(context)
-        try:  # not over a file the scene reads (its own config file is written back the same)
+        scene, checkpoint = context.scene, _checkpoint(context)
+        try:  # a .toml, not over a file the scene reads (its own config file is written back the same)
+            out = output_path(properties.field_path(self.filepath), False, (".toml",))
             apart_from_inputs(out, [bpy.data.filepath, checkpoint] + [
                 bpy.path.abspath(path) for path in (scene.pgt_scan.sensor_file, scene.pgt_bank.real_database) if path])
             config = bank.bank_config(scene.pgt_bank, checkpoint)

@@ -12,6 +12,7 @@ from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorPro
 from ..core.authoring.prepare import UP_CHOICES
 from ..core.bank.config import MAX_SWEEPS, BankConfig
 from ..core.classes import CLASS_SIZES
+from ..core.errors import InputError
 from ..core.reconstruction import SOURCE_KINDS
 from ..core.scan.sensors import PRESETS
 
@@ -238,6 +239,16 @@ class PGTPreferences(bpy.types.AddonPreferences):
 
     def draw(self, context):
         self.layout.prop(self, "intensity_checkpoint")
+
+
+def field_path(path: str) -> str:
+    """A file or folder field's ``path`` made absolute: a "//" path is relative to the
+    .blend (bpy.path.abspath); InputError naming it while the .blend is not saved, where
+    Blender would resolve it against whatever folder it was started in."""
+    if path.startswith("//") and not bpy.data.filepath:
+        raise InputError(path, "is relative to the .blend file, which is not saved yet: save it first or give an "
+                               "absolute path")
+    return bpy.path.abspath(path)
 
 
 def preferences(context):

@@ -13,6 +13,7 @@ it and an edited mesh, color or material rebuilds it.
 """
 
 import math
+import warnings
 import zlib
 from dataclasses import replace
 
@@ -27,7 +28,8 @@ from ..core.scan.sensors import PRESETS, Sensor, load_sensor_toml
 from ..core.scan.targets import (DEFAULT_REFLECTIVITY, ScanTarget, gaussian_target, has_gaussians, mesh_target,
                                  reflectivity_from_linear, reflectivity_from_srgb, resolve_engine,
                                  see_through_materials, surfel_target)
-from .objects import add_attribute, made_here, mark_made, remove_datablocks, show_as_points
+from .objects import POINTS_GROUP, add_attribute, made_here, mark_made, remove_datablocks, show_as_points
+from .properties import field_path
 
 CUSTOM = "CUSTOM"
 SCAN_COLLECTION = "PGT Scan"
@@ -52,7 +54,7 @@ def sensor_of(settings) -> Sensor:
         raise InputError("Scan", "no sensor chosen: choose one in the Scan panel")
     if not settings.sensor_file:
         raise InputError("Custom sensor", "no .toml file chosen")
-    return load_sensor_toml(bpy.path.abspath(settings.sensor_file))
+    return load_sensor_toml(field_path(settings.sensor_file))
 
 
 def scan(obj: bpy.types.Object, settings, box=None) -> tuple[Scan, Sensor, np.ndarray]:
@@ -66,10 +68,26 @@ def scan(obj: bpy.types.Object, settings, box=None) -> tuple[Scan, Sensor, np.nd
     if not_finite:  # min/max do not hold NaN off a property that a script or driver set
         raise InputError("Scan", f"{not_finite[0]} must be a finite number, got {getattr(settings, not_finite[0])}")
     sensor, options = sensor_of(settings), ScanOptions()
+    warn_unscanned(obj)
     target = scan_target(obj, settings.surfel_scale, options.engine)
     x, y = settings.distance * math.cos(settings.azimuth), settings.distance * math.sin(settings.azimuth)
     sensor_from_object = placement(target.bounds if box is None else box, sensor, x, y, settings.heading)
     return cast_rays(target, sensor, sensor_from_object, options), sensor, sensor_from_object
+
+
+def warn_unscanned(obj: bpy.types.Object) -> None:
+    """Warn of what the scans and the bank leave out of ``obj``: they read its mesh data in
+    metres, not its modifiers (but the PGT Points display) nor its object scale."""
+    left_out = [f"its modifiers ({', '.join(modifier.name for modifier in modifiers)})"
+                for modifiers in [[modifier for modifier in obj.modifiers if not (
+                    modifier.type == "NODES" and modifier.node_group and modifier.node_group.name == POINTS_GROUP)]]
+                if modifiers]
+    scale = obj.matrix_world.to_scale()
+    if max(abs(value - 1.0) for value in scale) > 1e-6:
+        left_out.append(f"its scale ({', '.join(f'{value:.4g}' for value in scale)})")
+    if left_out:
+        warnings.warn(printable(f"{obj.name}: {' and '.join(left_out)} are not scanned, only its mesh data: apply "
+                                f"them (Object > Apply) to scan what the viewport shows"), stacklevel=2)
 
 
 def scan_target(obj: bpy.types.Object, radius_scale: float = 1.0, engine: str = "auto") -> ScanTarget:

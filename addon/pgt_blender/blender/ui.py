@@ -34,7 +34,8 @@ class VIEW3D_PT_pgt_import(_PGTPanel, bpy.types.Panel):
             return
         box = layout.box()
         settings = obj.pgt
-        box.label(text=f"{obj.name}: {settings.bl_rna.properties['source_kind'].enum_items[settings.source_kind].name}",
+        kind = settings.bl_rna.properties["source_kind"].enum_items.get(settings.source_kind)
+        box.label(text=f"{obj.name}: {kind.name if kind else 'a kind this version does not know'}",
                   icon="OUTLINER_OB_POINTCLOUD" if obj.type == "MESH" and not obj.data.polygons else "MESH_DATA")
         if obj.type == "MESH":
             box.label(text=f"{len(obj.data.vertices):,} points, {len(obj.data.polygons):,} faces, "
@@ -54,24 +55,24 @@ def reconstruction(context):
 
 
 def status_text(obj) -> str:
-    """One line: what is done and what is left for ``obj``, or what is wrong with its
-    step record."""
+    """One line: what is done and what is left for ``obj`` (a size without a class: the
+    bank leaves it out), or what is wrong with its step record."""
     problem = authoring.record_problem(obj)
     if problem:
         return problem
     done = authoring.status(obj)
     parts = ["aligned" if done["aligned"] else "not aligned",
              f"heading: {done['heading']}" if done["heading"] else "heading unset",
-             f"size: {done['size']}" if done["size"] else "size unset"]
+             f"size: {done['size']}{'' if obj.pgt.class_name else ', no class'}" if done["size"] else "size unset"]
     return " | ".join(parts)
 
 
 def status_icon(obj, not_done: str) -> str:
-    """CHECKMARK when every step of ``obj`` is done, ERROR for a damaged step record,
-    else ``not_done``."""
+    """CHECKMARK when every step of ``obj`` is done and it has a class (it can go into a
+    bank), ERROR for a damaged step record, else ``not_done``."""
     if authoring.record_problem(obj):
         return "ERROR"
-    return "CHECKMARK" if all(authoring.status(obj).values()) else not_done
+    return "CHECKMARK" if all(authoring.status(obj).values()) and obj.pgt.class_name else not_done
 
 
 def refinement_text(obj) -> str:
@@ -152,9 +153,9 @@ class VIEW3D_PT_pgt_size(_AuthoringPanel, bpy.types.Panel):
     def draw(self, context):
         layout, settings = self.layout, context.scene.pgt_authoring
         layout.prop(settings, "size_mode", expand=True)
+        layout.prop(settings, "dataset")  # every mode records the class, which the bank needs
+        _class_field(layout, settings, needed=True)
         if settings.size_mode == "class":
-            layout.prop(settings, "dataset")
-            _class_field(layout, settings, needed=True)
             layout.prop(settings, "seed")
         elif settings.size_mode == "exact":
             layout.prop(settings, "exact_dims")

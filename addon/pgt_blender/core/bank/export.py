@@ -226,8 +226,10 @@ def write_chunk(job: BankJob, cache: TargetCache, chunk_id: int, entries: np.nda
 
 
 def _group_id(entry) -> int:
-    """Unique over the bank: objects' grids never exceed 2**24 entries."""
-    return int(entry["object"]) * 2**24 + int(entry["index"])
+    """Unique over the bank (objects' grids never exceed 2**24 entries) and never a real
+    frame's index (from 2**24 up): a sampler that reads an entry's camera frame by it
+    fails at once instead of pasting another frame's image."""
+    return (int(entry["object"]) + 1) * 2**24 + int(entry["index"])
 
 
 _estimators: dict = {}
