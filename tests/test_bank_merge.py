@@ -107,9 +107,9 @@ def test_counts_per_ratio(real, bank, tmp_path, ratio, used):
     assert summary["skipped"] == ["Bus"] and summary["out"] == str(out)
 
 
-def test_entries_the_stock_kitti_filter_drops_count_on_neither_side(real, bank, tmp_path):
+def test_bank_entries_the_stock_kitti_filter_drops_are_never_drawn(real, bank, tmp_path):
     """Difficulty -1 (out of camera 2's view; filter_by_difficulty [-1] in every stock
-    KITTI config): real ones are kept but not counted, bank ones never drawn."""
+    KITTI config): real ones are kept and counted as they are, bank ones never drawn."""
     for path, hidden in ((real, {"Car": [0, 1]}), (bank, {"Car": range(0, 20, 2), "Cyclist": [0, 1, 2, 3]})):
         infos = load(path)
         for name, indices in hidden.items():
@@ -118,11 +118,11 @@ def test_entries_the_stock_kitti_filter_drops_count_on_neither_side(real, bank, 
         path.write_bytes(pickle.dumps(infos))
     summary = mix_databases(real, bank, tmp_path / "mixed.pkl", (1.0, 2.0))
     mixed = load(tmp_path / "mixed.pkl")
-    assert summary["classes"]["Car"] == {"real": 3, "requested": 6, "bank_available": 10, "bank_used": 6,
+    assert summary["classes"]["Car"] == {"real": 5, "requested": 10, "bank_available": 10, "bank_used": 10,
                                          "effective_ratio": 2.0}
     assert summary["classes"]["Cyclist"]["bank_available"] == 1 and summary["classes"]["Cyclist"]["bank_used"] == 1
     drawn = [info for infos in mixed.values() for info in infos if str(info["image_idx"]).startswith("pgt_")]
-    assert len(drawn) == 6 + 1 + 2 and all(info["difficulty"] != -1 for info in drawn)
+    assert len(drawn) == 10 + 1 + 2 and all(info["difficulty"] != -1 for info in drawn)
 
 
 def test_real_infos_first_and_unchanged_inputs_untouched(real, bank, tmp_path):

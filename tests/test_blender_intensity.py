@@ -165,7 +165,10 @@ def _give_the_name_to_another_mesh(obj, preview):
      "Box Scan: has no per-point int attribute 'face': scan Box again"),
     (lambda obj, preview: preview.data.color_attributes.remove(preview.data.color_attributes["color"]),
      "Box Scan: has no per-point color attribute 'color': scan Box again"),
-    (lambda obj, preview: setattr(obj, "scale", (1.0, 1.0, 0.0)), "Box: has a zero scale on an axis"),
+    (lambda obj, preview: setattr(obj, "scale", (1.0, 1.0, 0.0)) or preview.pop(scanning.POSE_TAG),
+     "Box: has a zero scale on an axis"),  # a preview made before the pose stamp
+    (lambda obj, preview: preview.__setitem__(scanning.POSE_TAG, [0.0] * 15),
+     "Box Scan: pgt_sensor_from_object must be 16 finite numbers: scan Box again"),
     (lambda obj, preview: preview.__setitem__(scanning.DATASET_TAG, "waymo"),
      "Box Scan: pgt_dataset = 'waymo' is not one of nuscenes, kitti, lyft"),
 ])
@@ -215,6 +218,21 @@ def test_an_authored_object_is_checked_against_its_scan_in_a_new_session(scene, 
     with pytest.raises(RuntimeError, match=f"{obj.name}: changed since the scan") as error:
         bpy.ops.object.pgt_apply_intensity()
     assert "Traceback" not in str(error.value) and np.array_equal(intensities(preview), learned)
+
+
+def test_moving_the_object_or_its_preview_since_the_scan_changes_nothing(scene, preferences, checkpoint):
+    """Apply takes the scan's own pose (stamped on the preview), not the one the two
+    objects' placements imply now."""
+    obj, _ = colored_box(scene)
+    preferences.intensity_checkpoint = str(checkpoint)
+    assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    preview = bpy.data.objects["Box Scan"]
+    learned = intensities(preview)
+    obj.location, obj.rotation_euler.z, preview.location.x = (3.0, -2.0, 0.5), 0.7, 5.0
+    bpy.context.view_layer.update()
+    bpy.context.view_layer.objects.active = preview
+    assert bpy.ops.object.pgt_apply_intensity() == {"FINISHED"}
+    assert np.array_equal(intensities(preview), learned)
 
 
 def test_a_preview_whose_object_name_went_to_a_camera_is_not_a_preview(scene, preferences, checkpoint):

@@ -4,8 +4,11 @@ The preview ("<name> Scan") holds the returns in the sensor frame, its ``face`` 
 naming the source's polygon (meshes) or vertex (point clouds) each return hit. The
 estimator wants each return in the source's *box frame* (box centre at the origin,
 +x forward, m) with the sRGB color of what it hit: points go sensor -> object frame by
-``inverse(source.matrix_world) @ preview.matrix_world`` (the preview is placed by
-``source.matrix_world @ inverse(sensor_from_object)``), then minus the box centre.
+the scan's pose ``sensor_from_object``, stamped on the preview (scanning.POSE_TAG), so
+moving the source or the preview since changes nothing; then minus the box centre. A
+preview made before the stamp takes the pose its placement implies, ``inverse(
+source.matrix_world) @ preview.matrix_world`` (the preview is placed by
+``source.matrix_world @ inverse(sensor_from_object)``).
 """
 
 import bpy
@@ -59,9 +62,9 @@ def element_rgb(source: bpy.types.Object) -> np.ndarray:
 
 def preview_scan(preview: bpy.types.Object, source: bpy.types.Object) -> Scan:
     """The preview's returns as a one-sweep core Scan: points and intensities in the
-    sensor frame, the ``face`` each hit, and the pose sensor_from_object the two objects'
-    matrices imply (see the module docstring). InputError when the preview lost its
-    ``face`` or ``intensity`` attribute or either object has a zero scale."""
+    sensor frame, the ``face`` each hit, and the scan's pose sensor_from_object (see the
+    module docstring). InputError when the preview lost its ``face`` or ``intensity``
+    attribute, its pose stamp is damaged or, unstamped, either object has a zero scale."""
     mesh = preview.data
     count = len(mesh.vertices)
     rows = np.zeros(count, RETURN_DTYPE)
@@ -76,8 +79,15 @@ def preview_scan(preview: bpy.types.Object, source: bpy.types.Object) -> Scan:
     if dataset not in INTENSITY_MAX:
         raise InputError(preview.name, f"{scanning.DATASET_TAG} = {dataset!r} is not one of "
                                        f"{', '.join(INTENSITY_MAX)}: scan {source.name} again")
-    object_from_world(source)  # a zero scale on either object is named, not a singular pose
-    sensor_from_object = np.array(object_from_world(preview) @ source.matrix_world)
+    stamp = preview.get(scanning.POSE_TAG)
+    if stamp is None:  # a preview made before the stamp
+        object_from_world(source)  # a zero scale on either object is named, not a singular pose
+        sensor_from_object = np.array(object_from_world(preview) @ source.matrix_world)
+    else:
+        sensor_from_object = np.array(stamp, np.float64).ravel()
+        if sensor_from_object.shape != (16,) or not np.isfinite(sensor_from_object).all():
+            raise InputError(preview.name, f"{scanning.POSE_TAG} must be 16 finite numbers: scan {source.name} again")
+        sensor_from_object = sensor_from_object.reshape(4, 4)
     return Scan(rows, np.zeros(9), count, 0.0, dataset, [sensor_from_object])
 
 

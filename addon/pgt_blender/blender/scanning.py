@@ -36,6 +36,7 @@ SCAN_COLLECTION = "PGT Scan"
 SOURCE_TAG = "pgt_scan_of"  # on every result object: the name of the object scanned
 DATASET_TAG = "pgt_dataset"  # on the points object: whose intensity scale its returns use
 GEOMETRY_TAG = "pgt_scanned_geometry"  # on the points object: scanned_geometry of the object scanned
+POSE_TAG = "pgt_sensor_from_object"  # on the points object: the scan's 4x4 pose, row by row (16 floats)
 POINT_RADIUS = 0.03  # m: a visible dot per return at street distances
 GROUND_MARGIN = 10.0  # m beyond the object's distance on each side
 CACHE_SIZE = 4  # objects whose BVH stays in memory
@@ -347,6 +348,7 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
         raise
     remove_results(source.name)
     points[DATASET_TAG], points[GEOMETRY_TAG] = sensor.dataset, scanned_geometry(source)
+    points[POSE_TAG] = np.asarray(sensor_from_object, np.float64).ravel().tolist()
     for obj, name in ((points, f"{source.name} Scan"), (origin, "PGT Sensor"), (ground, "PGT Ground")):
         obj.name = name  # the earlier result's name, free now
         obj[SOURCE_TAG] = source.name

@@ -7,8 +7,8 @@ pseudo-object bank at a GT:PGT ratio (the paper's default 1:1); the inputs are o
 
 Per class of the real database: every real info, then round(n_real * PGT / GT) bank
 infos of that class drawn without replacement (all of them when the bank has fewer).
-KITTI infos of difficulty -1, which the stock configs drop before sampling, count on
-neither side and are never drawn from the bank (the table's counts leave them out).
+Bank infos of KITTI difficulty -1, which the stock configs drop before sampling, are
+never drawn (the table's "bank" counts the others).
 Bank paths become relative to --root (default: the real pickle's folder, the dataset
 root of OpenPCDet and mmdetection3d) when the files lie under it, else absolute.
 Exit status 1 and a one-line message on bad input; nothing is written then.

@@ -339,12 +339,15 @@ def mesh_surface(kept: np.ndarray, vertices: np.ndarray, faces, source="points")
     the ``kept`` (N, 3) vertices as they are, noise 0 and ``MESH_SAMPLES`` points
     uniform over the area (seeded, so deterministic)."""
     faces = np.asarray(faces)
-    if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= len(vertices):
-        raise InputError(source, f"faces must be (F, 3) indices into {len(vertices)} vertices")
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu" or faces.min() < 0 \
+            or faces.max() >= len(vertices):
+        raise InputError(source, f"faces must be (F, 3) integer indices into {len(vertices)} vertices")
     corners = vertices[faces]
     cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     area = np.linalg.norm(cross, axis=1)
     used = area > 0
+    if not used.any():
+        raise InputError(source, "every face has zero area: no surface to align")
     normals = cross[used] / area[used, None]
     rng = np.random.default_rng(0)  # fixed: the same mesh gives the same frame
     face = rng.choice(len(area), MESH_SAMPLES, p=area / area.sum())
@@ -494,13 +497,18 @@ def _length_first(rotation, points, weights) -> np.ndarray:
 
 def _label_axes(rotation, points, weights) -> np.ndarray:
     """Rows of ``rotation`` reordered and signed: x the longest extent, y the axis of
-    mirror symmetry of the other two, z the remaining one (signs as the unrefined
-    frame's: the longer third-moment tail, else the source axes)."""
+    mirror symmetry of the other two, z the remaining one; when both are mirror axes
+    alike (errors within ISOTROPY: a plain box), z the one nearer the source +z, not
+    whichever the noise favours (signs as the unrefined frame's: the longer
+    third-moment tail, else the source axes)."""
     low, high = _trimmed_bounds(points @ rotation.T)
     x_row = int(np.argmax(high - low))
     others = [row for row in range(3) if row != x_row]
     errors = [mirror_error(points, rotation[row]) for row in others]
-    z_row = others[int(np.argmax(errors))]
+    if _equal(min(errors), max(errors)):
+        z_row = others[int(np.argmax(np.abs(rotation[others, 2])))]
+    else:
+        z_row = others[int(np.argmax(errors))]
     x = _signed(rotation[x_row], points, weights, np.array([1.0, 0.0, 0.0]))
     z = _signed(rotation[z_row], points, weights, _wheels_down(rotation[z_row], x, points))
     return np.stack([x, np.cross(z, x), z])

@@ -9,10 +9,10 @@ round: halves go to the even number), drawn without replacement and kept in the
 bank's order. 1:1 (the paper's best) doubles each class list; 1:0 copies the real
 database. When the bank holds fewer, all of them go in and the summary gives the
 effective ratio. Bank classes the real database lacks are skipped: the detector
-config names the classes it samples, and those come from the real data. Infos of
+config names the classes it samples, and those come from the real data. Bank infos of
 KITTI difficulty -1 (out of camera 2's view), which every stock KITTI config drops
-before sampling (``filter_by_difficulty: [-1]``), count on neither side and are never
-drawn from the bank: the ratio is the one the sampler sees.
+before sampling (``filter_by_difficulty: [-1]``), are never drawn: they would only
+dilute the ratio.
 
 Paths: the framework joins an info's ``path`` to the dataset root (OpenPCDet
 ``root_path / path``, mmdet3d ``os.path.join(data_root, path)``). Real infos are kept
@@ -65,7 +65,7 @@ def mix_databases(real_path, bank_path, out_path, ratio=(1.0, 1.0), seed=0, root
     bank_path: the bank's info pickle; its paths are relative to its folder. Only read.
     out_path:  the pickle to write (atomically); must be neither input.
     ratio:     ``(gt, pgt)``, e.g. ``parse_ratio("1:1")``; bank infos per class =
-               round(n_real * pgt / gt), n_real not counting difficulty -1.
+               round(n_real * pgt / gt), drawn from those not of difficulty -1.
     seed:      seed of the one ``np.random.default_rng`` drawing every class (sorted
                by name), so a seed gives the same bytes every time.
     root:      the dataset root the framework joins info paths to (default: the real
@@ -98,11 +98,10 @@ def mix_databases(real_path, bank_path, out_path, ratio=(1.0, 1.0), seed=0, root
     chosen, classes = {}, {}
     for name in sorted(real):
         sampled = _sampled(bank.get(name, []))
-        real_count = len(_sampled(real[name]))
-        requested = round(real_count * pgt / gt)
+        requested = round(len(real[name]) * pgt / gt)
         # Sorted indices: the drawn entries keep the bank's order.
         chosen[name] = sampled[np.sort(rng.choice(len(sampled), size=min(requested, len(sampled)), replace=False))]
-        classes[name] = _counts(real_count, requested, len(sampled), len(chosen[name]))
+        classes[name] = _counts(len(real[name]), requested, len(sampled), len(chosen[name]))
 
     merged = _merge(real, bank, chosen, info_path_root(bank_path).resolve(), root.resolve())
     out_path.parent.mkdir(parents=True, exist_ok=True)
