@@ -89,6 +89,19 @@ def test_ground_follows_slopes_and_kerbs_and_ignores_a_parked_van(surface):
     assert len(high) > 100 and (ground.height_above(high) > 0.3).all()
 
 
+def test_ground_follows_a_steep_grade_where_cells_see_one_or_two_rings():
+    """nuScenes rays on an 8 degree grade: a cell crossed by one or two rings takes its
+    slope from its neighbourhood (alone, the ridge pulled it to a quarter of the grade)."""
+    grade = np.tan(np.radians(8.0))
+    points, _ = cast(NUSCENES, (grade, 0.0, -1.84))
+    ground = estimate_ground(points)
+    slopes = ground.coefficients[..., 0][ground.measured]
+    assert np.median(slopes) > 0.9 * grade
+    xy = np.random.default_rng(0).uniform(-40, 40, (20000, 2))
+    xy = xy[ground.is_measured(xy) & (np.hypot(*xy.T) > 5)]
+    assert np.median(np.abs(ground.height(xy) - (-1.84 + grade * xy[:, 0]))) < 0.01
+
+
 def test_a_scan_without_ground_below_the_sensor_is_refused():
     ceiling, _ = cast(NUSCENES, (0.0, 0.0, 30.0))  # a plane above: only the upward beams see it
     with pytest.raises(InputError, match="scan.bin: no ground found"):

@@ -79,10 +79,9 @@ def scan(obj: bpy.types.Object, settings, box=None) -> tuple[Scan, Sensor, np.nd
 def warn_unscanned(obj: bpy.types.Object) -> None:
     """Warn of what the scans and the bank leave out of ``obj``: they read its mesh data in
     metres, not its modifiers (but the PGT Points display) nor its object scale."""
-    left_out = [f"its modifiers ({', '.join(modifier.name for modifier in modifiers)})"
-                for modifiers in [[modifier for modifier in obj.modifiers if not (
-                    modifier.type == "NODES" and modifier.node_group and modifier.node_group.name == POINTS_GROUP)]]
-                if modifiers]
+    modifiers = [modifier.name for modifier in obj.modifiers if not (
+        modifier.type == "NODES" and modifier.node_group and modifier.node_group.name == POINTS_GROUP)]
+    left_out = [f"its modifiers ({', '.join(modifiers)})"] if modifiers else []
     scale = obj.matrix_world.to_scale()
     if max(abs(value - 1.0) for value in scale) > 1e-6:
         left_out.append(f"its scale ({', '.join(f'{value:.4g}' for value in scale)})")
