@@ -34,6 +34,11 @@ def truck_file(tmp_path_factory):
     return write_sample(tmp_path_factory.mktemp("samples"), "truck", seed=2, points=6000)["reconstruction.ply"]
 
 
+@pytest.fixture(scope="module")
+def truck_mesh_file(tmp_path_factory):
+    return write_sample(tmp_path_factory.mktemp("samples"), "truck", seed=2)["mesh.ply"]
+
+
 def test_ui_and_headless_give_identical_objects(scene, truck_file, capfd):
     """Align, detect front (baseline), set a class size in the UI; prepare() on the same
     file with the same settings gives the same points, box and transform."""
@@ -113,10 +118,10 @@ def test_status_and_box_follow_the_steps(scene, truck_file):
     assert status_text(obj) == "aligned | heading unset | size: exact, no class"
 
 
-def test_a_meshs_dimensions_follow_the_steps(scene, tmp_path):
+def test_a_meshs_dimensions_follow_the_steps(scene, truck_mesh_file):
     """Blender's cached bounds of a mesh (Item > Dimensions, View Selected, culling) are
     those of its vertices after each step, not the imported ones."""
-    obj = imported(scene, write_sample(tmp_path, "truck", seed=2)["mesh.ply"])
+    obj = imported(scene, truck_mesh_file)
     scene.pgt_authoring.size_mode, scene.pgt_authoring.exact_dims = "exact", (1.0, 2.8, 1.1)  # turned: y is long
     for step in (bpy.ops.object.pgt_align, lambda: bpy.ops.object.pgt_turn(turns=1), bpy.ops.object.pgt_set_size):
         assert step() == {"FINISHED"}
@@ -125,10 +130,10 @@ def test_a_meshs_dimensions_follow_the_steps(scene, tmp_path):
     np.testing.assert_allclose(obj.dimensions, [1.0, 2.8, 1.1], rtol=0.02)
 
 
-def test_a_steps_warning_is_reported_in_the_status_bar(scene, tmp_path, capfd):
+def test_a_steps_warning_is_reported_in_the_status_bar(scene, truck_mesh_file, capfd):
     """Set Size's stretch warning, one WARNING line of the operator (Blender prints those
     as "Warning: ..."), not a UserWarning on the console only."""
-    obj = imported(scene, write_sample(tmp_path, "truck", seed=2)["mesh.ply"])
+    obj = imported(scene, truck_mesh_file)
     assert bpy.ops.object.pgt_align() == {"FINISHED"}
     scene.pgt_authoring.size_mode, scene.pgt_authoring.exact_dims = "exact", (2.0, 2.0, 2.0)
     capfd.readouterr()

@@ -336,12 +336,16 @@ def align(context, obj, settings) -> prepare.Step:
     return prepare.align_step(points, authoring.weights(obj), up, source, settings.refine, authoring.triangles(obj))
 
 
+def heading_checkpoint(settings) -> str | None:
+    """The Heading section's classifier checkpoint, absolute; None: the shipped one."""
+    return bpy.path.abspath(settings.checkpoint) if settings.checkpoint else None
+
+
 def detect_front(context, obj, settings) -> prepare.Step:
     """The Detect Front step of ``obj``."""
-    checkpoint = bpy.path.abspath(settings.checkpoint) if settings.checkpoint else None
     return prepare.automatic_heading_step(authoring.positions(obj), authoring.current_dims(obj),
-                                          settings.heading_method, checkpoint, obj.pgt.source_path or obj.name,
-                                          settings.class_name)
+                                          settings.heading_method, heading_checkpoint(settings),
+                                          obj.pgt.source_path or obj.name, settings.class_name)
 
 
 def set_size(context, obj, settings, seed: int | None = None) -> prepare.Step:
@@ -667,7 +671,7 @@ class OBJECT_OT_pgt_author_selected(_BackgroundSteps, bpy.types.Operator):
         if settings.heading_method == "classifier" and not all(authoring.status(obj)["heading"] for obj in chosen):
             from ..core.authoring.heading_classifier import DEFAULT_CHECKPOINT, load_checkpoint
 
-            load_checkpoint(bpy.path.abspath(settings.checkpoint) if settings.checkpoint else DEFAULT_CHECKPOINT)
+            load_checkpoint(heading_checkpoint(settings) or DEFAULT_CHECKPOINT)
         self.objects, self.applied = len(chosen), 0
         yield 0.0
         for index, obj in enumerate(chosen):  # each step applies whole: an error stops between steps
