@@ -312,10 +312,10 @@ def up_axis_degrees(found, rotation) -> float:
     return float(np.degrees(np.arccos(min(1.0, abs(found.transform[2, :3] @ rotation[:, 2])))))
 
 
-def posed_cloud(name, seed, noise, outliers, offset=100):
-    """A sample or Chrono cloud with noise (x box diagonal) and floaters, randomly posed
-    (moved by N(0, ``offset``) m)."""
-    points, dims = object_frame_points(name)
+def posed_cloud(name, seed, noise, outliers, offset=100, count=20000):
+    """A sample or Chrono cloud of ``count`` points with noise (x box diagonal) and
+    floaters, randomly posed (moved by N(0, ``offset``) m)."""
+    points, dims = object_frame_points(name, count)
     rng = np.random.default_rng(seed)
     noisy = observed(points, dims, noise, outliers, rng)
     rotation = random_rotation(rng)
@@ -441,6 +441,21 @@ def test_refined_box_is_not_inflated_by_noise_and_floaters(class_name, monkeypat
     source, rotation, dims, _ = posed_cloud(class_name, 7, 0.0, 0.0)
     clean = align_axes(source, up=rotation[:, 2], refine=True)
     assert np.abs(clean.dims / dims - 1).max() < 0.005
+
+
+@pytest.mark.parametrize("class_name", MINORITY_CLASSES)
+def test_dense_cloud_box_is_as_tight(class_name):
+    """100,000 points, 0.5 % noise (x box diagonal) and 10 % floaters, three random
+    poses: the nearest neighbours of a dense cloud lie near each point's own offset
+    from the surface, so the noise read from all of them came out 0.6-0.8 sigma and the
+    box grew by 2-8 %; the box is read from a sample of ``BOX_POINTS`` instead, and is
+    as tight as a 20,000-point cloud's: the worst axis within 1.2 % in the median over
+    the poses (1 % but for the bicycle, 1.1 %), no pose beyond 2.5 %."""
+    worst = []
+    for seed in (7, 8, 9):
+        source, rotation, dims, _ = posed_cloud(class_name, seed, 0.005, 0.1, count=100000)
+        worst.append(np.abs(align_axes(source, up=rotation[:, 2], refine=True).dims / dims - 1).max())
+    assert np.median(worst) < 0.012 and max(worst) < 0.025
 
 
 def prism(profile, length) -> trimesh.Trimesh:
