@@ -448,7 +448,7 @@ def test_dense_cloud_box_is_as_tight(class_name):
     """100,000 points, 0.5 % noise (x box diagonal) and 10 % floaters, three random
     poses: the nearest neighbours of a dense cloud lie near each point's own offset
     from the surface, so the noise read from all of them came out 0.6-0.8 sigma and the
-    box grew by 2-8 %; the box is read from a sample of ``BOX_POINTS`` instead, and is
+    box grew by 1-6 % in the median (up to 9 %); the box is read from a sample of ``BOX_POINTS`` instead, and is
     as tight as a 20,000-point cloud's: the worst axis within 1.2 % in the median over
     the poses (1 % but for the bicycle, 1.1 %), no pose beyond 2.5 %."""
     worst = []
