@@ -143,6 +143,25 @@ def test_a_steps_warning_is_reported_in_the_status_bar(scene, truck_mesh_file, c
     assert "UserWarning" not in err
 
 
+def test_set_size_warns_of_an_unapplied_object_scale(scene, truck_mesh_file, capfd):
+    """Set Size (Keep too) sizes the mesh data, as the scans and the bank read it: an object
+    scale left on would show another size in the viewport, so it is a WARNING line; the
+    step itself is the same as without the scale."""
+    obj = imported(scene, truck_mesh_file)
+    assert bpy.ops.object.pgt_align() == {"FINISHED"}
+    scene.pgt_authoring.size_mode = "keep"
+    capfd.readouterr()
+    assert bpy.ops.object.pgt_set_size() == {"FINISHED"}
+    assert "is not part of the size" not in capfd.readouterr().out
+    kept = np.array(obj.pgt.dims)
+    obj.scale = (2.0, 2.0, 1.5)
+    bpy.context.view_layer.update()
+    assert bpy.ops.object.pgt_set_size() == {"FINISHED"}
+    assert (f"Warning: {obj.name}: its scale (2, 2, 1.5) is not part of the size, which is its mesh data's: apply it "
+            "(Object > Apply > Scale) to see in the viewport the size the bank takes") in capfd.readouterr().out
+    np.testing.assert_array_equal(obj.pgt.dims, kept)
+
+
 def test_lengths_are_metres_whatever_the_unit_scale_and_bounded_as_on_the_command_lines(scene):
     """A centimetre scene (Unit Scale 0.01) would show and parse a length field through its
     unit while the core reads metres; the fields hold the command lines' bounds."""

@@ -353,6 +353,11 @@ def set_size(context, obj, settings, seed: int | None = None) -> prepare.Step:
     problem = properties.class_problem(settings) if settings.size_mode == "class" else ""
     if problem:
         raise InputError(obj.name, problem)
+    scale = scanning.unapplied_scale(obj)
+    if scale:
+        warnings.warn(printable(f"{obj.name}: {scale} is not part of the size, which is its mesh data's: apply it "
+                                f"(Object > Apply > Scale) to see in the viewport the size the bank takes"),
+                      stacklevel=2)
     return prepare.size_step(authoring.current_dims(obj), settings.size_mode, settings.dataset, settings.class_name,
                              settings.seed if seed is None else seed, settings.uniform, tuple(settings.exact_dims),
                              obj.name)

@@ -82,12 +82,21 @@ def warn_unscanned(obj: bpy.types.Object) -> None:
     modifiers = [modifier.name for modifier in obj.modifiers if not (
         modifier.type == "NODES" and modifier.node_group and modifier.node_group.name == POINTS_GROUP)]
     left_out = [f"its modifiers ({', '.join(modifiers)})"] if modifiers else []
-    scale = obj.matrix_world.to_scale()
-    if max(abs(value - 1.0) for value in scale) > 1e-6:
-        left_out.append(f"its scale ({', '.join(f'{value:.4g}' for value in scale)})")
+    scale = unapplied_scale(obj)
+    if scale:
+        left_out.append(scale)
     if left_out:
         warnings.warn(printable(f"{obj.name}: {' and '.join(left_out)} are not scanned, only its mesh data: apply "
                                 f"them (Object > Apply) to scan what the viewport shows"), stacklevel=2)
+
+
+def unapplied_scale(obj: bpy.types.Object) -> str:
+    """'its scale (2, 2, 2)' when ``obj``'s world scale is not 1, else '': the scans, the
+    bank and Set Size read its mesh data, in metres, not what the scale makes of it."""
+    scale = obj.matrix_world.to_scale()
+    if max(abs(value - 1.0) for value in scale) <= 1e-6:
+        return ""
+    return f"its scale ({', '.join(f'{value:.4g}' for value in scale)})"
 
 
 def scan_target(obj: bpy.types.Object, radius_scale: float = 1.0, engine: str = "auto") -> ScanTarget:
