@@ -143,6 +143,16 @@ def test_a_steps_warning_is_reported_in_the_status_bar(scene, truck_mesh_file, c
     assert "UserWarning" not in err
 
 
+def test_a_long_names_box_keeps_its_suffix(scene, truck_file):
+    """The box child of a 63-byte object is "<name, shortened> Box", not the object's own
+    name cut at Blender's 63 bytes and then ".001"."""
+    obj = imported(scene, truck_file)
+    obj.name = "T" * 63
+    assert bpy.ops.object.pgt_align() == {"FINISHED"}
+    (box,) = [child for child in obj.children if child.get(authoring.BOX_TAG)]
+    assert box.name == "T" * 59 + " Box"
+
+
 def test_set_size_warns_of_an_unapplied_object_scale(scene, truck_mesh_file, capfd):
     """Set Size (Keep too) sizes the mesh data, as the scans and the bank read it: an object
     scale left on would show another size in the viewport, so it is a WARNING line; the

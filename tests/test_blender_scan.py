@@ -520,6 +520,22 @@ def test_a_sensor_inside_the_object_is_a_warning(scene, capfd):
     assert "inside the object's box" not in capfd.readouterr().out
 
 
+@pytest.mark.parametrize("name", ["B" * 63, "Bé" * 21])
+def test_a_long_names_results_keep_their_suffix(scene, name):
+    """Blender cuts names at 63 bytes: a 63-byte object's scan is still "<name, shortened
+    by whole characters> Scan" (cut off, it was the object's own name and then ".001"),
+    and a second scan replaces it."""
+    vertices, faces = box_geometry()
+    obj = mesh_object(scene, name, vertices, faces)
+    assert len(obj.name.encode()) > 60
+    for _ in range(2):
+        bpy.context.view_layer.objects.active = obj
+        assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    results = [o.name for o in bpy.data.objects if o.get(scanning.SOURCE_TAG) == obj.name and scanning.DATASET_TAG in o]
+    assert results == [objects.suffixed(obj.name, " Scan")]
+    assert results[0].endswith(" Scan") and results[0][:-5] in obj.name and len(results[0].encode()) <= 63
+
+
 def test_modifiers_and_an_object_scale_are_a_warning_and_not_scanned(scene, capfd):
     """The scan reads the mesh data in metres: an Array modifier and a scale of 2 change
     nothing in it, and a warning says they are left out."""

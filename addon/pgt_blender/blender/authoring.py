@@ -18,7 +18,7 @@ from ..core.authoring.alignment import checked_points
 from ..core.authoring.prepare import Step, apply_to_splats, apply_transform, checked_steps, heading_label
 from ..core.boxes import centred_bounds
 from ..core.errors import InputError
-from .objects import _BLENDER_FROM_OPENCV, POINTS_GROUP
+from .objects import _BLENDER_FROM_OPENCV, POINTS_GROUP, suffixed
 from .scanning import splat_attributes
 
 BOX_TAG = "pgt_box"
@@ -195,7 +195,7 @@ def show_box(obj: bpy.types.Object) -> bpy.types.Object:
     """The wire cube child showing the object's box (made on first use)."""
     box = next((child for child in obj.children if child.get(BOX_TAG)), None)
     if box is None:
-        box = bpy.data.objects.new(f"{obj.name} Box", None)
+        box = bpy.data.objects.new(suffixed(obj.name, " Box"), None)
         box[BOX_TAG] = True
         box.empty_display_type = "CUBE"
         box.hide_select = True

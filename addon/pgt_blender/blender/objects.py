@@ -17,6 +17,7 @@ _BLENDER_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 ROLE_TAG = "pgt_role"  # on a collection the add-on made: what it shows (replace_collection)
 MADE_TAG = "pgt_made_as"  # on what the add-on made and replaces later: the name it was made with
 _SENSOR_WIDTH_MM = 36.0
+MAX_NAME_BYTES = 63  # Blender cuts a datablock's name to this many UTF-8 bytes
 _ATTRIBUTE_TYPES = {  # (dtype kind, columns) -> (Blender type, foreach_set field)
     ("f", 1): ("FLOAT", "value"), ("i", 1): ("INT", "value"), ("b", 1): ("BOOLEAN", "value"),
     ("f", 2): ("FLOAT2", "vector"), ("f", 3): ("FLOAT_VECTOR", "vector"),
@@ -65,6 +66,14 @@ def box_empty(name: str, box: np.ndarray, made: list) -> bpy.types.Object:
     cube.empty_display_type = "CUBE"
     cube.location, cube.rotation_euler, cube.scale = box[:3], (0.0, 0.0, box[6]), np.asarray(box[3:6]) / 2
     return cube
+
+
+def suffixed(name: str, suffix: str) -> str:
+    """``name`` + ``suffix`` within Blender's MAX_NAME_BYTES: the name is shortened by whole
+    characters so that the suffix stays (cut off, a long object's " Scan" would leave its
+    result named like the object itself, then ".001")."""
+    room = MAX_NAME_BYTES - len(suffix.encode())
+    return name.encode()[:room].decode(errors="ignore") + suffix
 
 
 def mark_made(block) -> None:

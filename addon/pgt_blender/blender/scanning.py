@@ -28,7 +28,8 @@ from ..core.scan.sensors import PRESETS, Sensor, load_sensor_toml
 from ..core.scan.targets import (DEFAULT_REFLECTIVITY, ScanTarget, gaussian_target, has_gaussians, mesh_target,
                                  reflectivity_from_linear, reflectivity_from_srgb, resolve_engine,
                                  see_through_materials, surfel_target)
-from .objects import POINTS_GROUP, add_attribute, made_here, mark_made, remove_datablocks, show_as_points
+from .objects import (POINTS_GROUP, add_attribute, made_here, mark_made, remove_datablocks, show_as_points,
+                      suffixed)
 from .properties import field_path
 
 CUSTOM = "CUSTOM"
@@ -342,9 +343,10 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
     scan just made of ``source`` (scanned_geometry reads what its target was made of).
     Returns the points object."""
     world = source.matrix_world @ Matrix(np.linalg.inv(sensor_from_object).tolist())
+    name = suffixed(source.name, " Scan")
     made = []
     try:
-        points = points_object(f"{source.name} Scan", result.returns,
+        points = points_object(name, result.returns,
                                return_colors(result.returns, sensor, settings.color_by), made)
         origin = bpy.data.objects.new("PGT Sensor", None)
         made.append(origin)
@@ -357,8 +359,8 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
     remove_results(source.name)
     points[DATASET_TAG], points[GEOMETRY_TAG] = sensor.dataset, scanned_geometry(source)
     points[POSE_TAG] = np.asarray(sensor_from_object, np.float64).ravel().tolist()
-    for obj, name in ((points, f"{source.name} Scan"), (origin, "PGT Sensor"), (ground, "PGT Ground")):
-        obj.name = name  # the earlier result's name, free now
+    for obj, new_name in ((points, name), (origin, "PGT Sensor"), (ground, "PGT Ground")):
+        obj.name = new_name  # the earlier result's name, free now
         obj[SOURCE_TAG] = source.name
         mark_made(obj)
         obj.matrix_world = world
