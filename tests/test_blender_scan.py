@@ -536,6 +536,20 @@ def test_a_long_names_results_keep_their_suffix(scene, name):
     assert results[0].endswith(" Scan") and results[0][:-5] in obj.name and len(results[0].encode()) <= 63
 
 
+def test_a_rescans_meshes_keep_their_names(scene):
+    """Each scan builds its results before it removes the last ones (a failed scan leaves
+    them): the new meshes' names, taken while the old ones still held them, are the
+    results' own again ("Box Scan", "PGT Ground"), not ".001" on every second scan."""
+    vertices, faces = box_geometry()
+    obj = mesh_object(scene, "Box", vertices, faces)
+    for _ in range(2):
+        bpy.context.view_layer.objects.active = obj
+        assert bpy.ops.object.pgt_scan() == {"FINISHED"}
+    for name in ("Box Scan", "PGT Ground"):
+        assert bpy.data.objects[name].data.name == name
+    assert not [mesh.name for mesh in bpy.data.meshes if "." in mesh.name]
+
+
 def test_modifiers_and_an_object_scale_are_a_warning_and_not_scanned(scene, capfd):
     """The scan reads the mesh data in metres: an Array modifier and a scale of 2 change
     nothing in it, and a warning says they are left out."""

@@ -361,6 +361,8 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
     points[POSE_TAG] = np.asarray(sensor_from_object, np.float64).ravel().tolist()
     for obj, new_name in ((points, name), (origin, "PGT Sensor"), (ground, "PGT Ground")):
         obj.name = new_name  # the earlier result's name, free now
+        if obj.data is not None:  # and its mesh's, which went with it
+            obj.data.name = new_name
         obj[SOURCE_TAG] = source.name
         mark_made(obj)
         obj.matrix_world = world
