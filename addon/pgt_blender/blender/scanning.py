@@ -343,10 +343,10 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
     scan just made of ``source`` (scanned_geometry reads what its target was made of).
     Returns the points object."""
     world = source.matrix_world @ Matrix(np.linalg.inv(sensor_from_object).tolist())
-    name = suffixed(source.name, " Scan")
+    scan_name = suffixed(source.name, " Scan")
     made = []
     try:
-        points = points_object(name, result.returns,
+        points = points_object(scan_name, result.returns,
                                return_colors(result.returns, sensor, settings.color_by), made)
         origin = bpy.data.objects.new("PGT Sensor", None)
         made.append(origin)
@@ -359,10 +359,10 @@ def show_scan(scene: bpy.types.Scene, source: bpy.types.Object, result: Scan, se
     remove_results(source.name)
     points[DATASET_TAG], points[GEOMETRY_TAG] = sensor.dataset, scanned_geometry(source)
     points[POSE_TAG] = np.asarray(sensor_from_object, np.float64).ravel().tolist()
-    for obj, new_name in ((points, name), (origin, "PGT Sensor"), (ground, "PGT Ground")):
-        obj.name = new_name  # the earlier result's name, free now
+    for obj, name in ((points, scan_name), (origin, "PGT Sensor"), (ground, "PGT Ground")):
+        obj.name = name  # the earlier result's name, free now
         if obj.data is not None:  # and its mesh's, which went with it
-            obj.data.name = new_name
+            obj.data.name = name
         obj[SOURCE_TAG] = source.name
         mark_made(obj)
         obj.matrix_world = world
