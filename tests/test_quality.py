@@ -138,7 +138,7 @@ def test_objects_stream_and_only_chosen_files_are_read(real, tmp_path):
 # --- the ranking check --------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def banks(tmp_path_factory) -> dict:
+def banks(tmp_path_factory, shared_data) -> dict:  # its objects include a Chrono mesh
     work = tmp_path_factory.mktemp("quality")
     return build_banks(ranking_objects(work / "objects"), BASE, work / "banks")
 

@@ -195,7 +195,7 @@ def test_bench_cluster_quick(tmp_path, shared_data):  # the Chrono truck on loca
     assert (tmp_path / "cluster.png").stat().st_size > 0
 
 
-def test_bench_intensity_quick(tmp_path):
+def test_bench_intensity_quick(tmp_path, shared_data):  # fitted to the real KITTI scans
     pytest.importorskip("torch")
     result = run_script("bench_intensity.py", "--quick", "--out", tmp_path / "intensity")
     assert result.returncode == 0, result.stderr
