@@ -536,6 +536,16 @@ def test_a_long_names_results_keep_their_suffix(scene, name):
     assert results[0].endswith(" Scan") and results[0][:-5] in obj.name and len(results[0].encode()) <= 63
 
 
+def test_a_long_names_box_empty_keeps_its_suffix(scene):
+    """The bank preview's and the placement's cubes are "<name> box" by the same rule, a
+    file name's undecodable byte written as its escape."""
+    made = []
+    cube = objects.box_empty("E" * 62 + "\udcff", np.zeros(7), made)
+    assert cube.name == "E" * 59 + " box" and made == [cube]
+    assert objects.box_empty("bin\udcff", np.zeros(7), made).name == "bin\\udcff box"
+    objects.remove_datablocks(made)
+
+
 def test_a_rescans_meshes_keep_their_names(scene):
     """Each scan builds its results before it removes the last ones (a failed scan leaves
     them): the new meshes' names, taken while the old ones still held them, are the

@@ -200,7 +200,7 @@ def preview_bank(scene: bpy.types.Scene, folder, count: int) -> tuple:
             returns["intensity"] = rows[:, 3]
             name = Path(info["path"]).stem
             points_object(name, returns, ramp(np.clip(rows[:, 3] / INTENSITY_MAX[dataset], 0.0, 1.0)), made)
-            box_empty(f"{name} box", box, made)
+            box_empty(name, box, made)
     except BaseException:
         remove_datablocks(made)
         raise

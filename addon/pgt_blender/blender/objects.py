@@ -59,9 +59,9 @@ def add_reconstruction(scene: bpy.types.Scene, recon: Reconstruction, with_camer
         raise
 
 
-def box_empty(name: str, box: np.ndarray, made: list) -> bpy.types.Object:
-    """A cube empty drawing a (>= 7,) centre box x y z dx dy dz heading (sensor frame)."""
-    cube = bpy.data.objects.new(printable(name), None)
+def box_empty(of: str, box: np.ndarray, made: list) -> bpy.types.Object:
+    """A cube empty "<of> box" drawing a (>= 7,) centre box x y z dx dy dz heading (sensor frame)."""
+    cube = bpy.data.objects.new(suffixed(of, " box"), None)
     made.append(cube)
     cube.empty_display_type = "CUBE"
     cube.location, cube.rotation_euler, cube.scale = box[:3], (0.0, 0.0, box[6]), np.asarray(box[3:6]) / 2
@@ -69,11 +69,11 @@ def box_empty(name: str, box: np.ndarray, made: list) -> bpy.types.Object:
 
 
 def suffixed(name: str, suffix: str) -> str:
-    """``name`` + ``suffix`` within Blender's MAX_NAME_BYTES: the name is shortened by whole
-    characters so that the suffix stays (cut off, a long object's " Scan" would leave its
-    result named like the object itself, then ".001")."""
+    """``printable(name)`` + ``suffix`` within Blender's MAX_NAME_BYTES: the name is
+    shortened by whole characters so that the suffix stays (cut off, a long object's
+    " Scan" would leave its result named like the object itself, then ".001")."""
     room = MAX_NAME_BYTES - len(suffix.encode())
-    return name.encode()[:room].decode(errors="ignore") + suffix
+    return printable(name).encode()[:room].decode(errors="ignore") + suffix
 
 
 def mark_made(block) -> None:

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..core.placement.folder import read_placement
 from ..core.scan.sensors import INTENSITY_MAX
-from .objects import box_empty, remove_datablocks, replace_collection
+from .objects import box_empty, remove_datablocks, replace_collection, suffixed
 from .scanning import points_object, ramp
 
 COLLECTION = "PGT Placed Scene"
@@ -27,13 +27,14 @@ def load_placement(scene: bpy.types.Scene, folder) -> tuple:
     try:
         inserted = [box for box in record["boxes"] if box.get("rows")]
         first_scene_row = max([box["rows"][1] for box in inserted], default=0)
-        shown = [_points(f"{Path(record['scan']).stem} scene", points[first_scene_row:], columns, intensity_max, made)]
+        scene_name = suffixed(Path(record["scan"]).stem, " scene")
+        shown = [_points(scene_name, points[first_scene_row:], columns, intensity_max, made)]
         for index, box in enumerate(inserted):
             start, stop = box["rows"]
             name = f"{box['class']} {index} ({box.get('object') or Path(box['entry']).stem})"
             shown += [_points(name, points[start:stop], columns, intensity_max, made),
-                      box_empty(f"{name} box", np.asarray(box["box"]), made)]
-        shown += [box_empty(f"{box['class']} box", np.asarray(box["box"]), made)
+                      box_empty(name, np.asarray(box["box"]), made)]
+        shown += [box_empty(box["class"], np.asarray(box["box"]), made)
                   for box in record["boxes"] if not box.get("rows")]
     except BaseException:
         remove_datablocks(made)
